@@ -1,0 +1,1 @@
+"""Device drivers, emulators and perception (installed as dexdrake.hardware)."""

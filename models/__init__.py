@@ -1,0 +1,1 @@
+"""Robot models, object sets and trained weights shipped with dexdrake."""

@@ -1,0 +1,1 @@
+"""Drake LeafSystems and diagram builders (installed as dexdrake.systems)."""

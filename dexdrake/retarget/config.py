@@ -1,0 +1,134 @@
+"""Retargeting configs: which robot frames stand for which human keypoints, scales, weights.
+
+One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
+
+    hand: allegro
+    wrist: {body: palm_link, offset: [0, 0, -0.095]}   # robot point for human keypoint 0
+    fingers:                                             # any subset of thumb..little
+      thumb: {tip: {fingertip: thtip}, base: {body: link_14.0}}
+      index: {tip: {body: link_3.0_tip, offset: [0, 0, 0]}, base: {body: link_1.0}}
+    scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
+    weights: {wrist: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
+              wrist_position: 0.05, smooth: 4.0e-3}
+    pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
+    solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6}
+
+A point is `{fingertip: NAME}` (a fingertip of the hand description) or
+`{body: BODY, offset: [x, y, z]}`; `human:` overrides the human keypoint it matches
+(defaults: tip 4/8/12/16/20, base 2/5/9/13/17 for thumb/index/middle/ring/little).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.hands.description import HandDescription
+
+FINGER_NAMES = ("thumb", "index", "middle", "ring", "little")
+HUMAN_TIP = {"thumb": 4, "index": 8, "middle": 12, "ring": 16, "little": 20}
+HUMAN_BASE = {"thumb": 2, "index": 5, "middle": 9, "ring": 13, "little": 17}
+CONFIG_DIR = Path(__file__).parent / "configs"
+
+
+@dataclass(frozen=True)
+class RobotPoint:
+    name: str
+    body: str
+    offset: tuple[float, float, float]
+    human: int  # index of the matching human keypoint (MediaPipe order)
+
+
+@dataclass(frozen=True)
+class PinchParams:
+    eps_enter: float = 0.03
+    eps_leave: float = 0.05
+    eta1: float = 1e-4
+    eta2: float = 0.03
+    s1: float = 200.0
+    s2: float = 400.0
+
+
+@dataclass(frozen=True)
+class RetargetConfig:
+    hand: str
+    wrist: RobotPoint
+    fingers: tuple[str, ...]  # in FINGER_NAMES order
+    tips: tuple[RobotPoint, ...]
+    bases: tuple[RobotPoint, ...]
+    scales: dict[str, float | str] = field(default_factory=dict)
+    weights: dict[str, float] = field(default_factory=dict)
+    pinch: PinchParams = PinchParams()
+    iterations: int = 10
+    first_iterations: int = 80
+    damping: float = 1e-6
+
+    def weight(self, key: str) -> float:
+        return float(self.weights.get(key, _DEFAULT_WEIGHTS[key]))
+
+    def scale(self, key: str) -> float | str:
+        return self.scales.get(key, "auto" if key != "object" else 1.0)
+
+
+_DEFAULT_WEIGHTS = {"wrist": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
+                    "wrist_position": 0.05, "smooth": 4e-3}
+
+
+def _point(hand: HandDescription, name: str, d: dict, human: int) -> RobotPoint:
+    if not isinstance(d, dict):
+        raise DexdrakeError(f"retarget config {hand.name}: {name} must be a mapping")
+    if "fingertip" in d:
+        tips = {t.name: t for t in hand.fingertips}
+        if d["fingertip"] not in tips:
+            raise UnknownNameError(f"fingertip of hand {hand.name}", d["fingertip"], tips)
+        t = tips[d["fingertip"]]
+        body, offset = t.body, t.offset
+    elif "body" in d:
+        body, offset = d["body"], tuple(float(x) for x in d.get("offset", (0, 0, 0)))
+    else:
+        raise DexdrakeError(f"retarget config {hand.name}: {name} needs 'fingertip' or 'body'")
+    return RobotPoint(name, body, tuple(offset), int(d.get("human", human)))
+
+
+def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
+    """Build a RetargetConfig from its YAML mapping, checking names against the hand."""
+    fingers = d.get("fingers") or {}
+    unknown = [f for f in fingers if f not in FINGER_NAMES]
+    if unknown or "thumb" not in fingers:
+        raise DexdrakeError(f"retarget config {hand.name}: fingers must include thumb and be "
+                            f"among {FINGER_NAMES}; got {list(fingers)}")
+    order = tuple(f for f in FINGER_NAMES if f in fingers)
+    tips = tuple(_point(hand, f"{f}.tip", fingers[f]["tip"], HUMAN_TIP[f]) for f in order)
+    bases = tuple(_point(hand, f"{f}.base", fingers[f]["base"], HUMAN_BASE[f]) for f in order)
+    wrist = _point(hand, "wrist", d.get("wrist") or {"body": hand.wrist_body}, 0)
+    s = d.get("solver") or {}
+    return RetargetConfig(
+        hand=hand.name, wrist=wrist, fingers=order, tips=tips, bases=bases,
+        scales=dict(d.get("scales") or {}), weights=dict(d.get("weights") or {}),
+        pinch=PinchParams(**(d.get("pinch") or {})),
+        iterations=int(s.get("iterations", 10)),
+        first_iterations=int(s.get("first_iterations", 80)),
+        damping=float(s.get("damping", 1e-6)),
+    )
+
+
+def load_config(hand: HandDescription, config: str | Path | dict | None = None
+                ) -> RetargetConfig:
+    """The config for `hand`: a mapping, a YAML path, or (None) the shipped configs/<hand>.yaml."""
+    if isinstance(config, dict):
+        return config_from_dict(hand, config)
+    path = Path(config) if config is not None else CONFIG_DIR / f"{hand.name}.yaml"
+    if not path.is_file():
+        shipped = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+        raise DexdrakeError(f"no retarget config {path} (shipped: {', '.join(shipped)}); "
+                            "see dexdrake/retarget/config.py for the schema")
+    return config_from_dict(hand, yaml.safe_load(path.read_text()))
+
+
+def auto_scale(robot_len: np.ndarray, human_len: np.ndarray) -> np.ndarray:
+    """Per-vector scale k = robot length / human length (human lengths floored at 1 cm)."""
+    return np.asarray(robot_len) / np.maximum(np.asarray(human_len), 0.01)

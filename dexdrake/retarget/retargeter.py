@@ -1,0 +1,316 @@
+"""Human keypoints -> robot joint angles, solved per frame with a bounded Levenberg-Marquardt
+on CasADi-generated key vectors and Jacobians.
+
+Objective per frame (DexRepNet, DexPilot-style), over all policy joints (the 6 virtual arm
+joints are the global hand pose M_g):
+    sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth || q - q_prev ||^2,   lo <= q <= hi
+Key vectors v_i (robot) and their human counterparts v_i^H:
+    wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human)
+    finger  thumb tip -> each tip, tip -> tip              t_i = k_f v_i^H, or DexPilot's pinch
+            projection: thumb-finger with human length < eps: t = eta1 * unit, w = s1;
+            finger-finger with both fingers pinching: t = eta2 * unit, w = s2
+            (eps hysteresis eps_enter / eps_leave)
+    object  fingertip -> object anchor (the object point closest to the human fingertip)
+            t_i = v_i^H, w = w_obj / (1 + (d_i / decay)^2) with d_i the human tip's distance
+    position  world origin -> wrist point, t = human wrist (small weight: holds the global
+            position when no object is given)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from dexdrake.demos.format import HumanDemo
+from dexdrake.errors import DexdrakeError
+from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.retarget.config import RetargetConfig, auto_scale, load_config
+from dexdrake.retarget.kinematics import extract_tree, symbolic_points
+
+
+@dataclass(frozen=True)
+class KeyVectors:
+    """Index pairs (a -> b) into the extended point list [robot points, anchors, origin]."""
+
+    a: np.ndarray
+    b: np.ndarray
+    kind: tuple[str, ...]  # "wrist" | "thumb-finger" | "finger-finger" | "object" | "position"
+    fingers: tuple[tuple[int, ...], ...]  # finger indices (into config.fingers) involved
+
+
+def _key_vectors(cfg: RetargetConfig) -> KeyVectors:
+    nf = len(cfg.fingers)
+    wrist, tip, base = 0, 1, 1 + nf
+    anchor, origin = 1 + 2 * nf, 1 + 3 * nf
+    a, b, kind, fingers = [], [], [], []
+
+    def add(i, j, k, f):
+        a.append(i), b.append(j), kind.append(k), fingers.append(f)
+
+    for f in range(nf):
+        add(wrist, tip + f, "wrist", (f,))
+        add(wrist, base + f, "wrist", (f,))
+    for f in range(1, nf):  # finger 0 is the thumb
+        add(tip, tip + f, "thumb-finger", (0, f))
+    for f in range(1, nf):
+        for g in range(f + 1, nf):
+            add(tip + f, tip + g, "finger-finger", (f, g))
+    for f in range(nf):
+        add(tip + f, anchor + f, "object", (f,))
+    add(origin, wrist, "position", ())
+    return KeyVectors(np.array(a), np.array(b), tuple(kind), tuple(fingers))
+
+
+class Retargeter:
+    """Retargets 21 human keypoints to the joint angles (policy order) of a robot hand.
+
+    Build once per hand (FK graph and solver functions are made here), then call
+    `retarget_frame` per frame or `retarget_sequence` per demo.
+    """
+
+    def __init__(self, hand_name: str | HandDescription,
+                 config: str | Path | dict | RetargetConfig | None = None):
+        self.hand = hand_name if isinstance(hand_name, HandDescription) else load_hand(hand_name)
+        self.config = config if isinstance(config, RetargetConfig) else load_config(
+            self.hand, config)
+        cfg = self.config
+        self.joint_names = self.hand.policy_joints
+        self.lower, self.upper = self.hand.joint_limits()
+        self.points = [cfg.wrist, *cfg.tips, *cfg.bases]
+        self.human_index = np.array([p.human for p in self.points])
+        tree = extract_tree(self.hand.model_path)
+        q, P = symbolic_points(tree, self.joint_names,
+                               [(p.body, np.array(p.offset)) for p in self.points])
+        self.fk = ca.Function("fk", [q], [P])
+        nf = len(cfg.fingers)
+        self.kv = kv = _key_vectors(cfg)
+        a = ca.SX.sym("anchors", 3 * nf)  # row-major (nf, 3)
+        E = ca.vertcat(P, ca.reshape(a, 3, nf).T, ca.SX.zeros(1, 3))
+        V = E[kv.b.tolist(), :] - E[kv.a.tolist(), :]
+        v = ca.reshape(V.T, -1, 1)  # row-major flattening
+        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q))])
+        # zero-copy evaluation: inputs/outputs live in these numpy buffers
+        self._q, self._a = np.zeros(len(self.joint_names)), np.zeros(3 * nf)
+        self._v, self._JT = np.zeros(3 * len(kv.kind)), np.zeros((len(self.joint_names),
+                                                                  3 * len(kv.kind)))
+        self._buf, self._eval = vj.buffer()
+        for i, arr in enumerate((self._q, self._a)):
+            self._buf.set_arg(i, memoryview(arr))
+        for i, arr in enumerate((self._v, self._JT)):
+            self._buf.set_res(i, memoryview(arr))
+        kinds = np.array(kv.kind)
+        self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
+                                               "object", "position")}
+        self._tf = np.flatnonzero(self._masks["thumb-finger"])
+        self._tf_finger = np.array([kv.fingers[i][1] for i in self._tf], int)
+        self._ff = np.flatnonzero(self._masks["finger-finger"])
+        self._ff_pair = np.array([kv.fingers[i] for i in self._ff], int).reshape(-1, 2)
+        self.scales = self._scales()
+        self._pinch = np.zeros(nf, bool)
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    def reference_q(self) -> np.ndarray:
+        """The hand's pre-grasp pose (cold-start guess)."""
+        return self.hand.pregrasp_vector()
+
+    def _scales(self) -> np.ndarray:
+        from dexdrake.demos.human_hand import open_hand_keypoints
+
+        cfg, kv = self.config, self.kv
+        q0 = np.clip(np.zeros(self.num_joints), self.lower, self.upper)
+        robot = self._extended(np.asarray(self.fk(q0)), np.zeros((len(cfg.fingers), 3)))
+        human = self._extended(open_hand_keypoints()[self.human_index],
+                               np.zeros((len(cfg.fingers), 3)))
+        r_len = np.linalg.norm(robot[kv.b] - robot[kv.a], axis=1)
+        h_len = np.linalg.norm(human[kv.b] - human[kv.a], axis=1)
+        k = np.ones(len(kv.kind))
+        wrist = np.array([c == "wrist" for c in kv.kind])
+        finger = np.array([c in ("thumb-finger", "finger-finger") for c in kv.kind])
+        sw, sf = cfg.scale("wrist"), cfg.scale("finger")
+        k[wrist] = auto_scale(r_len[wrist], h_len[wrist]) if sw == "auto" else float(sw)
+        tips = wrist & (np.arange(len(k)) % 2 == 0)  # wrist -> tip vectors
+        k[finger] = np.median(auto_scale(r_len[tips], h_len[tips])) if sf == "auto" \
+            else float(sf)
+        k[np.array([c == "object" for c in kv.kind])] = float(cfg.scale("object"))
+        return k
+
+    @staticmethod
+    def _extended(points: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+        return np.vstack([points, anchors, np.zeros((1, 3))])
+
+    def reset(self) -> None:
+        """Forget the pinch (hysteresis) state, e.g. at the start of a new sequence."""
+        self._pinch[:] = False
+
+    def targets(self, keypoints: np.ndarray, anchors: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(targets (m, 3), weights (m,), anchors used) for one frame; updates pinch state."""
+        cfg, kv, pp = self.config, self.kv, self.config.pinch
+        nf = len(cfg.fingers)
+        kp = np.asarray(keypoints, float)
+        if kp.shape != (21, 3) or not np.all(np.isfinite(kp)):
+            raise DexdrakeError(f"keypoints must be a finite (21, 3) array, got {kp.shape}")
+        has_obj = anchors is not None
+        A = np.asarray(anchors, float) if has_obj else np.zeros((nf, 3))
+        if A.shape != (nf, 3):
+            raise DexdrakeError(f"object_points must be ({nf}, 3): one per finger "
+                                f"{cfg.fingers}, got {A.shape}")
+        E = self._extended(kp[self.human_index], A)
+        vh = E[kv.b] - E[kv.a]
+        T = vh * self.scales[:, None]
+        d = np.linalg.norm(vh, axis=1)
+        m = self._masks
+        w = (cfg.weight("wrist") * m["wrist"] + cfg.weight("wrist_position") * m["position"]
+             + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"]))
+        if has_obj:
+            w[m["object"]] = cfg.weight("object") / (
+                1 + (d[m["object"]] / cfg.weight("object_decay")) ** 2)
+        # DexPilot pinch projection with hysteresis (eps_enter to enter, eps_leave to leave)
+        eps = np.where(self._pinch[self._tf_finger], pp.eps_leave, pp.eps_enter)
+        self._pinch[self._tf_finger] = d[self._tf] < eps
+        unit = vh / np.maximum(d, 1e-9)[:, None]
+        s1 = self._tf[self._pinch[self._tf_finger]]
+        T[s1], w[s1] = pp.eta1 * unit[s1], pp.s1
+        if len(self._ff):
+            s2 = self._ff[self._pinch[self._ff_pair].all(axis=1)]
+            T[s2], w[s2] = pp.eta2 * unit[s2], pp.s2
+        return T, w, A
+
+    def retarget_frame(self, keypoints: np.ndarray, object_points: np.ndarray | None = None,
+                       q_prev: np.ndarray | None = None) -> np.ndarray:
+        """Joint angles (policy order) for one frame of 21 world keypoints (MediaPipe order).
+
+        object_points: (n_fingers, 3) world points of the object closest to each human
+        fingertip of the config's fingers (None: no finger-to-object terms). q_prev: the
+        previous frame's solution (warm start + smoothness); None = cold start.
+        """
+        if q_prev is None:
+            self.reset()
+            T, w, A = self.targets(keypoints, object_points)
+            q0 = self.reference_q()
+            return self._solve(T, w, A, q0, q0, 0.0, self.config.first_iterations)
+        q_prev = np.asarray(q_prev, float)
+        if q_prev.shape != (self.num_joints,):
+            raise DexdrakeError(f"q_prev must have shape ({self.num_joints},), got "
+                                f"{q_prev.shape}")
+        T, w, A = self.targets(keypoints, object_points)
+        q0 = np.clip(q_prev, self.lower, self.upper)
+        return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
+
+    def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
+        lo, hi = self.lower, self.upper
+        sw = np.repeat(np.sqrt(w), 3)
+        t = T.reshape(-1)
+        n = self.num_joints
+
+        self._a[:] = A.ravel()
+        eye = np.eye(n)
+
+        def evaluate(qq):
+            self._q[:] = qq
+            self._eval()
+            r = sw * (self._v - t)
+            dq = qq - q_ref
+            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dq @ dq)
+
+        r, J, cost = evaluate(q)
+        mu = self.config.damping
+        for _ in range(iterations):
+            g = J.T @ r + smooth * (q - q_ref)
+            H = J.T @ J + (smooth + mu) * eye
+            free = ~(((q <= lo + 1e-9) & (g > 0)) | ((q >= hi - 1e-9) & (g < 0)))
+            step = np.zeros(n)
+            if free.all():
+                step = -np.linalg.solve(H, g)
+            else:
+                step[free] = -np.linalg.solve(H[np.ix_(free, free)], g[free])
+            q_new = np.clip(q + step, lo, hi)
+            r_new, J_new, cost_new = evaluate(q_new)
+            if cost_new <= cost:
+                converged = np.max(np.abs(q_new - q)) < 1e-4
+                q, r, J, cost = q_new, r_new, J_new, cost_new
+                mu = max(mu * 0.3, 1e-9)
+                if converged:
+                    break
+            else:
+                mu = max(mu * 10, 1e-6)
+        return q
+
+    def robot_points(self, q: np.ndarray) -> np.ndarray:
+        """World positions of the config's robot points [wrist, tips..., bases...]."""
+        return np.asarray(self.fk(np.asarray(q, float)))
+
+    def residuals(self, keypoints: np.ndarray, q: np.ndarray) -> dict[str, np.ndarray]:
+        """Key-vector residuals ||v^R - k v^H|| (m) without pinch projection: 'wrist'
+        (wrist->tip/base), 'finger' (tip->tip), and 'thumb' (vectors that involve the thumb)."""
+        kv = self.kv
+        nf = len(self.config.fingers)
+        H = self._extended(np.asarray(keypoints)[self.human_index], np.zeros((nf, 3)))
+        R = self._extended(self.robot_points(q), np.zeros((nf, 3)))
+        err = np.linalg.norm((R[kv.b] - R[kv.a]) - self.scales[:, None] * (H[kv.b] - H[kv.a]),
+                             axis=1)
+        kinds = np.array(kv.kind)
+        wrist = kinds == "wrist"
+        finger = (kinds == "thumb-finger") | (kinds == "finger-finger")
+        thumb = np.array([0 in f for f in kv.fingers]) & (wrist | finger)
+        return {"wrist": err[wrist], "finger": err[finger], "thumb": err[thumb],
+                "all": err[wrist | finger]}
+
+    def object_points(self, keypoints: np.ndarray, closest) -> np.ndarray:
+        """Anchors for one frame: `closest(points (n, 3)) -> (n, 3)` object surface points."""
+        tips = np.asarray(keypoints)[[p.human for p in self.config.tips]]
+        return np.asarray(closest(tips))
+
+    def retarget_sequence(self, demo: HumanDemo, object_mesh=None, progress: bool = True
+                          ) -> np.ndarray:
+        """(T, n_joints) joint trajectory for a demo, warm-started frame to frame.
+
+        object_mesh: a trimesh.Trimesh in the object frame for finger-to-object vectors;
+        None = look the demo's object up in the object library, and skip the object terms
+        if it is not there.
+        """
+        from tqdm import tqdm
+
+        closest = _closest_point_fn(demo, object_mesh)
+        self.reset()
+        out = np.zeros((demo.num_frames, self.num_joints))
+        q = None
+        for t in tqdm(range(demo.num_frames), desc=f"retarget {self.hand.name}",
+                      disable=not progress, unit="frame"):
+            kp = demo.keypoints[t]
+            anchors = None if closest is None else self.object_points(
+                kp, lambda p, t=t: closest(p, t))
+            q = self.retarget_frame(kp, anchors, q)
+            out[t] = q
+        return out
+
+
+def _closest_point_fn(demo: HumanDemo, mesh):
+    """closest(points_world, frame) -> object surface points in the world, or None."""
+    from dexdrake.demos.trim import SignedDistance, quat_wxyz_to_matrix
+
+    if mesh is None and demo.object_name:
+        try:
+            import trimesh
+
+            from dexdrake.objects.library import get_object
+
+            mesh = trimesh.load(get_object(demo.object_name).mesh_path, force="mesh")
+        except (ImportError, KeyError, AttributeError, OSError):
+            mesh = None
+    if mesh is None:
+        return None
+    sdf = SignedDistance(mesh.vertices, mesh.faces)
+    Rs = quat_wxyz_to_matrix(demo.object_quat)
+
+    def closest(p, t):
+        R, x = Rs[t], demo.object_pos[t]
+        return sdf.closest_points((p - x) @ R) @ R.T + x
+
+    return closest

@@ -1,0 +1,237 @@
+"""Safety building blocks shared by every hardware driver.
+
+Joint-limit clamps with non-finite rejection, a rate limiter on commanded targets, a
+watchdog fed by received frames, a latch that keeps the first fault, and a context manager
+that routes Ctrl-C, SIGTERM and exceptions to the driver's safe stop, plus the loop-period
+statistics every driver reports. Pure Python + numpy;
+every time-dependent piece takes an injectable monotonic clock so tests can drive time.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from dexdrake.errors import DexdrakeError
+
+Clock = Callable[[], float]
+
+
+class HardwareError(DexdrakeError):
+    """A hardware driver or device problem a user can act on."""
+
+
+def _vector(values: Sequence[float] | np.ndarray | float, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise HardwareError(f"{name}: expected {n} values, got shape {arr.shape}")
+    return arr
+
+
+class JointLimits:
+    """Clamps position commands into [lower, upper]; holds the last safe command on NaN/inf.
+
+    `apply(q)` returns the command to send. A command with any non-finite element is
+    rejected as a whole: the last safe command is returned instead, `rejected` counts it
+    and `last_rejected` is set until the next accepted command.
+    """
+
+    def __init__(self, lower: Sequence[float] | np.ndarray, upper: Sequence[float] | np.ndarray,
+                 initial: Sequence[float] | np.ndarray | None = None):
+        lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+        if lo.ndim != 1 or lo.shape != hi.shape:
+            raise HardwareError(f"limits: lower {lo.shape} and upper {hi.shape} must be equal 1-D")
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise HardwareError("limits: lower and upper must be finite")
+        if np.any(lo > hi):
+            raise HardwareError(f"limits: lower > upper at joints {np.flatnonzero(lo > hi).tolist()}")
+        self.lower, self.upper = lo, hi
+        start = np.clip(0.0, lo, hi) if initial is None else _vector(initial, lo.size, "initial")
+        self._last_safe = np.clip(start, lo, hi) if np.all(np.isfinite(start)) else np.clip(0.0, lo, hi)
+        self.rejected = 0
+        self.clamped = 0
+        self.last_rejected = False
+
+    @property
+    def size(self) -> int:
+        return self.lower.size
+
+    @property
+    def last_safe(self) -> np.ndarray:
+        return self._last_safe.copy()
+
+    def reset(self, q: Sequence[float] | np.ndarray) -> None:
+        """Make (the clamped, finite) `q` the command held on the next rejection."""
+        q = _vector(q, self.size, "reset")
+        if not np.all(np.isfinite(q)):
+            raise HardwareError("limits: reset value must be finite")
+        self._last_safe = np.clip(q, self.lower, self.upper)
+
+    def apply(self, q: Sequence[float] | np.ndarray) -> np.ndarray:
+        """The safe version of command `q` (clamped, or the last safe one if non-finite)."""
+        q = _vector(q, self.size, "command")
+        if not np.all(np.isfinite(q)):
+            self.rejected += 1
+            self.last_rejected = True
+            return self._last_safe.copy()
+        self.last_rejected = False
+        safe = np.clip(q, self.lower, self.upper)
+        if np.any(safe != q):
+            self.clamped += 1
+        self._last_safe = safe
+        return safe.copy()
+
+
+class RateLimiter:
+    """Moves an output toward a target by at most `max_rate` (units/s) per step."""
+
+    def __init__(self, max_rate: Sequence[float] | np.ndarray | float, initial: Sequence[float] | np.ndarray):
+        init = np.asarray(initial, dtype=float)
+        if init.ndim != 1 or not np.all(np.isfinite(init)):
+            raise HardwareError("rate limiter: initial must be a finite 1-D vector")
+        self.max_rate = _vector(max_rate, init.size, "max_rate")
+        if np.any(~np.isfinite(self.max_rate)) or np.any(self.max_rate <= 0):
+            raise HardwareError("rate limiter: max_rate must be finite and > 0")
+        self._out = init.copy()
+
+    @property
+    def output(self) -> np.ndarray:
+        return self._out.copy()
+
+    def reset(self, q: Sequence[float] | np.ndarray) -> None:
+        """Jump the output to `q` (e.g. the measured position when the loop starts)."""
+        q = _vector(q, self._out.size, "reset")
+        if not np.all(np.isfinite(q)):
+            raise HardwareError("rate limiter: reset value must be finite")
+        self._out = q.copy()
+
+    def step(self, target: Sequence[float] | np.ndarray, dt: float) -> np.ndarray:
+        """Advance the output toward the finite `target` over `dt` seconds and return it."""
+        target = _vector(target, self._out.size, "target")
+        if not np.all(np.isfinite(target)):
+            raise HardwareError("rate limiter: target must be finite (clamp it first)")
+        if not (np.isfinite(dt) and dt >= 0):
+            raise HardwareError(f"rate limiter: dt must be finite and >= 0, got {dt}")
+        delta = np.clip(target - self._out, -self.max_rate * dt, self.max_rate * dt)
+        self._out = self._out + delta
+        return self._out.copy()
+
+
+class Watchdog:
+    """Expires when `feed()` has not been called for more than `timeout` seconds.
+
+    The timer starts at construction (or `reset()`), so a stream that never starts expires too.
+    """
+
+    def __init__(self, timeout: float, clock: Clock = time.monotonic):
+        if not (np.isfinite(timeout) and timeout > 0):
+            raise HardwareError(f"watchdog: timeout must be > 0 s, got {timeout}")
+        self.timeout = float(timeout)
+        self._clock = clock
+        self._last = clock()
+        self.feeds = 0
+
+    def reset(self, now: float | None = None) -> None:
+        """Restart the timer without counting a feed."""
+        self._last = self._clock() if now is None else now
+
+    def feed(self, now: float | None = None) -> None:
+        """Record that a packet/frame arrived."""
+        self._last = self._clock() if now is None else now
+        self.feeds += 1
+
+    def since_last(self, now: float | None = None) -> float:
+        return (self._clock() if now is None else now) - self._last
+
+    def expired(self, now: float | None = None) -> bool:
+        return self.since_last(now) > self.timeout
+
+
+@dataclass(frozen=True)
+class Fault:
+    reason: str
+    time: float
+
+
+class FaultLatch:
+    """Keeps the first fault; once tripped it stays tripped until `reset()`. Thread safe."""
+
+    def __init__(self, clock: Clock = time.monotonic):
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._fault: Fault | None = None
+        self.trips = 0
+
+    def trip(self, reason: str) -> bool:
+        """Latch `reason` if nothing is latched yet; True when this call latched it."""
+        with self._lock:
+            self.trips += 1
+            if self._fault is not None:
+                return False
+            self._fault = Fault(reason, self._clock())
+            return True
+
+    @property
+    def tripped(self) -> bool:
+        return self._fault is not None
+
+    @property
+    def fault(self) -> Fault | None:
+        return self._fault
+
+    @property
+    def reason(self) -> str | None:
+        return None if self._fault is None else self._fault.reason
+
+    def reset(self) -> None:
+        """Clear the latch (an explicit operator action)."""
+        with self._lock:
+            self._fault = None
+
+
+@contextmanager
+def safe_stop_on_exit(stop: Callable[[], None],
+                      signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Run the body; on any exit (normal, exception, Ctrl-C, SIGTERM) call `stop()` once.
+
+    In the main thread SIGINT/SIGTERM handlers are installed for the duration: they raise
+    KeyboardInterrupt inside the body, so the stop runs before the process unwinds. The
+    previous handlers are restored afterwards. Exceptions are re-raised after the stop.
+    """
+
+    def _raise(signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    previous: dict[int, object] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in signals:
+            previous[sig] = signal.signal(sig, _raise)
+    try:
+        yield
+    finally:
+        try:
+            stop()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+
+def period_stats(times: Sequence[float]) -> dict[str, float]:
+    """Rate and period statistics (mean/p50/p99/max, in ms) of a sequence of timestamps."""
+    t = np.asarray(times, dtype=float)
+    if t.size < 2:
+        return {"cycles": float(t.size), "rate_hz": 0.0, "mean_ms": math.nan, "p50_ms": math.nan,
+                "p99_ms": math.nan, "max_ms": math.nan}
+    dt = np.diff(t) * 1e3
+    return {"cycles": float(t.size), "rate_hz": float(1e3 / dt.mean()), "mean_ms": float(dt.mean()),
+            "p50_ms": float(np.percentile(dt, 50)), "p99_ms": float(np.percentile(dt, 99)),
+            "max_ms": float(dt.max())}

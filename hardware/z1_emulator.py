@@ -1,0 +1,281 @@
+"""An emulated `z1_controller` on loopback UDP (for tests and hardware-in-loop).
+
+It binds the controller port (8072 by default) and answers every SendCmd with a RecvState
+(to the sender's address, or to a fixed reply port such as 8071). State machine: starts
+PASSIVE (joint damping only); LOWCMD is entered only from PASSIVE and left only to PASSIVE;
+JOINTCTRL is entered from PASSIVE and tracks the commanded positions with the controller's
+default gains; other states are not emulated and are refused. Silence in LOWCMD/JOINTCTRL
+for `command_timeout_s` drops the arm to PASSIVE. Joint dynamics (no gravity, i.e. a
+gravity-compensated arm): I * ddq = clip(tau, +-effort) - b * dq inside hard joint stops, with
+LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff.
+Fault injection: stall replies, corrupt replies, report a motor error.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from dexdrake.hardware.safety import HardwareError
+from dexdrake.hardware.z1_udp import (
+    CONTROLLER_PORT,
+    DEFAULT_KD,
+    DEFAULT_KP,
+    KD_SCALE,
+    KP_SCALE,
+    NUM_ARM_JOINTS,
+    NUM_MOTOR_SLOTS,
+    ArmFSMState,
+    JointState,
+    MotorState,
+    PacketError,
+    RecvState,
+    SendCmd,
+    default_joint_limits,
+)
+
+# z1.md kinematics: joint origins (m, in the parent) and axes, joint1..joint6
+_ORIGINS = np.array([[0, 0, 0.0585], [0, 0, 0.045], [-0.35, 0, 0], [0.218, 0, 0.057],
+                     [0.07, 0, 0], [0.0492, 0, 0]])
+_AXES = "zyyyzx"
+EFFORT = (30.0, 60.0, 30.0, 30.0, 30.0, 30.0)
+
+
+def _rot(axis: str, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+            "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+            "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+
+def flange_posture(q: Sequence[float]) -> tuple[float, ...]:
+    """(rx, ry, rz, x, y, z) of link06 in link00: roll-pitch-yaw (R = Rz Ry Rx) and position."""
+    rot, pos = np.eye(3), np.zeros(3)
+    for origin, axis, angle in zip(_ORIGINS, _AXES, q):
+        pos = pos + rot @ origin
+        rot = rot @ _rot(axis, angle)
+    rx = math.atan2(rot[2, 1], rot[2, 2])
+    ry = math.atan2(-rot[2, 0], math.hypot(rot[2, 1], rot[2, 2]))
+    rz = math.atan2(rot[1, 0], rot[0, 0])
+    return (rx, ry, rz, *pos.tolist())
+
+
+@dataclass(frozen=True)
+class Z1EmulatorConfig:
+    host: str = "127.0.0.1"
+    port: int = CONTROLLER_PORT  # 0: an ephemeral port (tests)
+    reply_port: int | None = None  # None: reply to the sender's address
+    inertia: Sequence[float] = (0.15, 0.3, 0.15, 0.05, 0.03, 0.02)  # kg m^2, reflected
+    damping: float = 0.5  # N m s / rad, always present
+    passive_damping: float = 5.0  # N m s / rad, PASSIVE mode
+    effort: Sequence[float] = EFFORT
+    jointctrl_kp: Sequence[float] = DEFAULT_KP
+    jointctrl_kd: Sequence[float] = DEFAULT_KD
+    command_timeout_s: float = 0.1
+    physics_dt_s: float = 0.0005
+    q0: Sequence[float] | None = None
+    lower: Sequence[float] | None = None
+    upper: Sequence[float] | None = None
+    seed: int = 0
+
+
+class Z1Emulator:
+    """The controller side, in a thread: `start()` / `stop()` or a context manager."""
+
+    _ENTRY = {ArmFSMState.LOWCMD: {ArmFSMState.PASSIVE, ArmFSMState.LOWCMD},
+              ArmFSMState.JOINTCTRL: {ArmFSMState.PASSIVE, ArmFSMState.JOINTCTRL}}
+
+    def __init__(self, config: Z1EmulatorConfig | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        self.config = cfg = config or Z1EmulatorConfig()
+        self._clock = clock
+        lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
+                  else (cfg.lower, cfg.upper))
+        self.lower, self.upper = np.asarray(lo, float), np.asarray(hi, float)
+        q0 = np.clip(np.zeros(NUM_ARM_JOINTS) if cfg.q0 is None else np.asarray(cfg.q0, float),
+                     self.lower, self.upper)
+        if q0.shape != (NUM_ARM_JOINTS,):
+            raise HardwareError(f"Z1 emulator q0 needs {NUM_ARM_JOINTS} values")
+        self._inertia = np.asarray(cfg.inertia, float)
+        self._effort = np.asarray(cfg.effort, float)
+        self._lock = threading.Lock()
+        self._q, self._dq, self._tau = q0, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS)
+        self.fsm = ArmFSMState.PASSIVE
+        self._q_d = q0.copy()
+        self._dq_d = np.zeros(NUM_ARM_JOINTS)
+        self._tau_ff = np.zeros(NUM_ARM_JOINTS)
+        self._kp = np.zeros(NUM_ARM_JOINTS)
+        self._kd = np.zeros(NUM_ARM_JOINTS)
+        self._last_cmd = -math.inf
+        self.rejected_transitions: collections.Counter[str] = collections.Counter()
+        self.packet_errors: collections.Counter[str] = collections.Counter()
+        self.commands_received = 0
+        self.stall_until = -math.inf
+        self.corrupt_replies = False
+        self.motor_error: tuple[int, int] | None = None  # (joint index, flags)
+        self._rng = np.random.default_rng(cfg.seed)
+        self._sock: socket.socket | None = None
+        self._running = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # --------------------------------------------------------------- control
+    @property
+    def port(self) -> int:
+        if self._sock is None:
+            raise HardwareError("Z1 emulator: not started")
+        return self._sock.getsockname()[1]
+
+    @property
+    def q(self) -> np.ndarray:
+        with self._lock:
+            return self._q.copy()
+
+    def start(self) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((self.config.host, self.config.port))
+        except OSError as err:
+            sock.close()
+            raise HardwareError(f"Z1 emulator: cannot bind {self.config.host}:{self.config.port}: {err}") from err
+        sock.setblocking(False)
+        self._sock = sock
+        self._running.set()
+        self._thread = threading.Thread(target=self._run, name="z1-emulator", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._running.clear()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def __enter__(self) -> Z1Emulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stall(self, seconds: float) -> None:
+        """Send no replies for `seconds` (commands are still read and obeyed)."""
+        self.stall_until = self._clock() + seconds
+
+    # --------------------------------------------------------------- state machine
+    def _enter(self, new: ArmFSMState, now: float) -> None:
+        if new == self.fsm:
+            return
+        if new == ArmFSMState.PASSIVE:
+            self.fsm = new
+        elif new in self._ENTRY and self.fsm in self._ENTRY[new]:
+            self.fsm = new
+            self._q_d, self._dq_d = self._q.copy(), np.zeros(NUM_ARM_JOINTS)
+            self._tau_ff = np.zeros(NUM_ARM_JOINTS)
+            self._kp, self._kd = np.asarray(self.config.jointctrl_kp, float), np.asarray(self.config.jointctrl_kd, float)
+        else:
+            self.rejected_transitions[f"{self.fsm.name}->{new.name}"] += 1
+
+    def _apply(self, cmd: SendCmd, now: float) -> None:
+        with self._lock:
+            self._enter(cmd.state, now)
+            joints = cmd.joints[:NUM_ARM_JOINTS]
+            if self.fsm == cmd.state == ArmFSMState.LOWCMD:
+                self._q_d = np.array([j.Pos for j in joints])
+                self._dq_d = np.array([j.W for j in joints])
+                self._tau_ff = np.array([j.T for j in joints])
+                self._kp = np.array([j.K_P for j in joints])
+                self._kd = np.array([j.K_W for j in joints])
+            elif self.fsm == cmd.state == ArmFSMState.JOINTCTRL:
+                self._q_d = np.clip([j.Pos for j in joints], self.lower, self.upper)
+                self._dq_d = np.array([j.W for j in joints])
+            self._tau = self._torque()  # the reply reports the torque of the new command
+            self._last_cmd = now
+
+    def _torque(self) -> np.ndarray:
+        """Motor torques now: damping in PASSIVE, else the LOWCMD law; clipped to effort."""
+        if self.fsm == ArmFSMState.PASSIVE:
+            tau = -self.config.passive_damping * self._dq
+        else:
+            tau = (self._kp * KP_SCALE * (self._q_d - self._q)
+                   + self._kd * KD_SCALE * (self._dq_d - self._dq) + self._tau_ff)
+        return np.clip(tau, -self._effort, self._effort)
+
+    def _integrate(self, dt: float, now: float) -> None:
+        cfg = self.config
+        with self._lock:
+            if self.fsm != ArmFSMState.PASSIVE and now - self._last_cmd > cfg.command_timeout_s:
+                self.fsm = ArmFSMState.PASSIVE
+            steps = max(1, int(math.ceil(dt / cfg.physics_dt_s)))
+            h = dt / steps
+            for _ in range(steps):
+                self._tau = tau = self._torque()
+                self._dq = self._dq + h * (tau - cfg.damping * self._dq) / self._inertia
+                self._q = self._q + h * self._dq
+                low, high = self._q < self.lower, self._q > self.upper
+                self._q = np.clip(self._q, self.lower, self.upper)
+                self._dq[(low & (self._dq < 0)) | (high & (self._dq > 0))] = 0.0
+
+    def _reply_bytes(self) -> bytes:
+        with self._lock:
+            q, dq, tau, fsm = self._q.copy(), self._dq.copy(), self._tau.copy(), self.fsm
+        joints = []
+        for i in range(NUM_MOTOR_SLOTS):
+            motor = MotorState()
+            if self.motor_error is not None and self.motor_error[0] == i:
+                motor = MotorState(error=self.motor_error[1])
+            if i < NUM_ARM_JOINTS:
+                joints.append(JointState(float(tau[i]), float(dq[i]), 0.0, float(q[i]), (motor, MotorState())))
+            else:
+                joints.append(JointState())
+        data = RecvState(fsm, tuple(joints), flange_posture(q)).pack()
+        if self.corrupt_replies:
+            kind = int(self._rng.integers(3))
+            if kind == 0:
+                data = data[: int(self._rng.integers(len(data)))]
+            elif kind == 1:
+                data = data[:2] + (99).to_bytes(4, "little") + data[6:]
+            else:
+                data = data[:6] + b"\xff\xff\xc0\x7f" + data[10:]  # NaN torque of joint 1
+        return data
+
+    def _run(self) -> None:
+        assert self._sock is not None
+        last = self._clock()
+        while self._running.is_set():
+            ready, _, _ = select.select([self._sock], [], [], 0.001)
+            now = self._clock()
+            self._integrate(min(now - last, 0.05), now)
+            last = now
+            if not ready:
+                continue
+            while True:
+                try:
+                    data, addr = self._sock.recvfrom(4096)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    self.packet_errors["socket"] += 1
+                    break
+                try:
+                    cmd = SendCmd.unpack(data)
+                except PacketError as err:
+                    self.packet_errors[err.kind] += 1
+                    continue
+                self.commands_received += 1
+                self._apply(cmd, now)
+                if now < self.stall_until:
+                    continue
+                dest = addr if self.config.reply_port is None else (self.config.host, self.config.reply_port)
+                with contextlib.suppress(OSError):
+                    self._sock.sendto(self._reply_bytes(), dest)

@@ -1,0 +1,587 @@
+"""Unitree Z1 arm over UDP: the SDK's packed wire structs and a 500 Hz client.
+
+Wire formats (specs/z1.md, packed little-endian, from the SDK's public header):
+JointCmd 20 B, SendCmd 147 B, JointState 22 B, RecvState 208 B; ArmFSMState is a 4-byte
+enum in header order. The client plays the SDK side (binds 8071, sends to 8072 on
+localhost by default): each 2 ms tick it sends one SendCmd and reads the RecvState replies.
+Modes: LOWCMD (per-joint q, dq, tau_ff, kp, kd; the controller computes
+tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff) and JOINTCTRL (joint targets).
+Safety: joint-limit clamps, a velocity limit on targets, a state watchdog and motor-error
+checks that latch a fault and command PASSIVE until `reset_fault()`.
+`OfficialZ1` wraps Unitree's own `unitree_arm_interface` binding when it is importable.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+import select
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+from dexdrake.hardware.safety import (
+    FaultLatch,
+    HardwareError,
+    JointLimits,
+    RateLimiter,
+    Watchdog,
+    period_stats,
+    safe_stop_on_exit,
+)
+
+NUM_ARM_JOINTS = 6
+NUM_MOTOR_SLOTS = 7  # 6 joints + gripper
+KP_SCALE, KD_SCALE = 25.6, 0.0128  # LOWCMD gain scales on the controller side
+DEFAULT_KP = (20.0, 30.0, 30.0, 20.0, 15.0, 10.0)
+DEFAULT_KD = (2000.0,) * NUM_ARM_JOINTS
+MAX_VELOCITY = math.pi  # rad/s, every joint
+SDK_PORT, CONTROLLER_PORT = 8071, 8072
+
+# motor error flags and connection codes (Motor_State)
+MOTOR_OVER_CURRENT, MOTOR_PHASE_LEAKAGE, MOTOR_OVER_HEAT, MOTOR_JUMPED = 0x01, 0x02, 0x04, 0x20
+
+
+class ArmFSMState(IntEnum):
+    """The controller's state machine, in the SDK header's order (LOWCMD = 16)."""
+
+    INVALID = 0
+    PASSIVE = 1
+    JOINTCTRL = 2
+    CARTESIAN = 3
+    MOVEJ = 4
+    MOVEL = 5
+    MOVEC = 6
+    TRAJECTORY = 7
+    TOSTATE = 8
+    SAVESTATE = 9
+    TEACH = 10
+    TEACHREPEAT = 11
+    CALIBRATION = 12
+    SETTRAJ = 13
+    BACKTOSTART = 14
+    NEXT = 15
+    LOWCMD = 16
+
+
+class PacketError(HardwareError):
+    """A UDP packet that is not a valid Z1 struct; `kind` names what was wrong."""
+
+    def __init__(self, kind: str, detail: str):
+        self.kind = kind
+        super().__init__(f"bad Z1 packet ({kind}): {detail}")
+
+
+_JOINT_CMD = struct.Struct("<5f")
+_SEND_HEAD = struct.Struct("<2Bi?")
+_JOINT_STATE = struct.Struct("<4f" + "bBB" * 2)
+_RECV_HEAD = struct.Struct("<2Bi")
+_POSTURE = struct.Struct("<6d")
+JOINT_CMD_SIZE = _JOINT_CMD.size
+SEND_CMD_SIZE = _SEND_HEAD.size + NUM_MOTOR_SLOTS * _JOINT_CMD.size
+JOINT_STATE_SIZE = _JOINT_STATE.size
+RECV_STATE_SIZE = _RECV_HEAD.size + NUM_MOTOR_SLOTS * _JOINT_STATE.size + _POSTURE.size
+
+
+def _finite(values: Sequence[float], what: str) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise PacketError("nonfinite", f"{what} has non-finite values {tuple(values)}")
+
+
+def _state_enum(value: int) -> ArmFSMState:
+    try:
+        return ArmFSMState(value)
+    except ValueError:
+        raise PacketError("enum", f"ArmFSMState {value} outside 0..16") from None
+
+
+@dataclass(frozen=True)
+class JointCmd:
+    """One motor command: feed-forward torque T, velocity W, position Pos, gains K_P, K_W."""
+
+    T: float = 0.0
+    W: float = 0.0
+    Pos: float = 0.0
+    K_P: float = 0.0
+    K_W: float = 0.0
+
+    def pack(self) -> bytes:
+        vals = (self.T, self.W, self.Pos, self.K_P, self.K_W)
+        _finite(vals, "JointCmd")
+        return _JOINT_CMD.pack(*vals)
+
+    @classmethod
+    def unpack(cls, data: bytes) -> JointCmd:
+        if len(data) != JOINT_CMD_SIZE:
+            raise PacketError("size", f"JointCmd is {JOINT_CMD_SIZE} bytes, got {len(data)}")
+        vals = _JOINT_CMD.unpack(data)
+        _finite(vals, "JointCmd")
+        return cls(*vals)
+
+
+@dataclass(frozen=True)
+class SendCmd:
+    """SDK -> controller: head, requested state, track flag and 7 joint commands."""
+
+    state: ArmFSMState
+    joints: tuple[JointCmd, ...] = (JointCmd(),) * NUM_MOTOR_SLOTS
+    track: bool = False
+    head: tuple[int, int] = (0xFE, 0xEF)  # real values are set inside the closed SDK
+
+    def pack(self) -> bytes:
+        if len(self.joints) != NUM_MOTOR_SLOTS:
+            raise PacketError("size", f"SendCmd needs {NUM_MOTOR_SLOTS} JointCmd, got {len(self.joints)}")
+        state = _state_enum(int(self.state))
+        return _SEND_HEAD.pack(*self.head, state, self.track) + b"".join(j.pack() for j in self.joints)
+
+    @classmethod
+    def unpack(cls, data: bytes) -> SendCmd:
+        if len(data) != SEND_CMD_SIZE:
+            raise PacketError("size", f"SendCmd is {SEND_CMD_SIZE} bytes, got {len(data)}")
+        h0, h1, state, _ = _SEND_HEAD.unpack_from(data)
+        track_byte = data[_SEND_HEAD.size - 1]
+        if track_byte > 1:
+            raise PacketError("range", f"SendCmd track byte {track_byte} is not a bool")
+        off = _SEND_HEAD.size
+        joints = tuple(JointCmd.unpack(data[off + i * JOINT_CMD_SIZE: off + (i + 1) * JOINT_CMD_SIZE])
+                       for i in range(NUM_MOTOR_SLOTS))
+        return cls(_state_enum(state), joints, bool(track_byte), (h0, h1))
+
+
+@dataclass(frozen=True)
+class MotorState:
+    temperature: int = 25  # int8, C
+    error: int = 0  # flags: 0x01 over-current, 0x02 phase leakage, 0x04 over-heat, 0x20 jumped
+    connection: int = 0  # top 2 bits: 0 ok, 1 disconnected, 2 CRC error
+
+    @property
+    def link(self) -> int:
+        return self.connection >> 6
+
+
+@dataclass(frozen=True)
+class JointState:
+    """One joint: torque T, velocity W, acceleration Acc, position Pos; 2 motor states."""
+
+    T: float = 0.0
+    W: float = 0.0
+    Acc: float = 0.0
+    Pos: float = 0.0
+    motors: tuple[MotorState, MotorState] = (MotorState(), MotorState())
+
+    def pack(self) -> bytes:
+        vals = (self.T, self.W, self.Acc, self.Pos)
+        _finite(vals, "JointState")
+        flat = [v for m in self.motors for v in (m.temperature, m.error, m.connection)]
+        try:
+            return _JOINT_STATE.pack(*vals, *flat)
+        except struct.error as err:
+            raise PacketError("range", f"motor state {self.motors}: {err}") from None
+
+    @classmethod
+    def unpack(cls, data: bytes) -> JointState:
+        if len(data) != JOINT_STATE_SIZE:
+            raise PacketError("size", f"JointState is {JOINT_STATE_SIZE} bytes, got {len(data)}")
+        t, w, acc, pos, *m = _JOINT_STATE.unpack(data)
+        _finite((t, w, acc, pos), "JointState")
+        return cls(t, w, acc, pos, (MotorState(*m[:3]), MotorState(*m[3:])))
+
+
+@dataclass(frozen=True)
+class RecvState:
+    """Controller -> SDK: head, current state, 7 joint states and the flange posture."""
+
+    state: ArmFSMState
+    joints: tuple[JointState, ...] = (JointState(),) * NUM_MOTOR_SLOTS
+    posture: tuple[float, float, float, float, float, float] = (0.0,) * 6  # rx, ry, rz, x, y, z
+    head: tuple[int, int] = (0xFE, 0xEF)
+
+    def pack(self) -> bytes:
+        if len(self.joints) != NUM_MOTOR_SLOTS or len(self.posture) != 6:
+            raise PacketError("size", "RecvState needs 7 joint states and a 6-value posture")
+        _finite(self.posture, "posture")
+        return (_RECV_HEAD.pack(*self.head, _state_enum(int(self.state)))
+                + b"".join(j.pack() for j in self.joints) + _POSTURE.pack(*self.posture))
+
+    @classmethod
+    def unpack(cls, data: bytes) -> RecvState:
+        if len(data) != RECV_STATE_SIZE:
+            raise PacketError("size", f"RecvState is {RECV_STATE_SIZE} bytes, got {len(data)}")
+        h0, h1, state = _RECV_HEAD.unpack_from(data)
+        off = _RECV_HEAD.size
+        joints = tuple(JointState.unpack(data[off + i * JOINT_STATE_SIZE: off + (i + 1) * JOINT_STATE_SIZE])
+                       for i in range(NUM_MOTOR_SLOTS))
+        posture = _POSTURE.unpack_from(data, off + NUM_MOTOR_SLOTS * JOINT_STATE_SIZE)
+        _finite(posture, "posture")
+        return cls(_state_enum(state), joints, posture, (h0, h1))
+
+
+# ----------------------------------------------------------------------------- client
+def default_joint_limits() -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of joint1..6 from the `allegro_z1` hand description's model."""
+    from dexdrake.hands.description import load_hand
+
+    hand = load_hand("allegro_z1")
+    lo, hi = hand.joint_limits()
+    n = len(hand.arm_joints)
+    if n != NUM_ARM_JOINTS:
+        raise HardwareError(f"allegro_z1 has {n} arm joints, expected {NUM_ARM_JOINTS}")
+    return lo[:n], hi[:n]
+
+
+@dataclass(frozen=True)
+class Z1Config:
+    """Client settings; None limits mean the `allegro_z1` description's Z1 joint limits."""
+
+    host: str = "127.0.0.1"
+    local_port: int = SDK_PORT  # 0: an ephemeral port (tests)
+    controller_port: int = CONTROLLER_PORT
+    rate_hz: float = 500.0
+    watchdog_timeout_s: float = 0.05
+    mode: ArmFSMState = ArmFSMState.LOWCMD  # LOWCMD or JOINTCTRL
+    kp: Sequence[float] = DEFAULT_KP
+    kd: Sequence[float] = DEFAULT_KD
+    max_velocity: float = MAX_VELOCITY
+    lower: Sequence[float] | None = None
+    upper: Sequence[float] | None = None
+    mode_timeout_s: float = 1.0  # how long start() waits for the controller to enter `mode`
+
+
+@dataclass(frozen=True)
+class Z1State:
+    t: float
+    fsm: ArmFSMState
+    q: np.ndarray
+    dq: np.ndarray
+    tau: np.ndarray
+    posture: np.ndarray
+    fault: str | None
+    q_target: np.ndarray = field(default_factory=lambda: np.zeros(NUM_ARM_JOINTS))
+
+
+class Z1Arm:
+    """Z1 client over UDP: 500 Hz send/receive thread, limits, watchdog, safe stop.
+
+    Use as a context manager (`with Z1Arm(cfg) as arm:`): start() waits until the
+    controller reports the configured mode; exit (or Ctrl-C, SIGTERM, an exception)
+    commands PASSIVE and closes the socket.
+    """
+
+    def __init__(self, config: Z1Config | None = None, clock: Callable[[], float] = time.monotonic):
+        self.config = cfg = config or Z1Config()
+        if cfg.mode not in (ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL):
+            raise HardwareError(f"Z1 mode must be LOWCMD or JOINTCTRL, got {cfg.mode!r}")
+        if not cfg.rate_hz > 0:
+            raise HardwareError(f"Z1 rate_hz must be > 0, got {cfg.rate_hz}")
+        self._clock = clock
+        lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
+                  else (cfg.lower, cfg.upper))
+        self.limits = JointLimits(lo, hi)
+        self.kp = _vec6(cfg.kp, "kp")
+        self.kd = _vec6(cfg.kd, "kd")
+        self._rate = RateLimiter(cfg.max_velocity, initial=self.limits.last_safe)
+        self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
+        self.fault = FaultLatch(clock)
+        self._lock = threading.Lock()
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._running = threading.Event()
+        self._reset_request = threading.Event()
+        self._target = self.limits.last_safe
+        self._dq_target = np.zeros(NUM_ARM_JOINTS)
+        self._tau_ff = np.zeros(NUM_ARM_JOINTS)
+        self._has_command = False
+        self._dq_given = False
+        self._last: RecvState | None = None
+        self._t_state = math.nan
+        self._initialised = False
+        self._tick_times: collections.deque[float] = collections.deque(maxlen=20000)
+        self.packet_errors: collections.Counter[str] = collections.Counter()
+        self.packets_received = 0
+        self._exit_stack: contextlib.ExitStack | None = None
+
+    # --------------------------------------------------------------- session
+    @property
+    def local_port(self) -> int:
+        if self._sock is None:
+            raise HardwareError("Z1: not started")
+        return self._sock.getsockname()[1]
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        """Bind, start the loop (PASSIVE first, then the configured mode) and wait for it."""
+        if self._thread is not None:
+            raise HardwareError("Z1: already started")
+        if self.fault.tripped:
+            raise HardwareError(f"Z1: fault latched ({self.fault.reason}); call reset_fault() first")
+        cfg = self.config
+        with self._lock:
+            self._initialised, self._has_command, self._last = False, False, None
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((cfg.host, cfg.local_port))
+        except OSError as err:
+            sock.close()
+            raise HardwareError(f"Z1: cannot bind UDP {cfg.host}:{cfg.local_port}: {err}") from err
+        sock.setblocking(False)
+        self._sock = sock
+        self._watchdog.reset()
+        self._running.set()
+        self._thread = threading.Thread(target=self._loop, name="z1-udp", daemon=True)
+        self._thread.start()
+        deadline = self._clock() + cfg.mode_timeout_s
+        while self._clock() < deadline:
+            st = self._last
+            if st is not None and st.state == cfg.mode and self._initialised:
+                return
+            if self.fault.tripped:
+                break
+            time.sleep(0.002)
+        reason = self.fault.reason or f"controller did not enter {cfg.mode.name}"
+        self.stop()
+        raise HardwareError(f"Z1: start failed: {reason} (is z1_controller running on "
+                            f"{cfg.host}:{cfg.controller_port}?)")
+
+    def stop(self) -> None:
+        """Command PASSIVE, stop the loop and close the socket."""
+        self._running.clear()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                for _ in range(3):
+                    self._send(SendCmd(ArmFSMState.PASSIVE))
+            self._sock.close()
+            self._sock = None
+
+    def __enter__(self) -> Z1Arm:
+        stack = contextlib.ExitStack()
+        stack.enter_context(safe_stop_on_exit(self.stop))
+        try:
+            self.start()
+        except BaseException:
+            stack.close()
+            raise
+        self._exit_stack = stack
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._exit_stack is not None:
+            stack, self._exit_stack = self._exit_stack, None
+            stack.close()
+
+    # --------------------------------------------------------------- commands and state
+    def command_positions(self, q: Sequence[float] | np.ndarray, dq: Sequence[float] | None = None,
+                          tau_ff: Sequence[float] | None = None) -> np.ndarray:
+        """Set joint targets (rad) with optional velocity and feed-forward torque (LOWCMD).
+
+        Without `dq`, the velocity of the rate-limited reference is fed forward.
+        The target is clamped into the joint limits (non-finite targets are rejected and
+        the last safe one is held) and followed at no more than `max_velocity`.
+        """
+        dq_t = np.zeros(NUM_ARM_JOINTS) if dq is None else _vec6(dq, "dq")
+        self._dq_given = dq is not None
+        tau = np.zeros(NUM_ARM_JOINTS) if tau_ff is None else _vec6(tau_ff, "tau_ff")
+        dq_t = np.clip(dq_t, -self.config.max_velocity, self.config.max_velocity)
+        with self._lock:
+            self._target = self.limits.apply(q)
+            self._dq_target, self._tau_ff = dq_t, tau
+            self._has_command = True
+            return self._target.copy()
+
+    def reset_fault(self) -> None:
+        """Clear a latched fault; the arm re-enters the mode holding its current position.
+
+        While running, the loop thread does the reset; when stopped, only the latch clears.
+        """
+        if self.running:
+            self._reset_request.set()
+        else:
+            self.fault.reset()
+
+    def state(self) -> Z1State:
+        with self._lock:
+            st = self._last
+            q_target = self._rate.output
+        if st is None:
+            nan = np.full(NUM_ARM_JOINTS, np.nan)
+            return Z1State(math.nan, ArmFSMState.INVALID, nan, nan, nan, np.full(6, np.nan),
+                           self.fault.reason, q_target)
+        joints = st.joints[:NUM_ARM_JOINTS]
+        return Z1State(self._t_state, st.state, np.array([j.Pos for j in joints]),
+                       np.array([j.W for j in joints]), np.array([j.T for j in joints]),
+                       np.array(st.posture), self.fault.reason, q_target)
+
+    def stats(self) -> dict[str, object]:
+        """Loop rate/jitter (period mean/p50/p99/max in ms) and packet counters."""
+        out: dict[str, object] = period_stats(list(self._tick_times))
+        out.update(packets_received=self.packets_received, packet_errors=dict(self.packet_errors),
+                   rejected_commands=self.limits.rejected, clamped_commands=self.limits.clamped,
+                   fault=self.fault.reason)
+        return out
+
+    # --------------------------------------------------------------- loop
+    def _send(self, cmd: SendCmd) -> None:
+        assert self._sock is not None
+        self._sock.sendto(cmd.pack(), (self.config.host, self.config.controller_port))
+
+    def _receive(self) -> None:
+        """Drain the socket; validate and keep the newest state."""
+        assert self._sock is not None
+        while True:
+            try:
+                data = self._sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # e.g. ICMP port unreachable surfaced on loopback
+                self.packet_errors["socket"] += 1
+                continue
+            try:
+                st = RecvState.unpack(data)
+            except PacketError as err:
+                self.packet_errors[err.kind] += 1
+                continue
+            self.packets_received += 1
+            self._watchdog.feed()
+            with self._lock:
+                self._last, self._t_state = st, self._clock()
+            self._check_motors(st)
+
+    def _check_motors(self, st: RecvState) -> None:
+        for i, joint in enumerate(st.joints[:NUM_ARM_JOINTS]):
+            for m in joint.motors:
+                if m.error or m.link:
+                    self.fault.trip(f"joint{i + 1} motor error {m.error:#04x} link {m.link}")
+                    return
+
+    def _command(self, dt: float) -> SendCmd:
+        """The command for this tick from the current state, target and safety status."""
+        st = self._last
+        if self.fault.tripped or st is None:
+            return SendCmd(ArmFSMState.PASSIVE)
+        mode = self.config.mode
+        q = np.array([j.Pos for j in st.joints[:NUM_ARM_JOINTS]])
+        with self._lock:
+            if not self._initialised:
+                self._rate.reset(np.clip(q, self.limits.lower, self.limits.upper))
+                if not self._has_command:
+                    self._target = self._rate.output
+                    self.limits.reset(self._target)
+                self._initialised = True
+            if st.state not in (mode, ArmFSMState.PASSIVE):
+                return SendCmd(ArmFSMState.PASSIVE)  # modes change only through PASSIVE
+            if st.state != mode:  # request the mode, holding the measured position
+                self._rate.reset(np.clip(q, self.limits.lower, self.limits.upper))
+                q_ref = self._rate.output
+                dq_ref = np.zeros(NUM_ARM_JOINTS)
+            else:
+                q_prev = self._rate.output
+                q_ref = self._rate.step(self._target, dt)
+                # feed the reference's own velocity forward unless the caller gave one
+                dq_ref = self._dq_target if self._dq_given else (q_ref - q_prev) / max(dt, 1e-4)
+            tau = self._tau_ff
+        kp, kd = (self.kp, self.kd) if mode == ArmFSMState.LOWCMD else (np.zeros(6), np.zeros(6))
+        joints = tuple(JointCmd(T=float(tau[i]), W=float(dq_ref[i]), Pos=float(q_ref[i]),
+                                K_P=float(kp[i]), K_W=float(kd[i])) for i in range(NUM_ARM_JOINTS))
+        return SendCmd(mode, joints + (JointCmd(),))
+
+    def _loop(self) -> None:
+        """The loop thread: any error latches a fault and commands PASSIVE before exiting."""
+        try:
+            self._loop_body()
+        except Exception as err:
+            self.fault.trip(f"client loop failed: {err!r}")
+            with contextlib.suppress(OSError):
+                self._send(SendCmd(ArmFSMState.PASSIVE))
+            raise
+
+    def _loop_body(self) -> None:
+        period = 1.0 / self.config.rate_hz
+        next_tick = self._clock()
+        last_tick = next_tick
+        while self._running.is_set():
+            now = self._clock()
+            self._tick_times.append(now)
+            if self._reset_request.is_set():
+                self._reset_request.clear()
+                with self._lock:
+                    self.fault.reset()
+                    self._initialised, self._has_command = False, False
+                self._watchdog.reset()
+            self._receive()
+            if not self.fault.tripped and self._watchdog.expired(now):
+                self.fault.trip(f"no Z1 state for {self._watchdog.since_last(now) * 1e3:.0f} ms")
+            try:
+                self._send(self._command(now - last_tick))
+            except OSError:
+                self.packet_errors["socket"] += 1
+            last_tick = now
+            next_tick += period
+            if next_tick < now - period:  # fell behind by more than a period: resync
+                next_tick = now + period
+            while (left := next_tick - self._clock()) > 0:
+                select.select([self._sock], [], [], left)
+                self._receive()
+
+
+def _vec6(values: Sequence[float] | np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.shape != (NUM_ARM_JOINTS,) or not np.all(np.isfinite(arr)):
+        raise HardwareError(f"Z1 {name}: need {NUM_ARM_JOINTS} finite values, got {arr}")
+    return arr
+
+
+# ----------------------------------------------------------------------------- official SDK
+class OfficialZ1:
+    """Thin LOWCMD wrapper of Unitree's `unitree_arm_interface` (pybind11, SDK repo only).
+
+    That module is not on PyPI and ships for Python 3.8 only; constructing this class
+    without it raises a HardwareError that says so. Same limits as `Z1Arm`.
+    """
+
+    def __init__(self, has_gripper: bool = False, lower: Sequence[float] | None = None,
+                 upper: Sequence[float] | None = None):
+        try:
+            import unitree_arm_interface  # type: ignore[import-not-found]
+        except ImportError as err:
+            raise HardwareError(
+                "unitree_arm_interface is not importable: build it from Unitree's z1_sdk "
+                "(pybind11, Python 3.8) and put its lib folder on sys.path, or use Z1Arm, "
+                "which speaks the same UDP protocol") from err
+        self._sdk = unitree_arm_interface
+        lo, hi = default_joint_limits() if lower is None or upper is None else (lower, upper)
+        self.limits = JointLimits(lo, hi)
+        self.arm = unitree_arm_interface.ArmInterface(hasGripper=has_gripper)
+
+    def start(self) -> np.ndarray:
+        """Enter LOWCMD (from PASSIVE, as the SDK requires); returns the current q."""
+        self.arm.setFsmLowcmd()
+        q = np.asarray(self.arm.lowstate.getQ(), dtype=float)
+        self.limits.reset(q)
+        return q
+
+    def step(self, q: Sequence[float], dq: Sequence[float] | None = None,
+             tau: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Send one clamped LOWCMD command and return the measured (q, dq)."""
+        q_safe = self.limits.apply(q)
+        self.arm.setArmCmd(q_safe, np.zeros(6) if dq is None else _vec6(dq, "dq"),
+                           np.zeros(6) if tau is None else _vec6(tau, "tau"))
+        self.arm.sendRecv()
+        return (np.asarray(self.arm.lowstate.getQ(), dtype=float),
+                np.asarray(self.arm.lowstate.getQd(), dtype=float))
+
+    def stop(self) -> None:
+        """Back to PASSIVE."""
+        self.arm.loopOff()
+        self.arm.setFsm(self._sdk.ArmFSMState.PASSIVE)

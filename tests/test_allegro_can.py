@@ -1,0 +1,368 @@
+"""Allegro v4 CAN codec, driver and emulator on python-can's virtual bus."""
+
+import itertools
+import os
+import signal
+import time
+import uuid
+
+import can
+import numpy as np
+import pytest
+
+from dexdrake.hardware.allegro_can import (
+    AllegroConfig,
+    AllegroHand,
+    FrameError,
+    Imu,
+    Info,
+    Msg,
+    Position,
+    Request,
+    Serial,
+    ServoOff,
+    ServoOn,
+    SetPeriod,
+    SetPosition,
+    Status,
+    Temperature,
+    Torque,
+    decode,
+    encode,
+)
+from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.safety import HardwareError
+
+# spec table (allegro_v4.md), bus order: index, middle, ring (same limits), thumb
+FINGER_LO, FINGER_HI = [-0.47, -0.196, -0.174, -0.227], [0.47, 1.61, 1.709, 1.618]
+LOWER = np.array(FINGER_LO * 3 + [0.263, -0.105, -0.189, -0.162])
+UPPER = np.array(FINGER_HI * 3 + [1.396, 1.163, 1.644, 1.719])
+
+
+def msg(arb: int, data: bytes = b"", rtr: bool = False, dlc: int | None = None) -> can.Message:
+    return can.Message(arbitration_id=arb, is_extended_id=False, is_remote_frame=rtr, data=data,
+                       dlc=len(data) if dlc is None else dlc)
+
+
+def wait_for(pred, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
+
+
+@pytest.fixture
+def channel():
+    return f"allegro-{uuid.uuid4().hex}"
+
+
+@pytest.fixture
+def rig(channel):
+    """(hand, emulator, spare bus) on one virtual channel; everything shut down afterwards."""
+    host = can.Bus(interface="virtual", channel=channel)
+    dev = can.Bus(interface="virtual", channel=channel)
+    spare = can.Bus(interface="virtual", channel=channel)
+    q0 = np.clip(np.zeros(16), LOWER, UPPER)
+    emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, q0=q0))
+    # a watchdog generous enough for a loaded 2-core CI machine; stalls below are longer
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2))
+    emu.start()
+    yield hand, emu, spare
+    hand.stop()
+    emu.stop()
+    for b in (host, dev, spare):
+        b.shutdown()
+
+
+# ------------------------------------------------------------------ codec
+FRAMES = [
+    ServoOn(), ServoOff(), Torque(2, (1, -2, 300, -1200)), SetPosition(1, (5, 6, 7, -8)),
+    SetPeriod(3, 0, 100), SetPeriod(3, 10, 100, 50), Info(0x0402, 0x0406, False, 60, 5),
+    Serial("SAH040C0"), Position(3, (-566, 0, 32767, -32768)), Imu((16384, 0, -1, 1)),
+    Temperature(1, (35, -5, 60, 100)), Status(0x1F),
+    Request(Msg.INFO), Request(Msg.SERIAL), Request(Msg.STATUS), Request(Msg.IMU),
+    Request(Msg.POSITION, 2), Request(Msg.TEMPERATURE, 3),
+]
+
+
+@pytest.mark.parametrize("frame", FRAMES, ids=lambda f: type(f).__name__)
+@pytest.mark.parametrize("device", [0, 3])
+def test_codec_round_trip(frame, device):
+    m = encode(frame, device)
+    assert m.arbitration_id & 0x3 == device and not m.is_extended_id
+    assert decode(m, device) == frame
+
+
+def test_ids_match_spec_table():
+    expect = {ServoOn(): 0x100, ServoOff(): 0x104, Torque(0, (0,) * 4): 0x180,
+              Torque(3, (0,) * 4): 0x18C, SetPosition(0, (0,) * 4): 0x380, SetPeriod(3): 0x204,
+              Request(Msg.INFO): 0x200, Request(Msg.SERIAL): 0x220,
+              Position(0, (0,) * 4): 0x080, Position(3, (0,) * 4): 0x08C,
+              Request(Msg.IMU): 0x0C0, Temperature(0, (0,) * 4): 0x0E0, Status(0): 0x040}
+    for frame, arb in expect.items():
+        assert encode(frame).arbitration_id == arb, frame
+    assert encode(SetPeriod(3)).dlc == 6 and encode(SetPeriod(3, 0, 0, 0)).dlc == 8
+    assert encode(Request(Msg.INFO)).dlc == 7 and encode(Request(Msg.INFO)).is_remote_frame
+
+
+def test_spec_real_frames():
+    info = decode(msg(0x200, bytes.fromhex("02 04 06 04 00 3C 05")))
+    assert info == Info(hw_version=0x0402, fw_version=0x0406, left_hand=False,
+                        palm_temperature_c=60, status=5)
+    pos = decode(msg(0x080, bytes.fromhex("CA FD 00 00 00 00 00 00")))
+    assert pos == Position(0, (-566, 0, 0, 0))
+    assert decode(msg(0x080, rtr=True, dlc=8)) == Request(Msg.POSITION, 0)
+    torque = encode(Torque(3, (600, 0, 0, 0)))
+    assert torque.arbitration_id == 0x18C and bytes(torque.data[:2]) == bytes.fromhex("58 02")
+
+
+@pytest.mark.parametrize("m, kind", [
+    (msg(0x080, b"\x00" * 7), "dlc"),
+    (msg(0x100, b"\x01"), "dlc"),
+    (msg(0x204, b"\x00" * 4), "dlc"),
+    (msg(0x1E8, b""), "unknown_id"),
+    (msg(0x081, b"\x00" * 8), "device"),
+    (msg(0x040, b"\x20"), "range"),
+    (msg(0x0E0, bytes([200, 0, 0, 0])), "range"),
+    (msg(0x200, bytes.fromhex("02 04 06 04 02 3C 05")), "range"),
+    (msg(0x220, b"AB\x01CDEFG"), "range"),
+    (msg(0x100, rtr=True, dlc=0), "rtr"),
+    (can.Message(arbitration_id=0x080, is_extended_id=True, data=b"\x00" * 8), "id"),
+])
+def test_decode_rejects_with_specific_kind(m, kind):
+    with pytest.raises(FrameError) as err:
+        decode(m)
+    assert err.value.kind == kind
+
+
+@pytest.mark.parametrize("frame", [
+    Torque(4, (0,) * 4), Torque(0, (40000, 0, 0, 0)), Torque(0, (1, 2, 3)),
+    SetPeriod(70000), Serial("TOO-LONG-SERIAL"), Status(0x40), Request(Msg.SERVO_ON),
+    Request(Msg.POSITION),
+])
+def test_encode_rejects_bad_frames(frame):
+    with pytest.raises(HardwareError):
+        encode(frame)
+
+
+def test_decode_fuzz_only_raises_frame_error():
+    rng = np.random.default_rng(0)
+    decoded = 0
+    for _ in range(5000):
+        dlc = int(rng.integers(0, 9))
+        m = can.Message(arbitration_id=int(rng.integers(0, 0x800)), is_extended_id=bool(rng.random() < 0.05),
+                        is_remote_frame=bool(rng.random() < 0.1), dlc=dlc,
+                        data=bytes(rng.integers(0, 256, dlc, dtype=np.uint8)))
+        try:
+            decode(m)
+            decoded += 1
+        except FrameError:
+            pass
+    assert 0 < decoded < 5000
+
+
+# ------------------------------------------------------------------ driver + emulator
+def test_start_stop_sequence_order(rig):
+    hand, emu, _ = rig
+    info = hand.start()
+    assert info.hw_version == 0x0402 and info.fw_version == 0x0406 and not info.left_hand
+    assert info.serial == "AH4EMU01" and info.palm_temperature_c == 60
+    assert wait_for(lambda: hand.stats()["cycles"] > 5, 2.0)
+    hand.stop()
+    assert wait_for(lambda: not emu.servo_on, 1.0)
+    seen = [f for f in emu.log if not isinstance(f, Torque) and f != Request(Msg.STATUS)]
+    assert seen == [ServoOff(), Request(Msg.INFO), Request(Msg.SERIAL), SetPeriod(3, 0, 100),
+                    ServoOn(), SetPeriod(0, 0, 0), ServoOff()]
+    last_torques = [f for f in emu.log if isinstance(f, Torque)][-4:]
+    assert sorted(f.finger for f in last_torques) == [0, 1, 2, 3]
+    assert all(f.pwm == (0, 0, 0, 0) for f in last_torques)
+
+
+def test_start_fails_cleanly_without_a_hand(channel):
+    host = can.Bus(interface="virtual", channel=channel)
+    try:
+        hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, reply_timeout_s=0.05))
+        with pytest.raises(HardwareError, match="no Info reply"):
+            hand.start()
+        assert not hand.running
+    finally:
+        host.shutdown()
+
+
+def test_pd_loop_tracks_target(rig):
+    hand, emu, _ = rig
+    target = LOWER + 0.6 * (UPPER - LOWER)
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        hand.command_positions(target)
+        assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.02, 4.0), emu.q - target
+        st = hand.state()
+        np.testing.assert_allclose(st.q, target, atol=0.03)
+        assert st.fault is None and np.all(np.abs(st.tau_pwm) <= hand.pwm_limit)
+        stats = hand.stats()
+        assert stats["cycles"] > 10 and stats["rate_hz"] > 0 and stats["max_ms"] >= stats["p50_ms"] > 0
+    assert wait_for(lambda: not emu.servo_on, 1.0)
+
+
+def test_rate_limit_on_targets(rig):
+    hand, emu, _ = rig
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        hand.command_positions(UPPER)
+        time.sleep(0.1)
+        step = hand.state().q_target - np.clip(np.zeros(16), LOWER, UPPER)
+        # 3 rad/s for about 0.1 s: far from the 1.6 rad jump that was commanded
+        assert np.max(np.abs(step)) < 0.6
+
+
+def test_watchdog_on_stalled_stream_then_reset(rig):
+    hand, emu, _ = rig
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        hand.command_positions(LOWER + 0.5 * (UPPER - LOWER))
+        time.sleep(0.05)
+        emu.stall(0.6)
+        assert wait_for(lambda: hand.state().fault is not None, 1.0)
+        assert "silent" in hand.state().fault
+        assert wait_for(lambda: not emu.servo_on, 0.5)
+        assert np.all(emu.pwm == 0) and np.all(hand.state().tau_pwm == 0)
+        # latched: the stream coming back does not clear it
+        time.sleep(0.6)
+        assert hand.state().fault is not None and not emu.servo_on
+        hand.reset_fault()
+        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 1.0)
+        target = LOWER + 0.3 * (UPPER - LOWER)
+        hand.command_positions(target)
+        assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
+
+
+def test_over_temperature_stops_hand(rig):
+    hand, emu, _ = rig
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        emu.set_over_temperature()
+        assert wait_for(lambda: hand.state().fault is not None, 1.0)
+        assert "temperature" in hand.state().fault or "status" in hand.state().fault
+        assert wait_for(lambda: not emu.servo_on, 0.5)
+
+
+def test_nan_and_out_of_range_commands(rig):
+    hand, emu, _ = rig
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        good = LOWER + 0.4 * (UPPER - LOWER)
+        np.testing.assert_allclose(hand.command_positions(good), good)
+        bad = good.copy()
+        bad[5] = np.nan
+        np.testing.assert_allclose(hand.command_positions(bad), good)
+        np.testing.assert_allclose(hand.command_positions(np.full(16, np.inf)), good)
+        np.testing.assert_allclose(hand.command_positions(np.full(16, 10.0)), UPPER)
+        np.testing.assert_allclose(hand.command_positions(np.full(16, -10.0)), LOWER)
+        s = hand.stats()
+        assert s["rejected_commands"] == 2 and s["clamped_commands"] == 2
+        with pytest.raises(HardwareError):
+            hand.command_positions(np.zeros(15))
+        assert wait_for(lambda: np.max(np.abs(emu.q - LOWER)) < 0.03, 4.0)
+        assert hand.state().fault is None
+
+
+def test_fuzzed_bus_never_crashes_driver(rig):
+    hand, emu, spare = rig
+    rng = np.random.default_rng(1)
+    with hand:
+        assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)
+        # position frames, out of order and duplicated, plus garbage of every kind
+        for f in itertools.chain([3, 1, 1, 0, 2, 2], range(4)):
+            spare.send(encode(Position(f, (0, 0, 0, 0))))
+        spare.send(msg(0x081, b"\x00" * 8))  # wrong device
+        spare.send(msg(0x080, b"\x00" * 3))  # short
+        spare.send(msg(0x1E8, b"\x01"))  # unknown id
+        spare.send(msg(0x080, b"\xff\x7f" * 4))  # 2.9 rad: implausible
+        for _ in range(400):
+            dlc = int(rng.integers(0, 9))
+            arb = int(rng.integers(0, 0x800))
+            if arb >> 2 == Msg.STATUS:
+                continue  # a random but valid status frame may legitimately report a fault
+            spare.send(can.Message(arbitration_id=arb, is_extended_id=False, dlc=dlc,
+                                   is_remote_frame=bool(rng.random() < 0.1),
+                                   data=bytes(rng.integers(0, 256, dlc, dtype=np.uint8))))
+        time.sleep(0.2)
+        assert hand.running
+        s = hand.stats()
+        for kind in ("device", "dlc", "unknown_id", "range"):
+            assert s["frame_errors"].get(kind, 0) >= 1, s
+        assert s["duplicates"] >= 2
+        n = s["cycles"]
+        assert wait_for(lambda: hand.stats()["cycles"] > n + 20, 1.0)
+
+
+def test_emulator_drops_and_corruption_are_counted_and_tolerated(channel):
+    host = can.Bus(interface="virtual", channel=channel)
+    dev = can.Bus(interface="virtual", channel=channel)
+    emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, q0=LOWER + 0.1))
+    emu.inject.drop_rate, emu.inject.corrupt_rate = 0.05, 0.1
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2))
+    try:
+        with emu, hand:
+            target = LOWER + 0.5 * (UPPER - LOWER)
+            hand.command_positions(target)
+            assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
+            s = hand.stats()
+            assert hand.state().fault is None
+            for kind in ("dlc", "device", "unknown_id", "range"):
+                assert s["frame_errors"].get(kind, 0) >= 1, s
+            assert emu.inject.counts["dropped"] >= 1
+    finally:
+        host.shutdown()
+        dev.shutdown()
+
+
+def test_emulator_torque_timeout_zeroes_pwm(rig):
+    _, emu, spare = rig
+    spare.send(encode(ServoOn()))
+    spare.send(encode(Torque(0, (100, 100, 100, 100))))
+    assert wait_for(lambda: emu.pwm[0] == 100, 0.5)
+    assert wait_for(lambda: np.all(emu.pwm == 0), 0.5)
+
+
+def test_default_limits_come_from_hand_description_in_bus_order():
+    from dexdrake.hardware.allegro_can import default_joint_limits
+
+    lo, hi = default_joint_limits()
+    np.testing.assert_allclose(lo, LOWER)
+    np.testing.assert_allclose(hi, UPPER)
+
+
+def test_restart_refused_while_fault_latched(rig):
+    hand, emu, _ = rig
+    hand.start()
+    emu.stall(0.6)
+    assert wait_for(lambda: hand.state().fault is not None, 1.0)
+    hand.stop()
+    with pytest.raises(HardwareError, match="fault latched"):
+        hand.start()
+    hand.reset_fault()
+    time.sleep(0.6)  # the stall is over
+    hand.start()
+    assert wait_for(lambda: hand.stats()["cycles"] > 3 and emu.servo_on, 1.0)
+    assert hand.state().fault is None
+
+
+def test_emulator_answers_info_with_the_spec_frame(rig):
+    _, _, spare = rig
+    spare.send(encode(Request(Msg.INFO)))
+    reply = spare.recv(1.0)
+    assert reply.arbitration_id == 0x200 and bytes(reply.data) == bytes.fromhex("02 04 06 04 00 3C 05")
+
+
+def test_ctrl_c_leads_to_safe_stop(rig):
+    hand, emu, _ = rig
+    with pytest.raises(KeyboardInterrupt):
+        with hand:
+            assert wait_for(lambda: emu.servo_on, 1.0)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)  # interrupted by the signal
+    assert not hand.running
+    assert wait_for(lambda: not emu.servo_on and emu.periods.position_ms == 0, 1.0)

@@ -1,0 +1,124 @@
+"""Tests for the shared hardware safety pieces (pure Python, injected clocks)."""
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from dexdrake.hardware.safety import (
+    FaultLatch,
+    HardwareError,
+    JointLimits,
+    RateLimiter,
+    Watchdog,
+    period_stats,
+    safe_stop_on_exit,
+)
+
+
+class FakeClock:
+    def __init__(self, t: float = 0.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_joint_limits_clamp_and_hold_on_nan():
+    lim = JointLimits([-1.0, 0.0], [1.0, 2.0])
+    np.testing.assert_array_equal(lim.apply([5.0, -3.0]), [1.0, 0.0])
+    assert lim.clamped == 1
+    np.testing.assert_array_equal(lim.apply([0.5, 1.5]), [0.5, 1.5])
+    held = lim.apply([np.nan, 1.0])
+    np.testing.assert_array_equal(held, [0.5, 1.5])
+    assert lim.rejected == 1 and lim.last_rejected
+    np.testing.assert_array_equal(lim.apply([np.inf, -np.inf]), [0.5, 1.5])
+    assert lim.rejected == 2
+    lim.apply([0.0, 0.0])
+    assert not lim.last_rejected
+
+
+def test_joint_limits_initial_hold_is_inside_limits():
+    lim = JointLimits([0.2, 0.3], [1.0, 1.0])
+    np.testing.assert_array_equal(lim.apply([np.nan, np.nan]), [0.2, 0.3])
+
+
+@pytest.mark.parametrize(
+    "lower, upper",
+    [([0.0, 1.0], [1.0, 0.0]), ([0.0], [1.0, 2.0]), ([np.nan], [1.0])],
+)
+def test_joint_limits_reject_bad_limits(lower, upper):
+    with pytest.raises(HardwareError):
+        JointLimits(lower, upper)
+
+
+def test_joint_limits_wrong_command_size():
+    with pytest.raises(HardwareError, match="expected 2"):
+        JointLimits([0, 0], [1, 1]).apply([0.5, 0.5, 0.5])
+
+
+def test_rate_limiter_bounds_step_and_converges():
+    rl = RateLimiter([1.0, 2.0], initial=[0.0, 0.0])
+    out = rl.step([10.0, -10.0], dt=0.1)
+    np.testing.assert_allclose(out, [0.1, -0.2])
+    for _ in range(200):
+        out = rl.step([0.5, -0.5], dt=0.01)
+    np.testing.assert_allclose(out, [0.5, -0.5])
+    with pytest.raises(HardwareError):
+        rl.step([np.nan, 0.0], dt=0.01)
+    with pytest.raises(HardwareError):
+        RateLimiter(0.0, initial=[0.0])
+
+
+def test_watchdog_expires_after_timeout_and_feed_rearms():
+    clock = FakeClock()
+    wd = Watchdog(0.05, clock=clock)
+    clock.t = 0.04
+    assert not wd.expired()
+    clock.t = 0.051
+    assert wd.expired()
+    wd.feed()
+    assert not wd.expired()
+    assert wd.expired(now=0.2)
+    assert wd.feeds == 1
+
+
+def test_fault_latch_keeps_first_reason_until_reset():
+    clock = FakeClock(3.0)
+    latch = FaultLatch(clock)
+    assert not latch.tripped
+    assert latch.trip("watchdog")
+    assert not latch.trip("over-temperature")
+    assert latch.reason == "watchdog" and latch.fault.time == 3.0 and latch.trips == 2
+    latch.reset()
+    assert not latch.tripped and latch.reason is None
+
+
+def test_safe_stop_runs_on_exception_and_normal_exit():
+    calls = []
+    with pytest.raises(RuntimeError):
+        with safe_stop_on_exit(lambda: calls.append("stop")):
+            raise RuntimeError("boom")
+    assert calls == ["stop"]
+    with safe_stop_on_exit(lambda: calls.append("stop")):
+        pass
+    assert calls == ["stop", "stop"]
+
+
+def test_safe_stop_on_sigint_and_restores_handler():
+    before = signal.getsignal(signal.SIGINT)
+    calls = []
+    with pytest.raises(KeyboardInterrupt):
+        with safe_stop_on_exit(lambda: calls.append("stop")):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert calls == ["stop"]
+    assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_period_stats():
+    s = period_stats([0.0, 0.002, 0.004, 0.010])
+    assert s["cycles"] == 4 and s["max_ms"] == pytest.approx(6.0)
+    assert s["mean_ms"] == pytest.approx(10 / 3) and s["rate_hz"] == pytest.approx(300.0)
+    assert s["p50_ms"] == pytest.approx(2.0)
+    assert period_stats([1.0])["rate_hz"] == 0.0

@@ -1,0 +1,87 @@
+"""`dexdrake objects ...` command-line commands (wired into dexdrake/cli.py).
+
+The library (trimesh, scipy) is imported inside the commands so `dexdrake --help` stays quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from dexdrake.errors import DexdrakeError
+
+if TYPE_CHECKING:
+    from dexdrake.objects.library import ObjectInfo
+
+SPLITS = ("train", "unseen", "user")  # as dexdrake.objects.library.SPLITS
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add `objects list` and `objects import` to a subparsers action."""
+    parser = subparsers.add_parser("objects", help="list or import grasp objects")
+    sub = parser.add_subparsers(dest="objects_command", required=True)
+
+    p_list = sub.add_parser("list", help="table of library objects")
+    p_list.add_argument("--split", choices=SPLITS, help="only this split")
+    p_list.set_defaults(func=cmd_list)
+
+    p_imp = sub.add_parser("import", help="import a mesh file (OBJ/STL/PLY/GLB) as a user object")
+    p_imp.add_argument("path", type=Path, help="mesh file")
+    p_imp.add_argument("--name", required=True, help="object name (a-z, 0-9, _ and -)")
+    p_imp.add_argument("--scale", type=float, default=1.0, help="factor to metres, e.g. 0.001 for mm")
+    p_imp.add_argument("--category", default="user", help="category label (default: user)")
+    p_imp.add_argument("--overwrite", action="store_true", help="replace an existing user object")
+    p_imp.set_defaults(func=cmd_import)
+    return parser
+
+
+def _known_pieces(info: "ObjectInfo") -> int | None:
+    """Number of convex pieces if already computed (shipped or cached), without running CoACD."""
+    from dexdrake.objects import store
+    from dexdrake.objects.convex import piece_files, pieces_key
+    from dexdrake.paths import cache_dir
+
+    meta = store.read_meta(info.mesh_path.parent)
+    if "convex" in meta:
+        return int(meta["convex"]["pieces"])
+    files = piece_files(cache_dir() / "convex" / pieces_key(info.content_hash))
+    return len(files) or None
+
+
+def format_table(infos: list["ObjectInfo"]) -> str:
+    """Fixed-width table: name, category, split, extents (cm), convex pieces."""
+    rows = [("name", "category", "split", "extents cm (x y z)", "pieces")]
+    for i in infos:
+        pieces = _known_pieces(i)
+        ext = " x ".join(f"{e * 100:.1f}" for e in i.extents)
+        rows.append((i.name, i.category, i.split, ext, "-" if pieces is None else str(pieces)))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    """Print the object table."""
+    from dexdrake.objects.library import list_objects
+
+    infos = list_objects(args.split)
+    print(format_table(infos))
+    print(f"{len(infos)} objects")
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Import a mesh; print the result or why it was refused (exit status 1)."""
+    from dexdrake.objects.library import import_mesh
+
+    try:
+        info = import_mesh(args.path, args.name, category=args.category, scale=args.scale, overwrite=args.overwrite)
+        pieces = info.convex_pieces()
+    except DexdrakeError as exc:
+        print(f"error: {exc}")
+        return 1
+    print(format_table([info]))
+    print(f"imported {info.name} -> {info.mesh_path} ({len(pieces)} convex pieces)")
+    return 0

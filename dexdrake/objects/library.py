@@ -1,0 +1,175 @@
+"""The object library: shipped train/unseen objects plus user-imported meshes.
+
+Every object has a watertight, outward-wound mesh in its OBJECT FRAME (origin = centre of
+mass, z up, identity = a stable resting pose), convex pieces for contact and a Drake SDF.
+Mass 0.5 kg and friction 1 follow the DexRepNet experiment settings.
+
+Contact vs distance: the SDF's collision elements are the convex pieces plus ONE extra
+element named DISTANCE_GEOMETRY_NAME holding the true (non-convex) mesh for SceneGraph
+signed-distance queries. Drake would use that mesh's convex hull for point contact, so every
+scene must call `exclude_distance_geometry_from_contact(scene_graph)` once all models are
+added (before creating contexts).
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.objects import importer, store
+from dexdrake.objects.convex import cached_pieces, piece_files, pieces_key
+from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj, write_atomic
+from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
+from dexdrake.paths import cache_dir
+
+SPLITS = ("train", "unseen", "user")
+
+__all__ = [
+    "DISTANCE_GEOMETRY_NAME",
+    "ObjectInfo",
+    "add_object",
+    "exclude_distance_geometry_from_contact",
+    "get_object",
+    "import_mesh",
+    "list_objects",
+    "remove_user_object",
+]
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """One library object. `mesh_path` is watertight and outward-wound, in the object frame."""
+
+    name: str
+    category: str
+    split: str  # "train" | "unseen" | "user"
+    mesh_path: Path
+    extents: tuple[float, float, float]  # AABB size in the object frame (m)
+    rest_height: float  # z of the origin when resting on the plane z = 0
+    mass: float = 0.5
+    friction: float = 1.0
+    content_hash: str = ""  # sha256 of mesh.obj: key for per-object caches
+
+    def convex_pieces(self) -> list[Path]:
+        """OBJ files of convex pieces for contact (shipped ones, else CoACD cached on disk)."""
+        meta = store.read_meta(self.mesh_path.parent)
+        shipped = self.mesh_path.parent / store.CONVEX_DIR
+        if meta.get("convex", {}).get("key") == pieces_key(self.content_hash):
+            files = piece_files(shipped)
+            if len(files) == meta["convex"]["pieces"]:
+                return files
+        return cached_pieces(self.mesh_path, self.content_hash)
+
+    def sdf_path(self) -> Path:
+        """A Drake SDF model of the object (written under cache_dir()/objects/, absolute paths)."""
+        sub = "user" if self.split == "user" else "shipped"
+        path = cache_dir() / "objects" / "sdf" / sub / f"{self.name}.sdf"
+        text = self.sdf_text()
+        if not path.is_file() or path.read_text() != text:
+            write_atomic(path, text.encode())
+        return path
+
+    def sdf_text(self, model_name: str | None = None) -> str:
+        """The SDF text, with the model (and link) named `model_name` (default: the object name)."""
+        inertia = inertia_about_com(load_obj(self.mesh_path), self.mass)
+        return object_sdf(model_name or self.name, self.mesh_path, self.convex_pieces(), self.mass, inertia, self.friction)
+
+
+def _info(folder: Path) -> ObjectInfo:
+    meta = store.read_meta(folder)
+    mesh_path = (folder / store.MESH_FILE).resolve()
+    return ObjectInfo(
+        name=meta["name"],
+        category=meta["category"],
+        split=meta["split"],
+        mesh_path=mesh_path,
+        extents=tuple(meta["extents"]),
+        rest_height=meta["rest_height"],
+        content_hash=file_hash(mesh_path),
+    )
+
+
+def _folders(split: str) -> list[Path]:
+    root = store.user_root() if split == "user" else store.shipped_root()
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if not p.name.startswith(".") and (p / store.META_FILE).is_file())
+
+
+def list_objects(split: str | None = None) -> list[ObjectInfo]:
+    """All objects, or those of one split ("train" | "unseen" | "user"), sorted by name."""
+    if split is not None and split not in SPLITS:
+        raise UnknownNameError("object split", split, SPLITS)
+    infos = [_info(f) for f in _folders("train")]  # shipped folder holds train and unseen
+    infos += [_info(f) for f in _folders("user")]
+    return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
+
+
+def get_object(name: str) -> ObjectInfo:
+    """The object called `name`; UnknownNameError lists the valid names."""
+    for root in (store.shipped_root(), store.user_root()):
+        if importer.NAME_PATTERN.match(name) and (root / name / store.META_FILE).is_file():
+            return _info(root / name)
+    raise UnknownNameError("object", name, [i.name for i in list_objects()])
+
+
+def import_mesh(path: str | Path, name: str, category: str = "user", scale: float = 1.0, overwrite: bool = False) -> ObjectInfo:
+    """Import a mesh file (OBJ/STL/PLY/GLB) as user object `name` under cache_dir()/objects/user/.
+
+    The mesh is scaled by `scale` (to metres), repaired, validated and re-centred at its
+    centre of mass. Refusals raise an `importer.MeshImportError` subclass (a DexdrakeError)
+    that says why, and leave the disk unchanged.
+    """
+    importer.check_name(name)
+    if (store.shipped_root() / name).is_dir():
+        raise importer.MeshImportError(f"{name!r} is a shipped object; choose another name")
+    folder = store.user_root() / name
+    if folder.exists() and not overwrite:
+        raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass overwrite=True to replace it")
+    mesh, report = importer.prepare_mesh(Path(path), scale)
+    store.write_object_dir(folder, mesh, {"name": name, "category": category, "split": "user", "import": report}, with_pieces=False)
+    return _info(folder)
+
+
+def remove_user_object(name: str) -> None:
+    """Delete an imported object (shipped objects cannot be removed)."""
+    folder = store.user_root() / name
+    if not (folder / store.META_FILE).is_file():
+        raise UnknownNameError("user object", name, [i.name for i in list_objects("user")])
+    shutil.rmtree(folder)
+
+
+def add_object(plant, info: ObjectInfo, name: str | None = None):
+    """Parse the object's SDF into `plant` as a free body; returns its ModelInstanceIndex.
+
+    `name` overrides the model (and body) name, to add the same object twice. Remember to
+    call `exclude_distance_geometry_from_contact(scene_graph)` once the scene is complete.
+    """
+    from pydrake.multibody.parsing import Parser
+
+    model_name = name or info.name
+    if plant.HasModelInstanceNamed(model_name):
+        raise DexdrakeError(f"the plant already has a model named {model_name!r}; pass another name")
+    (instance,) = Parser(plant).AddModelsFromString(info.sdf_text(model_name), "sdf")
+    return instance
+
+
+def exclude_distance_geometry_from_contact(scene_graph) -> int:
+    """Filter every DISTANCE_GEOMETRY_NAME geometry out of contact with all geometries.
+
+    Call after every model is registered (hands, table, objects) and before contexts are
+    made. Returns the number of distance geometries filtered.
+    """
+    from pydrake.geometry import CollisionFilterDeclaration, GeometrySet, Role
+
+    inspector = scene_graph.model_inspector()
+    all_ids = inspector.GetAllGeometryIds(Role.kProximity)
+    suffix = f"::{DISTANCE_GEOMETRY_NAME}"
+    dist = [g for g in all_ids if inspector.GetName(g) == DISTANCE_GEOMETRY_NAME or inspector.GetName(g).endswith(suffix)]
+    if dist:
+        scene_graph.collision_filter_manager().Apply(
+            CollisionFilterDeclaration().ExcludeBetween(GeometrySet(dist), GeometrySet(all_ids))
+        )
+    return len(dist)

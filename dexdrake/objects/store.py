@@ -1,0 +1,85 @@
+"""On-disk layout of object folders: mesh.obj + meta.json (+ convex/ for shipped objects).
+
+Shipped objects live in `models_dir()/objects/<name>/`, imported ones in
+`cache_dir()/objects/user/<name>/`. A folder is written completely in a temporary
+sibling and renamed into place, so a failed write leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import trimesh
+
+from dexdrake.objects.convex import COACD_PARAMS, decompose, pieces_key, write_pieces
+from dexdrake.objects.meshfile import content_hash, load_obj, obj_bytes
+
+MESH_FILE, META_FILE, CONVEX_DIR = "mesh.obj", "meta.json", "convex"
+
+
+def shipped_root() -> Path:
+    """Folder of the shipped object set."""
+    from dexdrake.paths import models_dir
+
+    return models_dir() / "objects"
+
+
+def user_root() -> Path:
+    """Folder of imported (user) objects."""
+    from dexdrake.paths import cache_dir
+
+    return cache_dir() / "objects" / "user"
+
+
+def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:
+    """Geometric facts recorded in meta.json for a mesh already in the object frame."""
+    lo, hi = mesh.bounds
+    return {
+        "extents": [round(float(x), 6) for x in hi - lo],
+        "rest_height": round(float(-lo[2]), 6),
+        "volume": float(f"{mesh.volume:.6g}"),
+        "faces": int(len(mesh.faces)),
+    }
+
+
+def write_object_dir(folder: Path, mesh: trimesh.Trimesh, meta: dict[str, Any], with_pieces: bool) -> dict:
+    """Write mesh.obj and meta.json (and convex/ pieces if `with_pieces`) into `folder`.
+
+    `meta` holds name, category, split and provenance; geometric facts and the content hash
+    are added here from the written (quantised) mesh. Replaces an existing folder.
+    Returns the final meta.
+    """
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
+    try:
+        data = obj_bytes(mesh)
+        (tmp / MESH_FILE).write_bytes(data)
+        written = load_obj(tmp / MESH_FILE)
+        mesh_hash = content_hash(data)
+        meta = {**meta, **describe(written), "content_hash": mesh_hash}
+        if with_pieces:
+            files = write_pieces(decompose(written), tmp / CONVEX_DIR)
+            meta["convex"] = {"key": pieces_key(mesh_hash), "coacd": COACD_PARAMS, "pieces": len(files)}
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
+        old = None
+        if folder.exists():
+            old = folder.with_name(f".{folder.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            folder.rename(old)
+        tmp.rename(folder)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return meta
+
+
+def read_meta(folder: Path) -> dict[str, Any]:
+    """meta.json of an object folder."""
+    return json.loads((Path(folder) / META_FILE).read_text())

@@ -1,0 +1,330 @@
+"""Sub-commands `hil` (a full grasp episode against the emulated devices) and `real`
+(`--dry-run`: connectivity checks and the plan; moves nothing)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dexdrake.errors import DexdrakeError
+
+
+def add_parser(subparsers) -> None:
+    hil = subparsers.add_parser("hil", help="run one grasp episode hardware-in-the-loop")
+    hil.add_argument("--config", default="configs/hil.yaml", help="scenario YAML (mode hil)")
+    hil.add_argument("--steps", type=int, default=150, help="control steps")
+    hil.add_argument("--rrd", help="write a rerun recording of the loop to this .rrd file")
+    hil.set_defaults(func=run_hil)
+
+    real = subparsers.add_parser("real", help="the real Allegro + Z1 + Kinect station")
+    real.add_argument("--config", required=True, help="scenario YAML (mode real)")
+    real.add_argument("--dry-run", action="store_true",
+                      help="check connectivity, print limits and the plan, move nothing")
+    real.set_defaults(func=run_real)
+
+
+# ----------------------------------------------------------------------------- controllers
+class ScriptedGraspController:
+    """The scripted grasp (systems/scripted_grasp.py) driven by measured state and the
+    perceived object pose: planned once, from the first pose, with the hand's own IK."""
+
+    def __init__(self, scenario):
+        from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+
+        self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
+        self.context = self.scene.diagram.CreateDefaultContext()
+        self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
+        self._p_obj = np.zeros(3)
+        self._script = None
+        self._t0 = 0.0
+
+    def object_position(self) -> np.ndarray:
+        return self._p_obj.copy()
+
+    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
+        from dexdrake.systems.scripted_grasp import ScriptedGrasp
+
+        n = self.scene.hand.num_actuators
+        if self._script is None:
+            q = self.scene.plant.GetPositions(self.plant_context).copy()
+            q[self.scene.q_index] = hand_state[:n]
+            self.scene.plant.SetPositions(self.plant_context, q)
+            self._p_obj = np.asarray(object_pose[:3], float)
+            self._t0 = t
+            self._script = ScriptedGrasp(self)
+        self.context.SetTime(t - self._t0)
+        return self._script(self)
+
+
+class PolicyController:
+    """A trained DexRepNet policy: DexRep features of (measured hand, perceived object)."""
+
+    def __init__(self, scenario):
+        from dexdrake.dexrep.feature_sets import FeatureExtractor
+        from dexdrake.dexrep.geometry import load_object_geometry
+        from dexdrake.learn.policy import load_policy
+        from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+
+        self.policy, self.metadata = load_policy(scenario.policy.checkpoint)
+        self.policy.eval()
+        self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
+        self.plant_context = self.scene.plant.CreateDefaultContext()
+        geometry = load_object_geometry(self.scene.object_info.mesh_path)
+        self.features = FeatureExtractor(self.scene.hand, self.scene.plant, self.scene.hand_instance,
+                                         geometry, scenario.policy.feature_set)
+        if self.features.size != self.policy.config.obs_dim:
+            raise DexdrakeError(f"policy expects {self.policy.config.obs_dim} observations, feature set "
+                                f"{scenario.policy.feature_set!r} gives {self.features.size}")
+        lo, hi = self.scene.hand.joint_limits()
+        self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
+
+    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
+        import torch
+
+        from dexdrake.systems.station import pose_from_vector
+
+        n = self.scene.hand.num_actuators
+        plant = self.scene.plant
+        q = plant.GetPositions(self.plant_context).copy()
+        q[self.scene.q_index] = hand_state[:n]
+        plant.SetPositions(self.plant_context, q)
+        obs = self.features(self.plant_context, pose_from_vector(object_pose))
+        with torch.inference_mode():
+            action, _ = self.policy.act(obs, None)
+        return self.mid + np.asarray(action, float) * self.half
+
+
+def make_controller(scenario):
+    """(controller, description): the policy when configured and loadable, else scripted."""
+    if scenario.policy is not None and scenario.policy.checkpoint:
+        try:
+            return PolicyController(scenario), f"policy {scenario.policy.checkpoint}"
+        except (OSError, DexdrakeError, RuntimeError, KeyError, ValueError) as err:
+            return ScriptedGraspController(scenario), f"scripted (policy not loadable: {err})"
+    return ScriptedGraspController(scenario), "scripted grasp"
+
+
+# ----------------------------------------------------------------------------- episode
+@dataclass
+class EpisodeResult:
+    success: bool
+    max_lift: float
+    steps: int
+    wall_s: float
+    stats: dict
+    fault: str | None
+
+
+def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
+    """Run `steps` control periods of `controller` on a built station (in real time unless
+    sim), scoring the lift with dexdrake.task. A StationFault ends the episode early (the
+    station is stopped by the caller's context manager)."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+
+    from dexdrake.systems.station import ControllerSystem, StationFault
+    from dexdrake.task import SuccessTracker
+
+    sc = station.scenario
+    n = station.hand.num_actuators
+    builder = DiagramBuilder()
+    st = builder.AddNamedSystem("station", station.diagram)
+    ctrl = builder.AddNamedSystem("controller", ControllerSystem(controller, n, sc.control_period))
+    builder.Connect(ctrl.get_output_port(), st.GetInputPort("command"))
+    builder.Connect(st.GetOutputPort("hand_state"), ctrl.GetInputPort("hand_state"))
+    builder.Connect(st.GetOutputPort("object_pose"), ctrl.GetInputPort("object_pose"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    if station.mode == "sim":
+        from dexdrake.systems.scene import ObjectPlacement
+
+        scene = station.scene
+        plant_context = scene.plant.GetMyMutableContextFromRoot(context)
+        placement = ObjectPlacement.sample(np.random.default_rng(sc.seed))
+        scene.set_initial_state(plant_context, placement, scene.hand.pregrasp_vector())
+        object_pose = lambda: scene.object_pose(plant_context).translation()  # noqa: E731
+    else:
+        simulator.set_target_realtime_rate(1.0)
+        object_pose = lambda: station.world.object_pose().translation() if station.world else None  # noqa: E731
+    if station.perception is not None:
+        _await_first_pose(station)
+    simulator.Initialize()
+    t_start = context.get_time()
+    p_start = object_pose()
+    tracker = SuccessTracker(p_start) if p_start is not None else None
+    fault = None
+    wall0 = time.perf_counter()
+    done = 0
+    try:
+        for k in range(1, steps + 1):
+            simulator.AdvanceTo(t_start + k * sc.control_period)
+            done = k
+            p = object_pose()
+            if tracker is not None:
+                tracker.update(p)
+            if logger is not None:
+                logger.log_step(k, diagram, context, ctrl, station)
+    except StationFault as err:
+        fault = str(err)
+    except RuntimeError as err:  # a Python exception raised inside a Drake event
+        if "StationFault" not in repr(err) and "fault" not in str(err).lower():
+            raise
+        fault = str(err)
+    wall = time.perf_counter() - wall0
+    stats = station.stats()
+    stats["policy"] = ctrl.timer.stats()
+    stats["policy"]["nan_holds"] = ctrl.nan_holds
+    return EpisodeResult(tracker.success if tracker else False, tracker.max_lift if tracker else float("nan"),
+                         done, wall, stats, fault)
+
+
+def _await_first_pose(station) -> None:
+    """Hold (the drivers keep the measured position) until perception delivers a pose."""
+    from dexdrake.systems.station import StationFault
+
+    def check() -> None:
+        for name in ("allegro", "z1"):
+            dev = station.devices.get(name)
+            if dev is not None and dev.state().fault is not None:
+                raise StationFault(f"{name} fault while waiting for the first pose: {dev.state().fault}")
+
+    station.perception.wait_for_first_pose(check)
+
+
+# ----------------------------------------------------------------------------- commands
+def _fmt_rate(name: str, s: dict) -> str:
+    return (f"{name}: {s.get('rate_hz', 0):.0f} Hz, period p50 {s.get('p50_ms', float('nan')):.2f} ms, "
+            f"p99 {s.get('p99_ms', float('nan')):.2f} ms, max {s.get('max_ms', float('nan')):.2f} ms")
+
+
+def run_hil(args: argparse.Namespace) -> int:
+    from dexdrake.systems.scenario import ScenarioError, load_scenario
+    from dexdrake.systems.station import make_station
+
+    scenario = load_scenario(args.config)
+    if scenario.mode != "hil":
+        raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `hil` needs emulated drivers")
+    if args.steps <= 0:
+        raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
+    rrd = args.rrd or scenario.rrd
+    controller, description = make_controller(scenario)
+    logger = None
+    with make_station(scenario) as station:
+        if rrd:
+            from dexdrake.systems.station import StationRerunLogger
+
+            logger = StationRerunLogger(rrd, station)
+        result = run_episode(station, controller, args.steps, logger)
+    if logger is not None:
+        logger.close()
+    print(f"hil: {scenario.object} seed={scenario.seed} controller={description}")
+    print(f"success={result.success} max_lift={result.max_lift:.3f} m steps={result.steps} "
+          f"wall={result.wall_s:.1f} s" + (f" rrd={rrd}" if rrd else ""))
+    for key, name in (("can", "CAN (Allegro PD loop)"), ("z1", "Z1 UDP loop"), ("policy", "policy/control")):
+        if key in result.stats:
+            print("  " + _fmt_rate(name, result.stats[key]))
+    print(f"  world: {result.stats.get('world')}  nan_holds={result.stats['policy']['nan_holds']}")
+    if result.fault:
+        print(f"  stopped safely: {result.fault}")
+        return 1
+    return 0
+
+
+def run_real(args: argparse.Namespace) -> int:
+    from dexdrake.systems.scenario import ScenarioError, load_scenario
+
+    scenario = load_scenario(args.config)
+    if scenario.mode != "real":
+        raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `real` needs hardware drivers")
+    if not args.dry_run:
+        raise DexdrakeError("running the real station moves the robot; check it first with --dry-run "
+                            "(a supervised real episode is not enabled in this version)")
+    return dry_run(scenario)
+
+
+def dry_run(scenario) -> int:
+    """Connectivity checks; prints limits and the plan; commands nothing."""
+    from dexdrake.hands.description import load_hand
+    from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, decode, encode
+    from dexdrake.hardware.safety import HardwareError
+    from dexdrake.hardware.z1_udp import RecvState, SendCmd, ArmFSMState  # noqa: F401
+    from dexdrake.systems.station import open_can_bus
+
+    hand = load_hand(scenario.hand)
+    h, a, c = scenario.drivers.hand, scenario.drivers.arm, scenario.drivers.camera
+    lo, hi = hand.joint_limits()
+    print(f"real dry run: {scenario.name} hand={scenario.hand} object={scenario.object}")
+    for j, l, u in zip(hand.policy_joints, lo, hi):
+        print(f"  limit {j:<11} [{l:+.3f}, {u:+.3f}] rad")
+    print(f"  hand: max target rate {h.max_target_rate} rad/s, watchdog {h.watchdog_timeout_s * 1e3:.0f} ms; "
+          f"arm: {a.mode}, max velocity {a.max_velocity} rad/s, watchdog {a.watchdog_timeout_s * 1e3:.0f} ms")
+    ok = True
+    # CAN: open the bus and ask for info + serial (RTR requests only: nothing moves)
+    try:
+        bus = open_can_bus(scenario)
+        try:
+            replies = {}
+            for msg_id, kind in ((Msg.INFO, Info), (Msg.SERIAL, Serial)):
+                bus.send(encode(Request(msg_id), h.device_id))
+                deadline = time.monotonic() + 0.3
+                while time.monotonic() < deadline and kind not in replies:
+                    m = bus.recv(0.05)
+                    if m is not None:
+                        try:
+                            f = decode(m, h.device_id)
+                        except HardwareError:
+                            continue
+                        if isinstance(f, kind):
+                            replies[kind] = f
+            if Info in replies and Serial in replies:
+                print(f"  CAN {h.interface}:{h.channel}: OK, {replies[Info]} serial {replies[Serial].text!r}")
+            else:
+                ok = False
+                print(f"  CAN {h.interface}:{h.channel}: bus opens but the hand does not answer info/serial "
+                      "(powered? device id? bitrate 1 Mbit/s?)")
+        finally:
+            bus.shutdown()
+    except HardwareError as err:
+        ok = False
+        print(f"  CAN: FAILED: {err}")
+    # Z1: listen for controller state on the SDK port, sending PASSIVE only (no motion)
+    import socket
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((a.host, a.local_port))
+        sock.settimeout(0.3)
+        sock.sendto(SendCmd(ArmFSMState.PASSIVE).pack(), (a.host, a.controller_port))
+        data = sock.recv(4096)
+        st = RecvState.unpack(data)
+        print(f"  Z1 {a.host}:{a.controller_port}: OK, state {st.state.name}, q = "
+              f"{np.round([j.Pos for j in st.joints[:6]], 3).tolist()}")
+    except (OSError, HardwareError) as err:
+        ok = False
+        print(f"  Z1 {a.host}:{a.controller_port}: FAILED: {err} (is z1_controller running?)")
+    finally:
+        sock.close()
+    # camera: one frame
+    try:
+        from dexdrake.hardware.kinect import K4ADevice, RecordedSequence
+
+        source = RecordedSequence(c.recording) if c.kind == "recorded" else K4ADevice(c.device_id, warmup_frames=1)
+        try:
+            frame = source.read()
+            print(f"  camera {c.kind}: OK, frame {frame.color.shape[1]}x{frame.color.shape[0]}")
+        finally:
+            source.close()
+    except DexdrakeError as err:
+        ok = False
+        print(f"  camera {c.kind}: FAILED: {err}")
+    print("  plan: perceive the object pose, approach above it, descend, close the hand, lift "
+          f"{0.17:.2f} m, hold; control period {scenario.control_period * 1e3:.0f} ms")
+    if not ok:
+        print("dry run: hardware not ready (nothing was moved)")
+        return 1
+    print("dry run: all devices answered (nothing was moved)")
+    return 0

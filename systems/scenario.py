@@ -1,0 +1,241 @@
+"""Typed station scenarios: one YAML file says what the station is built from.
+
+Modelled on Drake's `manipulation` station: a dataclass tree loaded with
+`pydrake.common.yaml.yaml_load_typed`, with one driver entry per device saying whether it
+is simulated, emulated (hardware-in-the-loop: the real driver code against a device
+emulator whose joint dynamics come from a Drake plant) or real hardware.
+
+    scenario = load_scenario("configs/hil.yaml")
+    scenario.mode  # "sim" | "hil" | "real"
+
+Modes follow from the driver kinds:
+  sim   hand and arm kind "sim" (the Drake grasp scene; camera "sim" = ground-truth pose)
+  hil   hand and arm "emulated"; camera "sim" (pose from the co-simulated world) or
+        "rendered" (Drake-rendered RGB-D of the world -> segmentation -> registration)
+  real  hand and arm "hardware"; camera "k4a" (Azure Kinect) or "recorded" (replay)
+"""
+
+import dataclasses as dc
+import math
+from pathlib import Path
+from typing import Optional
+
+from pydrake.common.yaml import yaml_load_typed
+
+from dexdrake.errors import DexdrakeError
+
+HAND_KINDS = ("sim", "emulated", "hardware")
+CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
+ARM_MODES = ("LOWCMD", "JOINTCTRL")
+PERCEPTION_FAILURE_POLICIES = ("hold", "stop")
+NUM_HAND_JOINTS = 16
+NUM_ARM_JOINTS = 6
+
+
+class ScenarioError(DexdrakeError):
+    """A scenario file that cannot be loaded or does not make a valid station."""
+
+
+@dc.dataclass
+class HandDriver:
+    """The Allegro hand. Gains and limits are 16 values in CAN bus order (None: vendor
+    defaults / the model's limits)."""
+
+    kind: str = "sim"
+    interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
+    channel: str = "dexdrake_allegro"  # socketcan: "can0"
+    bitrate: int = 1_000_000
+    device_id: int = 0
+    kp: Optional[list[float]] = None  # PWM per rad
+    kd: Optional[list[float]] = None  # PWM per rad/s
+    pwm_limit: Optional[list[float]] = None
+    lower: Optional[list[float]] = None  # rad
+    upper: Optional[list[float]] = None
+    max_target_rate: float = 3.0  # rad/s
+    watchdog_timeout_s: float = 0.05
+
+
+@dc.dataclass
+class ArmDriver:
+    """The Unitree Z1 (UDP). Port 0 means a free ephemeral port (emulated only)."""
+
+    kind: str = "sim"
+    host: str = "127.0.0.1"
+    local_port: int = 8071
+    controller_port: int = 8072
+    mode: str = "LOWCMD"
+    kp: list[float] = dc.field(default_factory=lambda: [20.0, 30.0, 30.0, 20.0, 15.0, 10.0])
+    kd: list[float] = dc.field(default_factory=lambda: [2000.0] * NUM_ARM_JOINTS)
+    max_velocity: float = math.pi  # rad/s on targets
+    watchdog_timeout_s: float = 0.05
+
+
+@dc.dataclass
+class CameraDriver:
+    """The RGB-D camera and the perception that turns it into an object pose."""
+
+    kind: str = "sim"
+    width: int = 320
+    height: int = 180
+    intrinsics: Optional[list[float]] = None  # fx, fy, cx, cy; None: Kinect colour, scaled
+    eye: list[float] = dc.field(default_factory=lambda: [0.5, 0.0, 0.45])  # camera position (m)
+    target: list[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.03])  # looked-at point
+    recording: str = ""  # kind "recorded": a folder of frame_*.npz or one .npz
+    device_id: int = 0  # kind "k4a"
+    depth_noise: bool = True  # kind "rendered": Kinect-like depth noise
+    period_s: float = 0.5  # how often a new pose estimate is started
+    first_pose_timeout_s: float = 30.0  # no pose at all by then -> stop
+    max_consecutive_failures: int = 3  # then `on_failure` applies
+    on_failure: str = "hold"  # hold: keep the last pose | stop: safe stop the station
+
+
+@dc.dataclass
+class Drivers:
+    hand: HandDriver = dc.field(default_factory=HandDriver)
+    arm: ArmDriver = dc.field(default_factory=ArmDriver)
+    camera: CameraDriver = dc.field(default_factory=CameraDriver)
+
+
+@dc.dataclass
+class HilWorldConfig:
+    """How the co-simulated world turns bus commands into plant torques (hil only).
+
+    The Allegro PWM -> torque map is not documented (specs/allegro_v4.md); the default
+    treats the normalised torque pwm / 1200 as N*m, and the reflected inertia and damping
+    match the firmware emulator's own model (ddq = 2 * pwm - 5 * dq)."""
+
+    torque_per_pwm: float = 1.0 / 1200.0  # N*m per PWM count
+    finger_reflected_inertia: float = 4.2e-4  # kg*m^2, per finger joint
+    finger_damping: float = 2.1e-3  # N*m*s/rad
+    max_lag_s: float = 0.05  # the world never jumps more than this per step when behind
+
+
+@dc.dataclass
+class PolicyEntry:
+    checkpoint: str = ""  # a dexdrake policy checkpoint (.pt); empty: the scripted grasp
+    feature_set: str = "DexRep"
+
+
+@dc.dataclass
+class Scenario:
+    name: str = "sim"
+    hand: str = "allegro_z1"
+    object: str = "box_cube"
+    seed: int = 0
+    time_step: float = 0.002  # plant step (s)
+    control_period: float = 0.02  # command / policy period (s)
+    drivers: Drivers = dc.field(default_factory=Drivers)
+    hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
+    policy: Optional[PolicyEntry] = None
+    rrd: Optional[str] = None  # write a rerun recording of the loop here
+
+    @property
+    def mode(self) -> str:
+        """"sim", "hil" or "real" (see the module docstring); valid after validation."""
+        return {"sim": "sim", "emulated": "hil", "hardware": "real"}[self.drivers.hand.kind]
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load and validate a scenario YAML file; ScenarioError says what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError(f"scenario file {path} does not exist")
+    return parse_scenario(path.read_text(), source=str(path))
+
+
+def parse_scenario(text: str, source: str = "<string>") -> Scenario:
+    """Load and validate a scenario from YAML text."""
+    try:
+        scenario = yaml_load_typed(schema=Scenario, data=text)
+    except Exception as err:  # yaml_load_typed raises RuntimeError/TypeError/yaml errors
+        raise ScenarioError(f"{source}: {err}") from None
+    validate_scenario(scenario, source)
+    return scenario
+
+
+def _require(ok: bool, source: str, message: str) -> None:
+    if not ok:
+        raise ScenarioError(f"{source}: {message}")
+
+
+def _check_vector(values: Optional[list[float]], n: int, name: str, source: str) -> None:
+    if values is None:
+        return
+    _require(len(values) == n and all(math.isfinite(v) for v in values), source,
+             f"{name} needs {n} finite values, got {values}")
+
+
+def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
+    """Raise ScenarioError unless `s` describes a station that can be built."""
+    from dexdrake.hands.description import load_hand
+    from dexdrake.objects.library import get_object
+
+    try:
+        hand = load_hand(s.hand)
+        get_object(s.object)
+    except DexdrakeError as err:
+        raise ScenarioError(f"{source}: {err}") from None
+    _require(s.time_step > 0 and math.isfinite(s.time_step), source,
+             f"time_step must be > 0, got {s.time_step}")
+    _require(s.control_period >= s.time_step, source,
+             f"control_period ({s.control_period}) must be >= time_step ({s.time_step})")
+    h, a, c = s.drivers.hand, s.drivers.arm, s.drivers.camera
+    for name, kind, valid in (("drivers.hand.kind", h.kind, HAND_KINDS),
+                              ("drivers.arm.kind", a.kind, HAND_KINDS),
+                              ("drivers.camera.kind", c.kind, CAMERA_KINDS)):
+        _require(kind in valid, source, f"{name} {kind!r} is not one of {', '.join(valid)}")
+    _require(h.kind == a.kind, source,
+             f"drivers.hand.kind ({h.kind}) and drivers.arm.kind ({a.kind}) must match: "
+             "the hand's policy joints span the arm and the hand")
+    mode = s.mode
+    cameras = {"sim": ("sim",), "hil": ("sim", "rendered"), "real": ("k4a", "recorded")}[mode]
+    _require(c.kind in cameras, source,
+             f"drivers.camera.kind {c.kind!r} is not available in {mode} mode "
+             f"(use one of {', '.join(cameras)})")
+    if mode != "sim":
+        _require(hand.hardware_joints is not None and len(hand.arm_joints) == NUM_ARM_JOINTS
+                 and len(hand.hardware_joints) == NUM_HAND_JOINTS, source,
+                 f"hand {s.hand!r} has no Allegro-on-Z1 hardware layout; {mode} mode needs "
+                 "one (e.g. allegro_z1)")
+        _require(0 <= h.device_id <= 3, source, f"drivers.hand.device_id must be 0..3, got {h.device_id}")
+        _require(bool(h.interface) and bool(h.channel), source,
+                 "drivers.hand.interface and .channel must be set")
+        for name in ("kp", "kd", "pwm_limit", "lower", "upper"):
+            _check_vector(getattr(h, name), NUM_HAND_JOINTS, f"drivers.hand.{name}", source)
+        _require((h.lower is None) == (h.upper is None), source,
+                 "drivers.hand.lower and .upper must be given together")
+        _require(h.max_target_rate > 0 and h.watchdog_timeout_s > 0, source,
+                 "drivers.hand.max_target_rate and .watchdog_timeout_s must be > 0")
+        _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
+        _check_vector(a.kp, NUM_ARM_JOINTS, "drivers.arm.kp", source)
+        _check_vector(a.kd, NUM_ARM_JOINTS, "drivers.arm.kd", source)
+        for name in ("local_port", "controller_port"):
+            port = getattr(a, name)
+            _require(0 <= port <= 65535, source, f"drivers.arm.{name} {port} is not a UDP port")
+            _require(port != 0 or mode == "hil", source,
+                     f"drivers.arm.{name} 0 (a free port) is only allowed with an emulated arm")
+        _require(a.max_velocity > 0 and a.watchdog_timeout_s > 0, source,
+                 "drivers.arm.max_velocity and .watchdog_timeout_s must be > 0")
+    if c.kind != "sim":
+        _require(c.width > 0 and c.height > 0, source, f"camera size {c.width}x{c.height} is invalid")
+        _check_vector(c.intrinsics, 4, "drivers.camera.intrinsics", source)
+        _check_vector(c.eye, 3, "drivers.camera.eye", source)
+        _check_vector(c.target, 3, "drivers.camera.target", source)
+        _require(c.period_s > 0 and c.first_pose_timeout_s > 0 and c.max_consecutive_failures >= 1,
+                 source, "drivers.camera.period_s, .first_pose_timeout_s must be > 0 and "
+                 ".max_consecutive_failures >= 1")
+        _require(c.on_failure in PERCEPTION_FAILURE_POLICIES, source,
+                 f"drivers.camera.on_failure {c.on_failure!r} is not one of "
+                 f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")
+        _require(c.kind != "recorded" or bool(c.recording), source,
+                 "drivers.camera.recording must name a folder or .npz for kind 'recorded'")
+    w = s.hil
+    _require(w.torque_per_pwm > 0 and w.finger_reflected_inertia >= 0 and w.finger_damping >= 0
+             and w.max_lag_s > 0, source,
+             "hil.torque_per_pwm and .max_lag_s must be > 0, inertia and damping >= 0")
+    if s.policy is not None:
+        from dexdrake.dexrep.feature_sets import FEATURE_SETS
+
+        _require(s.policy.feature_set in FEATURE_SETS, source,
+                 f"policy.feature_set {s.policy.feature_set!r} is not one of "
+                 f"{', '.join(sorted(FEATURE_SETS))}")

@@ -1,0 +1,639 @@
+"""The station: one diagram for sim, hardware-in-the-loop and real, built from a Scenario.
+
+Every mode exposes the same ports (policy joint order of the hand description):
+  input  "command"      joint position set-points (n)
+  output "hand_state"   measured [q; v] (2n)
+  output "object_pose"  [x, y, z, qw, qx, qy, qz]
+sim:  the Drake grasp scene (systems/scene.py).
+hil:  AllegroDriverSystem (the CAN driver on a python-can `virtual` bus, talking to the
+      firmware emulator), Z1DriverSystem (the UDP client, talking to the controller emulator
+      on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant
+      co-simulated in real time); object pose from PerceptionSystem (rendered RGB-D of the
+      world -> segmentation -> registration, in a worker process) or, with camera kind
+      "sim", straight from the world.
+real: the same driver systems on socketcan / the real z1_controller, and a K4A camera.
+
+Safety at the station level (the drivers keep their own limits, watchdogs and safe stop):
+- `Station` is a context manager; leaving it (normally, by exception, Ctrl-C or SIGTERM)
+  stops every driver (Allegro: zero torque, servo off; Z1: PASSIVE) and the emulators.
+- A driver that latches a fault (e.g. a stalled stream) makes its system raise
+  StationFault at its next update, which ends the episode and triggers the safe stop.
+- A non-finite controller output is never sent: ControllerSystem holds the last command.
+- Perception failures hold the last pose; after `max_consecutive_failures` failures in a
+  row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
+  at all within `first_pose_timeout_s` raises StationFault.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import multiprocessing
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import (
+    Context,
+    Diagram,
+    DiagramBuilder,
+    DiscreteValues,
+    LeafSystem,
+)
+from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.systems.scenario import CameraDriver, Scenario
+
+PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
+
+
+class StationFault(DexdrakeError):
+    """The station stopped itself: a driver fault, a perception failure, no object pose."""
+
+
+# ----------------------------------------------------------------------------- helpers
+def pose_vector(X: RigidTransform) -> np.ndarray:
+    """[x, y, z, qw, qx, qy, qz] of a pose."""
+    q = X.rotation().ToQuaternion()
+    return np.concatenate([X.translation(), [q.w(), q.x(), q.y(), q.z()]])
+
+
+def pose_from_vector(x: np.ndarray) -> RigidTransform:
+    """The pose of a [x, y, z, qw, qx, qy, qz] vector (quaternion normalised)."""
+    q = np.asarray(x[3:7], float)
+    q = q / np.linalg.norm(q)
+    return RigidTransform(Quaternion(q), np.asarray(x[:3], float))
+
+
+class _Timer:
+    """Wall-clock times of periodic calls, for loop rate and jitter statistics."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+
+    def tick(self) -> None:
+        self.times.append(time.monotonic())
+
+    def stats(self) -> dict[str, float]:
+        from dexdrake.hardware.allegro_can import period_stats
+
+        return period_stats(self.times)
+
+
+# ----------------------------------------------------------------------------- drivers
+class AllegroDriverSystem(LeafSystem):
+    """Wraps a started `AllegroHand`: input "q_command" (16, bus order), output "state"
+    ([q; dq], 32, bus order) sampled every `period`. Raises StationFault on a latched fault."""
+
+    def __init__(self, driver, period: float):
+        super().__init__()
+        self.driver = driver
+        self._cmd = self.DeclareVectorInputPort("q_command", 16)
+        st = driver.state()  # the default state is the measured one, so initial commands hold
+        state = self.DeclareDiscreteState(np.nan_to_num(np.concatenate([st.q, st.dq])))
+        self.DeclareStateOutputPort("state", state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._read)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _read(self, context: Context, state: DiscreteValues) -> None:
+        st = self.driver.state()
+        if st.fault is not None:
+            raise StationFault(f"Allegro hand fault: {st.fault} (hand is in safe stop)")
+        state.set_value(0, np.concatenate([st.q, st.dq]))
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        self._read(context, state)
+        if self._cmd.HasValue(context):
+            self.driver.command_positions(self._cmd.Eval(context))
+
+
+class Z1DriverSystem(LeafSystem):
+    """Wraps a started `Z1Arm`: input "q_command" (6), output "state" ([q; dq], 12)."""
+
+    def __init__(self, driver, period: float):
+        super().__init__()
+        self.driver = driver
+        self._cmd = self.DeclareVectorInputPort("q_command", 6)
+        st = driver.state()  # the default state is the measured one, so initial commands hold
+        state = self.DeclareDiscreteState(np.nan_to_num(np.concatenate([st.q, st.dq])))
+        self.DeclareStateOutputPort("state", state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._read)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _read(self, context: Context, state: DiscreteValues) -> None:
+        st = self.driver.state()
+        if st.fault is not None:
+            raise StationFault(f"Z1 arm fault: {st.fault} (arm commanded PASSIVE)")
+        state.set_value(0, np.concatenate([st.q, st.dq]))
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        self._read(context, state)
+        if self._cmd.HasValue(context):
+            self.driver.command_positions(self._cmd.Eval(context))
+
+
+# ----------------------------------------------------------------------------- perception
+_WORKER: dict = {}
+
+
+def _worker_init(mesh_path: str) -> None:
+    from dexdrake.hardware.perception import ObjectPoseEstimator
+
+    _WORKER["estimator"] = ObjectPoseEstimator(mesh_path)
+
+
+def _worker_estimate(color: np.ndarray, depth: np.ndarray, intrinsics: tuple,
+                     X_WC: np.ndarray | None) -> dict:
+    """Segment + register one frame (in the perception worker process)."""
+    from dexdrake.hardware.kinect import CameraIntrinsics, RgbdFrame
+    from dexdrake.hardware.perception import backproject, segment_object, transform_points
+
+    est = _WORKER["estimator"]
+    pose_C = None if X_WC is None else RigidTransform(X_WC)
+    frame = RgbdFrame(color, depth, CameraIntrinsics(*intrinsics), 0.0, pose_C)
+    result = est.estimate(frame)
+    mask = segment_object(frame, est.segmentation)
+    cloud = backproject(frame.depth, frame.intrinsics, mask)
+    if pose_C is not None and len(cloud):
+        cloud = transform_points(pose_C, cloud)
+    return {"success": result.success and result.X_WO is not None,
+            "reason": result.reason or ("no camera pose" if result.X_WO is None else ""),
+            "X_WO": None if result.X_WO is None else result.X_WO.GetAsMatrix4(),
+            "fitness": result.fitness, "mask": mask, "cloud": cloud[::4],
+            "elapsed_s": result.elapsed_s}
+
+
+def perception_executor(mesh_path: str) -> cf.Executor:
+    """A one-process pool that runs registration off the driver threads' interpreter."""
+    return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                  initializer=_worker_init, initargs=(str(mesh_path),))
+
+
+@dataclass
+class PerceptionLog:
+    """What the perception system saw last (for logging)."""
+
+    frame: object = None
+    result: dict | None = None
+    failures: int = 0
+    consecutive_failures: int = 0
+    successes: int = 0
+    events: list[str] = field(default_factory=list)
+
+
+class PerceptionSystem(LeafSystem):
+    """Object pose from a camera: every `period_s` a frame is read (`read_frame()`) and
+    handed to `executor` (`_worker_estimate`); results arrive asynchronously. Output
+    "object_pose" (7) holds the last good pose; see the module doc for the failure rules."""
+
+    def __init__(self, read_frame: Callable[[], object], executor: cf.Executor,
+                 camera: CameraDriver, estimate: Callable = _worker_estimate,
+                 on_result: Callable[[PerceptionLog], None] | None = None):
+        super().__init__()
+        self._read_frame, self._executor, self._estimate = read_frame, executor, estimate
+        self.camera = camera
+        self.on_result = on_result
+        self.log = PerceptionLog()
+        self._future: cf.Future | None = None
+        self._pending_frame = None
+        self._t0: float | None = None
+        self.has_pose = False
+        self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])
+        state = self.DeclareDiscreteState(self.pose)
+        self.DeclareStateOutputPort("object_pose", state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._init)
+        self.DeclarePeriodicDiscreteUpdateEvent(min(camera.period_s, 0.05), 0.0, self._update)
+        self._next_request = 0.0
+
+    def _submit(self) -> None:
+        frame = self._read_frame()
+        self._pending_frame = frame
+        k = frame.intrinsics
+        X_WC = None if frame.X_WC is None else frame.X_WC.GetAsMatrix4()
+        self._future = self._executor.submit(self._estimate, frame.color, frame.depth,
+                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC)
+
+    def poll(self, sim_time: float = 0.0) -> None:
+        """Collect a finished estimate and start the next one when due (plain method)."""
+        now = time.monotonic()
+        if self._t0 is None:
+            self._t0 = now
+        cam, log = self.camera, self.log
+        if self._future is not None and self._future.done():
+            try:
+                result = self._future.result()
+            except Exception as err:  # a crashed worker is a perception failure
+                result = {"success": False, "reason": f"perception worker failed: {err}"}
+            self._future = None
+            log.frame, log.result = self._pending_frame, result
+            if result["success"]:
+                log.successes += 1
+                log.consecutive_failures = 0
+                self.has_pose = True
+                self.pose = pose_vector(RigidTransform(result["X_WO"]))
+            else:
+                log.failures += 1
+                log.consecutive_failures += 1
+                log.events.append(f"t={sim_time:.2f}s: {result['reason']}")
+                if log.consecutive_failures >= cam.max_consecutive_failures and (
+                        cam.on_failure == "stop" or not self.has_pose):
+                    raise StationFault(f"perception failed {log.consecutive_failures} times in a "
+                                       f"row (last: {result['reason']})")
+            if self.on_result is not None:
+                self.on_result(log)
+        if not self.has_pose and now - self._t0 > cam.first_pose_timeout_s:
+            raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
+        if self._future is None and now >= self._next_request:
+            self._next_request = now + cam.period_s
+            self._submit()
+
+    def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
+        """Block until the first pose arrives (StationFault after first_pose_timeout_s);
+        `check()` runs between polls (e.g. to raise on a driver fault meanwhile)."""
+        while not self.has_pose:
+            self.poll()
+            check()
+            time.sleep(0.02)
+
+    def _init(self, context: Context, state: DiscreteValues) -> None:
+        state.set_value(0, self.pose)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        self.poll(context.get_time())
+        state.set_value(0, self.pose)
+
+
+class WorldPoseSystem(LeafSystem):
+    """Object pose read from the HIL world (camera kind "sim": no perception)."""
+
+    def __init__(self, world, period: float):
+        super().__init__()
+        self.world = world
+        state = self.DeclareDiscreteState(pose_vector(world.object_pose()))
+        self.DeclareStateOutputPort("object_pose", state)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        state.set_value(0, pose_vector(self.world.object_pose()))
+
+
+# ----------------------------------------------------------------------------- controller
+Controller = Callable[[float, np.ndarray, np.ndarray], np.ndarray]
+
+
+class ControllerSystem(LeafSystem):
+    """Runs `controller(t, hand_state, object_pose) -> q_command` every `period`.
+
+    Inputs "hand_state", "object_pose"; output "command". The command starts at the
+    measured position; a non-finite controller output is not used: the last command is
+    held and `nan_holds` counts it. Wall-clock times of the updates give the policy rate."""
+
+    def __init__(self, controller: Controller, n: int, period: float):
+        super().__init__()
+        self.controller = controller
+        self.n = n
+        self.nan_holds = 0
+        self.timer = _Timer()
+        self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
+        self._pose = self.DeclareVectorInputPort("object_pose", 7)
+        state = self.DeclareDiscreteState(n)
+        self.DeclareStateOutputPort("command", state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._init)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _init(self, context: Context, state: DiscreteValues) -> None:
+        state.set_value(0, self._hand.Eval(context)[: self.n])
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        self.timer.tick()
+        q = np.asarray(self.controller(context.get_time(), self._hand.Eval(context),
+                                       self._pose.Eval(context)), float)
+        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
+            self.nan_holds += 1
+            return  # discrete state unchanged: hold the last command
+        state.set_value(0, q)
+
+
+# ----------------------------------------------------------------------------- station
+@dataclass
+class Station:
+    """A built station: `diagram` (the common ports), and the devices behind it.
+
+    Use as a context manager around the simulation: entering starts emulators, the HIL
+    world and the drivers; leaving stops them all (safe stop), whatever happened."""
+
+    scenario: Scenario
+    diagram: Diagram
+    hand: HandDescription
+    scene: object = None  # sim: the GraspScene
+    world: object = None  # hil: the HilWorld
+    devices: dict = field(default_factory=dict)
+    perception: PerceptionSystem | None = None
+    _stop: contextlib.ExitStack | None = None
+
+    @property
+    def mode(self) -> str:
+        return self.scenario.mode
+
+    def stop(self) -> None:
+        """Safe stop: drivers first (zero torque / PASSIVE), then emulators and the world."""
+        if self._stop is not None:
+            stack, self._stop = self._stop, None
+            stack.close()
+
+    def __enter__(self) -> Station:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stats(self) -> dict[str, dict]:
+        """Loop statistics of the running devices (CAN, Z1, world)."""
+        out = {}
+        if "allegro" in self.devices:
+            out["can"] = self.devices["allegro"].stats()
+        if "z1" in self.devices:
+            out["z1"] = self.devices["z1"].stats()
+        if self.world is not None:
+            out["world"] = self.world.stats()
+        return out
+
+
+def make_station(scenario: Scenario) -> Station:
+    """Build (and for hil/real, start the devices of) the station of `scenario`.
+
+    For hil/real the devices run from here on: use the result as a context manager (or call
+    `stop()`) so that they are stopped safely."""
+    if scenario.mode == "sim":
+        return _sim_station(scenario)
+    stack = contextlib.ExitStack()
+    try:
+        return _device_station(scenario, stack)
+    except BaseException:
+        stack.close()
+        raise
+
+
+def _sim_station(scenario: Scenario) -> Station:
+    from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+
+    scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
+                                          time_step=scenario.time_step,
+                                          control_period=scenario.control_period))
+    builder = DiagramBuilder()
+    sub = builder.AddNamedSystem("scene", scene.diagram)
+    builder.ExportInput(sub.GetInputPort("command"), "command")
+    for name in PORTS["outputs"]:
+        builder.ExportOutput(sub.GetOutputPort(name), name)
+    return Station(scenario, builder.Build(), scene.hand, scene=scene)
+
+
+def _bus_maps(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
+    """(select, assemble): command (n) -> [arm (6); fingers (16, bus)] and
+    [arm q; arm v; hand q; hand v] -> [q; v] in policy order."""
+    n, n_arm = hand.num_actuators, len(hand.arm_joints)
+    perm = hand.hardware_permutation()
+    S = np.zeros((n, n))
+    S[np.arange(n_arm), np.arange(n_arm)] = 1.0
+    S[n_arm + np.arange(len(perm)), perm] = 1.0
+    A = np.zeros((2 * n, 2 * n))
+    nf = len(perm)
+    for i in range(n_arm):
+        A[i, i] = 1.0  # arm q
+        A[n + i, n_arm + i] = 1.0  # arm v
+    for k, p in enumerate(perm):
+        A[p, 2 * n_arm + k] = 1.0  # hand q
+        A[n + p, 2 * n_arm + nf + k] = 1.0  # hand v
+    return S, A
+
+
+def _driver_configs(scenario: Scenario, arm_controller_port: int | None):
+    from dexdrake.hardware.allegro_can import AllegroConfig
+    from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config
+
+    h, a = scenario.drivers.hand, scenario.drivers.arm
+    hand_cfg = AllegroConfig(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
+                             max_target_rate=h.max_target_rate, watchdog_timeout_s=h.watchdog_timeout_s)
+    arm_cfg = Z1Config(host=a.host, local_port=a.local_port,
+                       controller_port=a.controller_port if arm_controller_port is None else arm_controller_port,
+                       watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode], kp=tuple(a.kp),
+                       kd=tuple(a.kd), max_velocity=a.max_velocity)
+    return hand_cfg, arm_cfg
+
+
+def open_can_bus(scenario: Scenario):
+    """The python-can bus of the hand driver entry; HardwareError when it cannot open."""
+    import can
+
+    from dexdrake.hardware.safety import HardwareError
+
+    h = scenario.drivers.hand
+    try:
+        return can.Bus(interface=h.interface, channel=h.channel, bitrate=h.bitrate,
+                       receive_own_messages=False)
+    except (can.CanError, OSError, ValueError, ImportError) as err:
+        raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
+
+
+def _start_emulators(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
+    """hil: virtual CAN firmware emulator, loopback Z1 emulator and the world joining them."""
+    from dexdrake.hardware.allegro_emulator import EmulatorConfig
+    from dexdrake.hardware.hil_world import CoSimAllegroEmulator, CoSimZ1Emulator, HilWorld
+    from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
+    from dexdrake.systems.scene import ObjectPlacement
+
+    rng = np.random.default_rng(scenario.seed)
+    placement = ObjectPlacement.sample(rng)
+    q0 = hand.pregrasp_vector()
+    n_arm = len(hand.arm_joints)
+    perm = hand.hardware_permutation()
+    h = scenario.drivers.hand
+    emu_bus = open_can_bus(scenario)
+    stack.callback(emu_bus.shutdown)
+    hand_emu = CoSimAllegroEmulator(emu_bus, h.device_id, EmulatorConfig(q0=tuple(q0[perm]), seed=scenario.seed,
+                                                                        lower=h.lower, upper=h.upper))
+    a = scenario.drivers.arm
+    arm_emu = CoSimZ1Emulator(Z1EmulatorConfig(host=a.host, port=a.controller_port, q0=tuple(q0[:n_arm]),
+                                               seed=scenario.seed))
+    world = HilWorld(scenario, hand_emu, arm_emu, q0, placement)
+    hand_emu.start()
+    stack.callback(hand_emu.stop)
+    arm_emu.start()
+    stack.callback(arm_emu.stop)
+    world.start()
+    stack.callback(world.stop)
+    return world, hand_emu, arm_emu
+
+
+def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
+    from dexdrake.hardware.safety import HardwareError
+
+    deadline = time.monotonic() + timeout
+    while not np.isfinite(allegro.state().t):
+        if time.monotonic() > deadline:
+            raise HardwareError(f"Allegro: no complete position cycle within {timeout} s of start")
+        time.sleep(0.005)
+
+
+def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
+    from dexdrake.hardware.allegro_can import AllegroHand
+    from dexdrake.hardware.z1_udp import Z1Arm
+
+    hand = load_hand(scenario.hand)
+    devices: dict = {}
+    world = None
+    arm_port = None
+    if scenario.mode == "hil":
+        world, devices["allegro_emulator"], devices["z1_emulator"] = _start_emulators(scenario, stack, hand)
+        arm_port = devices["z1_emulator"].port
+    hand_cfg, arm_cfg = _driver_configs(scenario, arm_port)
+    bus = open_can_bus(scenario)
+    stack.callback(bus.shutdown)
+    allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg)
+    stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
+    devices["allegro"] = allegro
+    _await_first_cycle(allegro)
+    z1 = Z1Arm(arm_cfg)
+    stack.enter_context(z1)
+    devices["z1"] = z1
+
+    period = scenario.control_period
+    n = hand.num_actuators
+    S, A = _bus_maps(hand)
+    builder = DiagramBuilder()
+    select = builder.AddNamedSystem("command_to_devices", MatrixGain(S))
+    arm_sys = builder.AddNamedSystem("z1_driver", Z1DriverSystem(z1, period))
+    hand_sys = builder.AddNamedSystem("allegro_driver", AllegroDriverSystem(allegro, period))
+    n_arm = len(hand.arm_joints)
+    split = builder.AddSystem(Demultiplexer([n_arm, n - n_arm]))
+    builder.Connect(select.get_output_port(), split.get_input_port())
+    builder.Connect(split.get_output_port(0), arm_sys.get_input_port())
+    builder.Connect(split.get_output_port(1), hand_sys.get_input_port())
+    mux = builder.AddSystem(Multiplexer([2 * n_arm, 2 * (n - n_arm)]))
+    builder.Connect(arm_sys.get_output_port(), mux.get_input_port(0))
+    builder.Connect(hand_sys.get_output_port(), mux.get_input_port(1))
+    assemble = builder.AddNamedSystem("devices_to_hand_state", MatrixGain(A))
+    builder.Connect(mux.get_output_port(), assemble.get_input_port())
+    builder.ExportInput(select.get_input_port(), "command")
+    builder.ExportOutput(assemble.get_output_port(), "hand_state")
+
+    perception = None
+    cam = scenario.drivers.camera
+    if cam.kind == "sim":
+        pose_sys = builder.AddNamedSystem("world_pose", WorldPoseSystem(world, period))
+    else:
+        from dexdrake.objects.library import get_object
+
+        read_frame = _camera_reader(scenario, world, stack)
+        executor = perception_executor(str(get_object(scenario.object).mesh_path))
+        stack.callback(executor.shutdown, wait=False, cancel_futures=True)
+        perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(read_frame, executor, cam))
+    builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
+    station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
+    station._stop = stack.pop_all()
+    return station
+
+
+def _camera_pose(cam: CameraDriver) -> RigidTransform:
+    from dexdrake.hardware.kinect import look_at
+
+    return look_at(cam.eye, cam.target)
+
+
+def _camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Callable[[], object]:
+    """A function returning the next RgbdFrame of the configured camera."""
+    from dexdrake.hardware.kinect import DepthNoiseModel, DrakeRenderedCamera, K4ADevice, RecordedSequence
+    from dexdrake.objects.library import get_object
+
+    cam = scenario.drivers.camera
+    X_WC = _camera_pose(cam)
+    if cam.kind == "rendered":
+        info = get_object(scenario.object)
+        source = DrakeRenderedCamera(X_WC, {info.name: info.mesh_path}, cam.width, cam.height,
+                                     DepthNoiseModel() if cam.depth_noise else None, scenario.seed)
+
+        def read():
+            source.set_object_pose(info.name, world.object_pose())
+            return source.read()
+
+        return read
+    if cam.kind == "recorded":
+        source = RecordedSequence(cam.recording, loop=True)
+    else:
+        source = K4ADevice(cam.device_id, X_WC=X_WC)
+    stack.callback(source.close)
+
+    def read_posed():
+        frame = source.read()
+        if frame.X_WC is None:
+            from dexdrake.hardware.kinect import RgbdFrame
+
+            frame = RgbdFrame(frame.color, frame.depth, frame.intrinsics, frame.timestamp, X_WC)
+        return frame
+
+    return read_posed
+
+
+# ----------------------------------------------------------------------------- logging
+class StationRerunLogger:
+    """rerun recording of the station loop (rerun-sdk >= 0.22 API).
+
+    Entities: joints/q/<joint>, joints/cmd/<joint> (scalars per control step),
+    world/object (Transform3D of the pose the controller sees), and from perception:
+    camera/image, camera/depth, camera/mask (SegmentationImage), world/cloud (segmented
+    points in the world), world/registered (Transform3D of the registered model).
+    Time lines: "step" (control steps) and "perception" (perception results)."""
+
+    def __init__(self, path: str, station: Station, application_id: str = "dexdrake_station"):
+        import rerun as rr
+
+        self.rr = rr
+        self.rec = rr.RecordingStream(application_id)
+        self.rec.save(str(path))
+        self.joints = station.hand.policy_joints
+        self._results = 0
+        if station.perception is not None:
+            station.perception.on_result = self.log_perception
+
+    def log_step(self, step: int, diagram: Diagram, context: Context, controller: LeafSystem,
+                 station: Station) -> None:
+        rr, rec = self.rr, self.rec
+        rec.set_time("step", sequence=step)
+        n = len(self.joints)
+        q = diagram.GetSubsystemByName("station").GetOutputPort("hand_state").Eval(
+            diagram.GetSubsystemContext(diagram.GetSubsystemByName("station"), context))[:n]
+        cmd = controller.get_output_port().Eval(controller.GetMyContextFromRoot(context))
+        for name, value, c in zip(self.joints, q, cmd):
+            rec.log(f"joints/q/{name}", rr.Scalars(float(value)))
+            rec.log(f"joints/cmd/{name}", rr.Scalars(float(c)))
+        pose = controller.GetInputPort("object_pose").Eval(controller.GetMyContextFromRoot(context))
+        rec.log("world/object", rr.Transform3D(translation=pose[:3],
+                                               quaternion=rr.Quaternion(xyzw=[*pose[4:7], pose[3]])))
+
+    def log_perception(self, log: PerceptionLog) -> None:
+        rr, rec = self.rr, self.rec
+        self._results += 1
+        rec.set_time("perception", sequence=self._results)
+        frame, result = log.frame, log.result or {}
+        if frame is not None:
+            rec.log("camera/image", rr.Image(frame.color))
+            rec.log("camera/depth", rr.DepthImage(frame.depth, meter=1000.0))
+        if result.get("mask") is not None:
+            rec.log("camera/mask", rr.SegmentationImage(result["mask"].astype(np.uint8)))
+        if result.get("cloud") is not None and len(result["cloud"]):
+            rec.log("world/cloud", rr.Points3D(result["cloud"], radii=0.002))
+        if result.get("success"):
+            X = RigidTransform(result["X_WO"])
+            rec.log("world/registered", rr.Transform3D(translation=X.translation(),
+                                                       mat3x3=X.rotation().matrix()))
+        rec.log("perception/fitness", rr.Scalars(float(result.get("fitness", 0.0))))
+        rec.log("perception/failures", rr.Scalars(float(log.failures)))
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()

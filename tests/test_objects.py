@@ -1,0 +1,367 @@
+"""Tests of the object library: shipped meshes, convex pieces, SDFs, import and CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.objects import commands, convex, importer, shapes, store
+from dexdrake.objects.library import (
+    DISTANCE_GEOMETRY_NAME,
+    add_object,
+    exclude_distance_geometry_from_contact,
+    get_object,
+    import_mesh,
+    list_objects,
+    remove_user_object,
+)
+from dexdrake.objects.meshfile import content_hash, is_stable_rest, load_obj, obj_bytes
+
+SHIPPED = shapes.recipe_names()  # test_counts_and_splits_match_recipes checks this is the shipped set
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path, monkeypatch):
+    """Every test gets an empty private cache (user objects, SDFs, CoACD pieces)."""
+    monkeypatch.setenv("DEXDRAKE_CACHE", str(tmp_path / "cache"))
+
+
+@pytest.fixture
+def no_coacd(monkeypatch):
+    """Fail if a test would run CoACD (shipped objects must use their shipped pieces)."""
+
+    def refuse(mesh):
+        raise AssertionError("CoACD should not run for shipped objects")
+
+    monkeypatch.setattr(convex, "decompose", refuse)
+
+
+def _box_mesh(size=(0.05, 0.04, 0.03), offset=(0.3, -0.2, 0.1)) -> trimesh.Trimesh:
+    mesh = trimesh.creation.box(extents=size)
+    mesh.apply_translation(offset)
+    return mesh
+
+
+def _is_convex(mesh: trimesh.Trimesh) -> bool:
+    """Closed and (up to the files' 1 micron rounding) equal to its own convex hull."""
+    return mesh.convex_hull.volume <= mesh.volume * (1 + 1e-4)
+
+
+def _user_entries():
+    root = store.user_root()
+    return sorted(p.name for p in root.iterdir()) if root.exists() else []
+
+
+# ------------------------------------------------------------------ shipped set
+def test_counts_and_splits_match_recipes():
+    train, unseen = list_objects("train"), list_objects("unseen")
+    assert len(train) >= 40 and len(unseen) >= 10
+    assert {i.name for i in train + unseen} == set(shapes.recipe_names())
+    assert {i.name for i in train} == set(shapes.recipe_names("train"))
+    # the unseen split holds categories absent from training
+    assert {i.category for i in unseen} - {i.category for i in train}
+    assert all(i.mass == 0.5 and i.friction == 1.0 for i in train + unseen)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_mesh_is_a_valid_object_frame_solid(name):
+    info = get_object(name)
+    mesh = load_obj(info.mesh_path)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume > 0, "inward-wound mesh"
+    assert 0.05 <= max(mesh.extents) <= 0.25
+    assert len(mesh.faces) <= 3000
+    np.testing.assert_allclose(mesh.center_mass, 0.0, atol=1e-5)
+    assert info.rest_height == pytest.approx(-mesh.bounds[0][2], abs=1e-6)
+    np.testing.assert_allclose(info.extents, mesh.extents, atol=1e-6)
+    assert is_stable_rest(mesh), "identity must be a stable resting pose"
+    meta = store.read_meta(info.mesh_path.parent)
+    assert meta["content_hash"] == info.content_hash == content_hash(info.mesh_path.read_bytes())
+    assert meta["recipe"]["builder"] == shapes.get_recipe(name).builder.__name__
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_convex_pieces_are_convex_and_cover_the_mesh(name, no_coacd):
+    info = get_object(name)
+    pieces = info.convex_pieces()
+    assert pieces and all(p.parent == info.mesh_path.parent / "convex" for p in pieces)
+    mesh = load_obj(info.mesh_path)
+    lo, hi = mesh.bounds
+    total = 0.0
+    for path in pieces:
+        piece = load_obj(path)
+        assert piece.is_watertight and piece.volume > 0 and _is_convex(piece)
+        assert np.all(piece.bounds[0] >= lo - 0.005) and np.all(piece.bounds[1] <= hi + 0.005)
+        total += piece.volume
+    assert total >= 0.9 * mesh.volume
+    if mesh.volume >= convex.CONVEX_RATIO * mesh.convex_hull.volume:
+        assert len(pieces) == 1
+
+
+def test_shipped_sdfs_parse_with_mass_inertia_and_geometry(no_coacd):
+    from pydrake.geometry import Role
+    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
+    from pydrake.systems.framework import DiagramBuilder
+
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.002)
+    infos = [i for i in list_objects() if i.split != "user"]
+    instances = {i.name: add_object(plant, i) for i in infos}
+    plant.Finalize()
+    inspector = scene_graph.model_inspector()
+    for info in infos:
+        body = plant.GetBodyByName(info.name, instances[info.name])
+        assert body.default_mass() == pytest.approx(0.5)
+        inertia = body.default_spatial_inertia().CalcRotationalInertia().CopyToFullMatrix3()
+        assert np.all(np.linalg.eigvalsh(inertia) > 0)
+        ids = plant.GetCollisionGeometriesForBody(body)
+        names = [inspector.GetName(g) for g in ids]
+        assert len(ids) == len(info.convex_pieces()) + 1
+        assert sum(n.endswith(DISTANCE_GEOMETRY_NAME) for n in names) == 1
+        props = inspector.GetProperties(ids[0], Role.kProximity)
+        friction = props.GetProperty("material", "coulomb_friction")
+        assert friction.static_friction() == 1.0 and friction.dynamic_friction() == 1.0
+    assert info.sdf_path().read_text().count("drake:declare_convex") == len(info.convex_pieces())
+
+
+def _scene(names):
+    from pydrake.geometry import Box
+    from pydrake.math import RigidTransform
+    from pydrake.multibody.plant import AddMultibodyPlant, CoulombFriction, MultibodyPlantConfig
+    from pydrake.systems.framework import DiagramBuilder
+
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(
+        MultibodyPlantConfig(time_step=0.002, discrete_contact_approximation="sap"), builder
+    )
+    for k, name in enumerate(names):
+        add_object(plant, get_object(name))
+    plant.RegisterCollisionGeometry(
+        plant.world_body(), RigidTransform([0, 0, -0.05]), Box(2, 2, 0.1), "table", CoulombFriction(1.0, 1.0)
+    )
+    assert exclude_distance_geometry_from_contact(scene_graph) == len(names)
+    plant.Finalize()
+    return builder.Build(), plant, scene_graph
+
+
+@pytest.mark.parametrize("name", ["mug", "sphere_small", "toothbrush", "banana"])
+def test_object_dropped_on_table_rests_at_rest_height(name, no_coacd):
+    from pydrake.math import RigidTransform
+    from pydrake.systems.analysis import Simulator
+
+    diagram, plant, _ = _scene([name])
+    context = diagram.CreateDefaultContext()
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    body = plant.GetBodyByName(name)
+    info = get_object(name)
+    plant.SetFreeBodyPose(plant_context, body, RigidTransform([0.0, 0.0, info.rest_height + 0.01]))
+    Simulator(diagram, context).AdvanceTo(0.6)
+    pose = plant.GetFreeBodyPose(plant_context, body)
+    assert pose.translation()[2] == pytest.approx(info.rest_height, abs=0.002)
+    assert np.linalg.norm(pose.rotation().matrix() - np.eye(3)) < 0.05
+
+
+def test_distance_geometry_gives_true_distances_and_is_out_of_contact(no_coacd):
+    diagram, plant, scene_graph = _scene(["torus_thin", "sphere_medium"])
+    context = diagram.CreateDefaultContext()
+    query = scene_graph.get_query_output_port().Eval(scene_graph.GetMyContextFromRoot(context))
+    inspector = query.inspector()
+    # both objects sit at the world origin by default
+    by_name = {inspector.GetName(r.id_G): r.distance for r in query.ComputeSignedDistanceToPoint(np.zeros(3), 1.0)}
+    assert by_name[f"sphere_medium::{DISTANCE_GEOMETRY_NAME}"] == pytest.approx(-0.045, abs=1e-3)  # faceted sphere
+    # the torus hole: true distance from the centre is major - minor, the hull would say < 0
+    assert by_name[f"torus_thin::{DISTANCE_GEOMETRY_NAME}"] == pytest.approx(0.06 - 0.015, abs=1e-3)
+    ids = {inspector.GetName(g): g for g in inspector.GetAllGeometryIds()}
+    dist, piece, table = ids[f"torus_thin::{DISTANCE_GEOMETRY_NAME}"], ids["torus_thin::convex_00"], ids["table"]
+    assert inspector.CollisionFiltered(dist, table) and inspector.CollisionFiltered(dist, piece)
+    assert not inspector.CollisionFiltered(piece, table)
+
+
+def test_unknown_name_lists_valid_names():
+    with pytest.raises(UnknownNameError) as err:
+        get_object("no_such_thing")
+    assert "unknown object 'no_such_thing'" in str(err.value) and "mug" in str(err.value)
+    with pytest.raises(UnknownNameError):
+        get_object("../objects/mug")
+    with pytest.raises(UnknownNameError):
+        list_objects("validation")
+
+
+def test_recipes_are_deterministic_and_shipped_meshes_current():
+    for name in ("mug", "banana", "elephant", "wine_glass"):
+        first, second = obj_bytes(shapes.build_mesh(name)), obj_bytes(shapes.build_mesh(name))
+        assert first == second
+        assert content_hash(first) == get_object(name).content_hash, f"rerun scripts/build_objects.py ({name})"
+
+
+# ------------------------------------------------------------------ import
+def test_import_accepts_a_good_stl(tmp_path):
+    path = tmp_path / "brick.stl"
+    _box_mesh().export(path)
+    info = import_mesh(path, "brick", category="toy")
+    assert (info.split, info.category, info.name) == ("user", "toy", "brick")
+    mesh = load_obj(info.mesh_path)
+    np.testing.assert_allclose(mesh.center_mass, 0.0, atol=1e-6)
+    np.testing.assert_allclose(sorted(info.extents), [0.03, 0.04, 0.05], atol=1e-6)
+    assert info.rest_height == pytest.approx(0.015, abs=1e-6)
+    assert [i.name for i in list_objects("user")] == ["brick"] and get_object("brick") == info
+    assert len(info.convex_pieces()) == 1  # a box is convex: one piece, its hull
+    assert info.sdf_path().is_file()
+    with pytest.raises(DexdrakeError, match="already exists"):
+        import_mesh(path, "brick")
+    assert import_mesh(path, "brick", overwrite=True).content_hash == info.content_hash
+    remove_user_object("brick")
+    assert list_objects("user") == [] and _user_entries() == []
+    with pytest.raises(UnknownNameError):
+        remove_user_object("mug")  # shipped objects cannot be removed
+
+
+def test_import_scales_millimetres_and_repairs_inverted_winding(tmp_path):
+    mesh = _box_mesh(size=(60.0, 50.0, 40.0), offset=(0, 0, 0))
+    mesh.invert()  # inward-wound input
+    path = tmp_path / "mm.ply"
+    mesh.export(path)
+    info = import_mesh(path, "mm_box", scale=0.001)
+    fixed = load_obj(info.mesh_path)
+    assert fixed.volume == pytest.approx(0.06 * 0.05 * 0.04, rel=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("mesh_fn", "error", "message"),
+    [
+        (lambda: trimesh.Trimesh(*_open_tube()), importer.OpenMeshError, "open surface"),
+        (lambda: trimesh.Trimesh(*_flat_tetrahedron()), importer.DegenerateMeshError, "degenerate"),
+        (lambda: _box_mesh(size=(50.0, 20.0, 10.0)), importer.ImplausibleScaleError, "largest extent 50 m"),
+        (lambda: trimesh.util.concatenate([_box_mesh(), _box_mesh(offset=(0.5, 0, 0))]), importer.DisjointBodiesError, "2 disjoint bodies"),
+    ],
+    ids=["open", "degenerate", "50m", "disjoint"],
+)
+def test_import_refuses_bad_meshes_and_leaves_no_files(tmp_path, mesh_fn, error, message):
+    path = tmp_path / "bad.stl"
+    mesh_fn().export(path)
+    before = _user_entries()
+    with pytest.raises(error, match=message) as err:
+        import_mesh(path, "bad")
+    assert isinstance(err.value, DexdrakeError)
+    assert _user_entries() == before == []
+    if error is importer.ImplausibleScaleError:
+        assert "millimetres" in str(err.value) and "scale=0.001" in str(err.value)
+
+
+def _open_tube():
+    tube = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=24)
+    keep = np.abs(tube.face_normals[:, 2]) < 0.5  # drop both caps: two 24-edge holes
+    return tube.vertices, tube.faces[keep]
+
+
+def _flat_tetrahedron():
+    vertices = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0.05, 0.05, 0]], dtype=float)
+    return vertices, np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+
+
+def test_import_rejects_bad_names_and_shipped_names(tmp_path):
+    path = tmp_path / "b.obj"
+    _box_mesh().export(path)
+    with pytest.raises(DexdrakeError, match="invalid object name"):
+        import_mesh(path, "Bad Name")
+    with pytest.raises(DexdrakeError, match="shipped object"):
+        import_mesh(path, "mug")
+    (tmp_path / "x.fbx").write_text("not a mesh")
+    with pytest.raises(DexdrakeError, match="unsupported mesh format"):
+        import_mesh(tmp_path / "x.fbx", "x")
+
+
+def test_import_simplifies_dense_meshes(tmp_path):
+    path = tmp_path / "dense.stl"
+    trimesh.creation.icosphere(subdivisions=6, radius=0.04).export(path)  # 81920 faces
+    info = import_mesh(path, "dense_ball")
+    mesh = load_obj(info.mesh_path)
+    assert len(mesh.faces) <= importer.MAX_FACES and mesh.is_watertight
+    assert json.loads((info.mesh_path.parent / "meta.json").read_text())["import"]["simplified_to"] <= importer.MAX_FACES
+
+
+def test_import_reorients_an_unstable_pose(tmp_path):
+    mesh = _box_mesh(size=(0.1, 0.04, 0.02), offset=(0, 0, 0))
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(0.6, [1, 0, 0]))  # tipped
+    path = tmp_path / "tipped.obj"
+    mesh.export(path)
+    info = import_mesh(path, "tipped")
+    assert is_stable_rest(load_obj(info.mesh_path))
+    assert info.rest_height == pytest.approx(0.01, abs=1e-4)  # lies on its largest face
+
+
+# ------------------------------------------------------------------ CLI
+def _cli(argv):
+    parser = argparse.ArgumentParser()
+    commands.add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_splits_match_library():
+    from dexdrake.objects.library import SPLITS
+
+    assert commands.SPLITS == SPLITS
+
+
+def test_cli_list_and_import(tmp_path, capsys):
+    assert _cli(["objects", "list", "--split", "unseen"]) == 0
+    out = capsys.readouterr().out
+    assert "camera" in out and "cup_tall" not in out and f"{len(list_objects('unseen'))} objects" in out
+    good, bad = tmp_path / "good.stl", tmp_path / "huge.stl"
+    _box_mesh().export(good)
+    _box_mesh(size=(50.0, 1.0, 1.0)).export(bad)
+    assert _cli(["objects", "import", str(good), "--name", "cli_box"]) == 0
+    assert "imported cli_box" in capsys.readouterr().out
+    assert _cli(["objects", "import", str(bad), "--name", "huge"]) == 1
+    assert "error: implausible size" in capsys.readouterr().out
+    assert _cli(["objects", "list", "--split", "user"]) == 0
+    assert "cli_box" in capsys.readouterr().out
+
+
+def test_imported_non_convex_mesh_gets_cached_coacd_pieces(tmp_path, monkeypatch):
+    path = tmp_path / "ell.obj"
+    shapes.to_trimesh(shapes.l_block(0.12, 0.03, 0.03)).export(path)
+    info = import_mesh(path, "ell")
+    pieces = info.convex_pieces()
+    assert len(pieces) >= 2 and all(_is_convex(load_obj(p)) for p in pieces)
+    assert pieces[0].parent.parent == store.user_root().parent.parent / "convex"
+    assert pieces[0].parent.name == convex.pieces_key(info.content_hash)
+    monkeypatch.setattr(convex, "decompose", lambda mesh: pytest.fail("cache miss"))
+    assert get_object("ell").convex_pieces() == pieces
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".glb"])
+def test_import_reads_other_formats(tmp_path, suffix):
+    path = tmp_path / f"box{suffix}"
+    _box_mesh().export(path)
+    info = import_mesh(path, f"box{suffix[1:]}")
+    assert load_obj(info.mesh_path).volume == pytest.approx(0.05 * 0.04 * 0.03, rel=1e-4)
+
+
+def test_import_fills_a_small_hole(tmp_path):
+    mesh = _box_mesh()
+    holed = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)  # one triangle missing
+    assert not holed.is_watertight
+    path = tmp_path / "holed.stl"
+    holed.export(path)
+    info = import_mesh(path, "holed")
+    repaired = load_obj(info.mesh_path)
+    assert repaired.is_watertight and repaired.volume == pytest.approx(0.05 * 0.04 * 0.03, rel=1e-4)
+
+
+def test_add_object_twice_under_another_name(no_coacd):
+    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
+    from pydrake.systems.framework import DiagramBuilder
+
+    plant, _ = AddMultibodyPlantSceneGraph(DiagramBuilder(), 0.002)
+    mug = get_object("mug")
+    first, second = add_object(plant, mug), add_object(plant, mug, name="mug_2")
+    assert plant.GetModelInstanceName(first) == "mug" and plant.GetModelInstanceName(second) == "mug_2"
+    with pytest.raises(DexdrakeError, match="already has a model named 'mug'"):
+        add_object(plant, mug)

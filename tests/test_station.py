@@ -1,0 +1,204 @@
+"""Station tests: scenarios, identical ports across modes, HIL episodes and fault injection."""
+
+import concurrent.futures as cf
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dexdrake.systems.scenario import ScenarioError, load_scenario, parse_scenario
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def hil_scenario(camera: str = "sim"):
+    s = load_scenario(CONFIGS / "hil.yaml")
+    s.drivers.camera.kind = camera
+    return s
+
+
+def test_shipped_scenarios_load():
+    modes = {name: load_scenario(CONFIGS / f"{name}.yaml").mode for name in ("sim", "hil", "real")}
+    assert modes == {"sim": "sim", "hil": "hil", "real": "real"}
+    real = load_scenario(CONFIGS / "real.yaml")
+    assert real.drivers.hand.interface == "socketcan" and real.drivers.camera.kind == "k4a"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("drivers: {hand: {kindd: sim}}", "unknown to the schema"),
+    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, hardware"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: sim}}", "must match"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: k4a}}",
+     "not available in hil mode"),
+    ("drivers: {hand: {kind: emulated, kp: [1, 2]}, arm: {kind: emulated}}", "kp needs 16"),
+    ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
+     "only allowed with an emulated arm"),
+    ("object: no_such_object", "unknown object"),
+    ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
+    ("control_period: 0.001", "must be >= time_step"),
+    ("time_step: [1]", "time_step"),
+])
+def test_bad_scenarios_are_refused_with_a_clear_message(text, message):
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario(text, source="bad.yaml")
+
+
+def test_missing_scenario_file():
+    with pytest.raises(ScenarioError, match="does not exist"):
+        load_scenario("no/such/scenario.yaml")
+
+
+def _ports(diagram):
+    return ([diagram.get_input_port(i).get_name() for i in range(diagram.num_input_ports())],
+            [diagram.get_output_port(i).get_name() for i in range(diagram.num_output_ports())])
+
+
+def _hold_then(offset: np.ndarray, after: float = 0.0, nan_after: float | None = None):
+    """A controller commanding the first measured position plus `offset` (from `after` s),
+    and NaN from `nan_after` s on."""
+    start = {}
+
+    def controller(t, hand_state, object_pose):
+        n = len(offset)
+        start.setdefault("q", hand_state[:n].copy())
+        if nan_after is not None and t >= nan_after:
+            return np.full(n, np.nan)
+        return start["q"] + (offset if t >= after else 0.0)
+
+    return controller
+
+
+def test_sim_and_hil_expose_identical_ports_and_hil_joints_track_commands():
+    from dexdrake.station_commands import run_episode
+    from dexdrake.systems.station import make_station
+
+    sim = make_station(load_scenario(CONFIGS / "sim.yaml"))
+    with make_station(hil_scenario()) as station:
+        assert _ports(sim.diagram) == _ports(station.diagram) == (["command"], ["hand_state", "object_pose"])
+        n = station.hand.num_actuators
+        offset = np.zeros(n)
+        fingers = [station.hand.policy_joints.index(j) for j in ("joint_1.0", "joint_5.0", "joint_9.0")]
+        offset[fingers] = 0.6
+        q0 = station.world.robot_positions()
+        result = run_episode(station, _hold_then(offset), steps=40)
+        q1 = station.world.robot_positions()
+    assert result.fault is None and result.steps == 40
+    moved = q1[fingers] - q0[fingers]
+    assert np.all(moved > 0.25), f"finger joints moved only {moved}"  # toward +0.6 rad
+    arm = np.arange(len(station.hand.arm_joints))
+    assert np.max(np.abs(q1[arm] - q0[arm])) < 0.05  # the arm holds while the fingers move
+    assert result.stats["can"]["cycles"] > 50 and result.stats["z1"]["packets_received"] > 50
+
+
+def test_nan_command_holds_and_is_never_sent():
+    from dexdrake.station_commands import run_episode
+    from dexdrake.systems.station import make_station
+
+    with make_station(hil_scenario()) as station:
+        n = station.hand.num_actuators
+        q0 = station.world.robot_positions()
+        result = run_episode(station, _hold_then(np.zeros(n), nan_after=0.1), steps=25)
+        q1 = station.world.robot_positions()
+        stats = station.stats()
+    assert result.fault is None
+    assert result.stats["policy"]["nan_holds"] >= 15
+    assert stats["can"]["rejected_commands"] == 0 and stats["z1"]["rejected_commands"] == 0
+    n_arm = len(station.hand.arm_joints)
+    assert np.max(np.abs(q1[:n_arm] - q0[:n_arm])) < 0.05
+
+
+@pytest.mark.parametrize("device", ["allegro", "z1"])
+def test_stalled_emulator_stream_ends_in_safe_state(device):
+    from dexdrake.hardware.z1_udp import ArmFSMState
+    from dexdrake.station_commands import run_episode
+    from dexdrake.systems.station import make_station
+
+    with make_station(hil_scenario()) as station:
+        emulator = station.devices[f"{device}_emulator"]
+        timer = threading.Timer(0.2, emulator.stall, args=(2.0,))
+        timer.start()
+        result = run_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
+        timer.join()
+        assert result.fault is not None and result.steps < 100
+        assert ("Allegro" if device == "allegro" else "Z1") in result.fault
+    # after the station's exit every device is in its safe state
+    hand_emu, arm_emu = station.devices["allegro_emulator"], station.devices["z1_emulator"]
+    assert not hand_emu.servo_on and not np.any(hand_emu.pwm)
+    assert arm_emu.fsm == ArmFSMState.PASSIVE
+    assert not station.devices["allegro"].running and not station.devices["z1"].running
+
+
+# ----------------------------------------------------------------------------- perception
+class _Frame:
+    def __init__(self):
+        from dexdrake.hardware.kinect import CameraIntrinsics
+
+        self.color = np.zeros((4, 4, 3), np.uint8)
+        self.depth = np.zeros((4, 4), np.uint16)
+        self.intrinsics = CameraIntrinsics(4, 4, 2.0, 2.0, 2.0, 2.0)
+        self.X_WC = None
+
+
+def _perception(outcomes, on_failure="hold", max_failures=2):
+    """A PerceptionSystem whose estimates are `outcomes` (a pose 4x4 or None = failure)."""
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem
+
+    results = iter(outcomes)
+
+    def estimate(color, depth, intrinsics, X_WC):
+        X = next(results)
+        return {"success": X is not None, "reason": "segmentation found no object" if X is None else "",
+                "X_WO": X, "fitness": 0.9 if X is not None else 0.0}
+
+    camera = CameraDriver(kind="rendered", period_s=1e-6, first_pose_timeout_s=5.0,
+                          max_consecutive_failures=max_failures, on_failure=on_failure)
+    return PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate)
+
+
+def _drain(system, polls: int):
+    for _ in range(polls):
+        system.poll()
+        if system._future is not None:
+            cf.wait([system._future])
+
+
+def test_perception_failure_holds_the_last_pose():
+    X = np.eye(4)
+    X[:3, 3] = [0.01, -0.02, 0.035]
+    system = _perception([X, None, None, None, None])
+    _drain(system, 10)
+    assert system.has_pose and system.log.consecutive_failures >= 3
+    np.testing.assert_allclose(system.pose, [0.01, -0.02, 0.035, 1, 0, 0, 0])
+
+
+def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
+    from dexdrake.systems.station import StationFault
+
+    X = np.eye(4)
+    with pytest.raises(StationFault, match="perception failed 2 times"):
+        _drain(_perception([X, None, None, None], on_failure="stop"), 6)
+    with pytest.raises(StationFault, match="no object found|perception failed"):
+        _drain(_perception([None, None, None], on_failure="hold"), 5)
+
+
+@pytest.mark.slow
+def test_full_hil_grasp_with_rendered_perception(tmp_path):
+    """The whole `dexdrake hil` episode: perception on rendered images, scripted grasp."""
+    from dexdrake.station_commands import make_controller, run_episode
+    from dexdrake.systems.station import StationRerunLogger, make_station
+
+    scenario = hil_scenario("rendered")
+    controller, _ = make_controller(scenario)
+    rrd = tmp_path / "hil.rrd"
+    with make_station(scenario) as station:
+        logger = StationRerunLogger(str(rrd), station)
+        p0 = station.world.object_pose().translation()
+        result = run_episode(station, controller, steps=150, logger=logger)
+        logger.close()
+        assert station.perception.log.successes >= 1
+        est = station.perception.pose[:3]
+    assert result.fault is None
+    assert np.linalg.norm(est - p0) < 0.03  # registration found the object
+    assert rrd.stat().st_size > 10_000

@@ -1,0 +1,48 @@
+"""The `dexdrake` command line: one sub-command per workflow.
+
+Each area of the package contributes its sub-commands through an `add_parser(subparsers)`
+function; heavy imports (pydrake, torch) happen inside the commands, so `--help` is quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+from dexdrake.errors import DexdrakeError
+
+# Modules that contribute sub-commands with `add_parser(subparsers)`.
+COMMAND_MODULES = [
+    "dexdrake.sim_commands",
+    "dexdrake.objects.commands",
+    "dexdrake.demos.commands",
+    "dexdrake.dexrep.commands",
+    "dexdrake.station_commands",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dexdrake", description=__doc__.splitlines()[0])
+    subparsers = parser.add_subparsers(dest="command", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    start = time.perf_counter()
+    try:
+        return int(args.func(args) or 0)
+    except DexdrakeError as err:
+        print(f"dexdrake {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dexdrake {args.command}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""CLI: `dexdrake features describe` and `dexdrake encoder train`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _describe(args: argparse.Namespace) -> int:
+    from dexdrake.dexrep.feature_sets import feature_set_names, observation_blocks
+    from dexdrake.hands.description import load_hand
+
+    hand = load_hand(args.hand)
+    for name in [args.set] if args.set else feature_set_names():
+        blocks = observation_blocks(hand, name)
+        parts = ", ".join(f"{g} {n}" for g, n in blocks.items())
+        print(f"{hand.name} {name}: {parts} (total {sum(blocks.values())})")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from dexdrake.dexrep.train_encoder import TrainConfig, train
+
+    config = TrainConfig(meshes=args.meshes, epochs=args.epochs, steps_per_epoch=args.steps_per_epoch,
+                         batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
+    m = train(config, Path(args.out), command="dexdrake " + " ".join(sys.argv[1:]))
+    print(f"wrote {args.out}: Chamfer train {m['chamfer_train']:.4f}, unseen {m['chamfer_unseen']:.4f}")
+    return 0
+
+
+def add_parser(subparsers) -> None:
+    """Adds the `features` and `encoder` command groups."""
+    feat = subparsers.add_parser("features", help="DexRep feature sets").add_subparsers(dest="action", required=True)
+    d = feat.add_parser("describe", help="print each observation block's size")
+    d.add_argument("--hand", default="adroit")
+    d.add_argument("--set", default=None, help="one feature set (default: all)")
+    d.set_defaults(func=_describe)
+
+    enc = subparsers.add_parser("encoder", help="the PointNet encoder").add_subparsers(dest="action", required=True)
+    t = enc.add_parser("train", help="train the PointNet auto-encoder, write the encoder")
+    t.add_argument("--meshes", default="train", help="'train' (object library), 'primitives' or a folder")
+    t.add_argument("--epochs", type=int, default=10)
+    t.add_argument("--steps-per-epoch", type=int, default=8)
+    t.add_argument("--batch-size", type=int, default=8)
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--out", default="models/weights/pointnet_encoder.pt")
+    t.set_defaults(func=_train)

@@ -1,0 +1,307 @@
+"""Per-object DexRep precomputation and the fast distance structures built on it.
+
+For one watertight, outward-wound mesh (object frame, metres) this computes once and caches
+on disk under cache_dir()/dexrep/<sha256 of mesh bytes + parameters + encoder weights>.npz:
+  - `samples` (2048, 3) surface points (seeded area-weighted sampling) and their outward
+    face `normals`;
+  - `local_features` (2048, 64) and `global_feature` (1024,) of the frozen PointNet encoder
+    on those samples, in the object frame (normalised by centroid and max radius);
+  - a dense signed-distance grid (`sdf`, negative inside) with trilinear interpolation,
+    padded by SDF_PAD around the bounding box, used for occupancy.
+At load it also builds an exact closest-point structure (Open3D RaycastingScene, float32)
+for the hand points and a KD-tree on the samples for the local-geo lookup.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from dataclasses import dataclass, field
+from functools import cache, cached_property
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from dexdrake.dexrep.pointnet import NUM_POINTS, PointNetEncoder, encode_cloud, load_encoder
+from dexdrake.errors import DexdrakeError
+from dexdrake.paths import cache_dir
+
+SDF_PAD = 0.03  # grid margin (m); > the 2 cm voxel half-diagonal, so outside = empty
+MAX_GRID_NODES = 160  # per axis
+FAR = 1.0e3  # signed distance reported for points known to be far from the object
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SdfGrid:
+    """Signed distances (m) at nodes origin + spacing * (i, j, k); negative inside."""
+
+    origin: np.ndarray  # (3,)
+    spacing: float
+    values: np.ndarray  # (nx, ny, nz) float32
+
+    @property
+    def upper(self) -> np.ndarray:
+        return self.origin + self.spacing * (np.array(self.values.shape) - 1)
+
+    def evaluate(self, p: np.ndarray, with_gradient: bool = False):
+        """Trilinear signed distance at (m, 3) points (and its gradient if asked).
+
+        Points outside the grid get sd(clamped point) + distance to it, which is at least
+        about SDF_PAD: they are never near the object.
+        """
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        q = np.clip(p, self.origin, self.upper)
+        outside = np.sqrt(np.einsum("ij,ij->i", p - q, p - q))
+        u = (q - self.origin) * (1.0 / self.spacing)
+        i0 = np.minimum(u.astype(np.intp), self._max_index)
+        f = u - i0
+        corners = np.take(self._flat, (i0 @ self._strides)[:, None] + self._corner_offsets)
+        fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2:3]
+        # corners ordered (x, y, z) bits: 000 001 010 011 100 101 110 111
+        cz = corners[:, 0::2] + (corners[:, 1::2] - corners[:, 0::2]) * fz  # (m, 4): 00 01 10 11
+        cy = cz[:, 0::2] + (cz[:, 1::2] - cz[:, 0::2]) * fy  # (m, 2): 0 1
+        sd = cy[:, 0] + (cy[:, 1] - cy[:, 0]) * fx[:, 0] + outside
+        if not with_gradient:
+            return sd
+        gx = cy[:, 1] - cy[:, 0]
+        gy = ((cz[:, 1] - cz[:, 0]) * (1 - fx[:, 0]) + (cz[:, 3] - cz[:, 2]) * fx[:, 0])
+        dz = corners[:, 1::2] - corners[:, 0::2]  # (m, 4)
+        dzy = dz[:, 0::2] + (dz[:, 1::2] - dz[:, 0::2]) * fy
+        gz = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx[:, 0]
+        return sd, np.stack([gx, gy, gz], axis=1) * (1.0 / self.spacing)
+
+    def nearest_node_value(self, p: np.ndarray) -> np.ndarray:
+        """Signed distance at the grid node nearest to each point (error <= spacing*sqrt(3)/2
+        plus the grid's own error); points outside the grid, at least SDF_PAD from the
+        object, get FAR."""
+        u = np.rint((np.asarray(p, dtype=np.float64) - self.origin) * (1.0 / self.spacing)).astype(np.intp)
+        inside = np.all((u >= 0) & (u <= self._max_index + 1), axis=1)
+        sd = np.take(self._flat, np.clip(u, 0, self._max_index + 1) @ self._strides)
+        return np.where(inside, sd, FAR)
+
+    @cached_property
+    def _flat(self) -> np.ndarray:
+        return np.ascontiguousarray(self.values, dtype=np.float64).ravel()
+
+    @cached_property
+    def _strides(self) -> np.ndarray:
+        nx, ny, nz = self.values.shape
+        return np.array([ny * nz, nz, 1], dtype=np.intp)
+
+    @cached_property
+    def _max_index(self) -> np.ndarray:
+        return np.array(self.values.shape, dtype=np.intp) - 2
+
+    @cached_property
+    def _corner_offsets(self) -> np.ndarray:
+        bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=np.intp)
+        return bits @ self._strides
+
+
+@dataclass(frozen=True)
+class ClosestPoints:
+    """Per query point: signed distance (m, negative inside), closest surface point and the
+    outward unit normal there (the signed-distance gradient), all in the object frame."""
+
+    distance: np.ndarray  # (m,)
+    points: np.ndarray  # (m, 3)
+    normals: np.ndarray  # (m, 3)
+
+
+@dataclass
+class ObjectGeometry:
+    key: str
+    vertices: np.ndarray  # (V, 3)
+    faces: np.ndarray  # (F, 3)
+    samples: np.ndarray  # (2048, 3)
+    normals: np.ndarray  # (2048, 3)
+    local_features: np.ndarray  # (2048, 64) float32
+    global_feature: np.ndarray  # (1024,) float32
+    sdf: SdfGrid
+    _scene: object = field(default=None, init=False, repr=False)
+    _tree: cKDTree | None = field(default=None, init=False, repr=False)
+
+    def __getstate__(self) -> dict:  # the Open3D scene does not pickle; rebuilt lazily
+        state = dict(self.__dict__)
+        state["_scene"] = None
+        return state
+
+    @property
+    def sample_tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.samples)
+        return self._tree
+
+    def _raycasting_scene(self):
+        if self._scene is None:
+            import open3d as o3d
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(
+                o3d.core.Tensor(self.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.faces.astype(np.uint32)),
+            )
+            self._scene = scene
+        return self._scene
+
+    def signed_distance(self, p_O: np.ndarray) -> np.ndarray:
+        """Fast (grid) signed distance at (m, 3) object-frame points."""
+        return self.sdf.evaluate(p_O)
+
+    def closest_points(self, p_O: np.ndarray) -> ClosestPoints:
+        """Exact closest surface points, signed distances and outward normals."""
+        import open3d as o3d
+
+        p = np.asarray(p_O, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(p)):
+            raise DexdrakeError("closest_points: query points contain NaN or Inf")
+        scene = self._raycasting_scene()
+        q = o3d.core.Tensor(p.astype(np.float32))
+        res = scene.compute_closest_points(q, nthreads=1)
+        c = res["points"].numpy().astype(np.float64)
+        face_n = res["primitive_normals"].numpy().astype(np.float64)
+        delta = p - c
+        dist = np.linalg.norm(delta, axis=1)
+        # Sign: the grid is reliable away from the surface; near it use the face normal.
+        sd_grid = self.sdf.evaluate(p)
+        near = np.abs(sd_grid) < 2.0 * self.sdf.spacing
+        inside = np.where(near, np.einsum("ij,ij->i", delta, face_n) < 0.0, sd_grid < 0.0)
+        sign = np.where(inside, -1.0, 1.0)
+        eps = 1e-6
+        safe = np.maximum(dist, eps)[:, None]
+        normals = np.where((dist > eps)[:, None], sign[:, None] * delta / safe, face_n)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return ClosestPoints(sign * dist, c, normals)
+
+    def nearest_samples(self, p_O: np.ndarray) -> np.ndarray:
+        """Indices of the sampled surface points nearest to (m, 3) object-frame points."""
+        return self.sample_tree.query(np.asarray(p_O, dtype=np.float64).reshape(-1, 3))[1]
+
+
+def load_checked_mesh(mesh_path: Path) -> trimesh.Trimesh:
+    """Loads a mesh and refuses one that cannot serve signed-distance queries."""
+    mesh_path = Path(mesh_path)
+    if not mesh_path.exists():
+        raise DexdrakeError(f"mesh file not found: {mesh_path}")
+    try:
+        mesh = trimesh.load(mesh_path, force="mesh", process=True)
+    except Exception as e:  # trimesh raises many types on bad files
+        raise DexdrakeError(f"cannot read mesh {mesh_path}: {e}") from e
+    check_mesh(mesh, str(mesh_path))
+    return mesh
+
+
+def check_mesh(mesh: trimesh.Trimesh, label: str = "mesh") -> None:
+    """Raises DexdrakeError unless `mesh` is non-degenerate, watertight and outward-wound."""
+    if len(mesh.faces) < 4:
+        raise DexdrakeError(f"{label}: has {len(mesh.faces)} faces; a closed surface needs at least 4")
+    areas = mesh.area_faces
+    tiny = int(np.sum(areas <= 1e-12 * max(areas.max(), 1e-30)))
+    if tiny:
+        raise DexdrakeError(f"{label}: {tiny} degenerate (zero-area) faces; repair the mesh first")
+    if not mesh.is_watertight:
+        raise DexdrakeError(f"{label}: not watertight (open boundary or non-manifold edges); "
+                            "signed distances would be wrong")
+    if not mesh.is_winding_consistent:
+        raise DexdrakeError(f"{label}: inconsistent face winding; signed distances would be wrong")
+    if mesh.volume <= 0.0:
+        raise DexdrakeError(f"{label}: faces wound inward (volume {mesh.volume:.3g} m^3 <= 0); "
+                            "flip the faces so normals point outward")
+
+
+def _encoder_digest(encoder: PointNetEncoder) -> str:
+    h = hashlib.sha256()
+    for name, t in sorted(encoder.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _sdf_grid(mesh: trimesh.Trimesh, spacing: float) -> SdfGrid:
+    import open3d as o3d
+
+    lo = mesh.bounds[0] - SDF_PAD
+    hi = mesh.bounds[1] + SDF_PAD
+    spacing = max(spacing, float(np.max(hi - lo)) / (MAX_GRID_NODES - 1))
+    counts = np.ceil((hi - lo) / spacing).astype(int) + 1
+    axes = [lo[i] + spacing * np.arange(counts[i]) for i in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).astype(np.float32)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    sd = scene.compute_signed_distance(o3d.core.Tensor(nodes), nsamples=3).numpy()
+    return SdfGrid(lo.astype(np.float64), float(spacing), sd.astype(np.float32))
+
+
+def compute_object_geometry(mesh: trimesh.Trimesh, encoder: PointNetEncoder, key: str = "",
+                            num_samples: int = NUM_POINTS, seed: int = 0,
+                            grid_spacing: float = 0.002) -> ObjectGeometry:
+    """Computes everything for a checked mesh (no caching)."""
+    check_mesh(mesh)
+    samples, face_idx = trimesh.sample.sample_surface(mesh, num_samples, seed=seed)
+    normals = mesh.face_normals[face_idx]
+    local, glob = encode_cloud(encoder, samples)
+    return ObjectGeometry(
+        key=key,
+        vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        faces=np.asarray(mesh.faces, dtype=np.int64),
+        samples=np.asarray(samples, dtype=np.float64),
+        normals=np.asarray(normals, dtype=np.float64),
+        local_features=local,
+        global_feature=glob,
+        sdf=_sdf_grid(mesh, grid_spacing),
+    )
+
+
+def load_object_geometry(mesh_path: Path | str, encoder: PointNetEncoder | None = None, *,
+                         num_samples: int = NUM_POINTS, seed: int = 0, grid_spacing: float = 0.002,
+                         use_cache: bool = True) -> ObjectGeometry:
+    """The ObjectGeometry of a mesh file, from the disk cache when present.
+
+    `encoder` defaults to the shipped frozen PointNet encoder; its weights are part of the
+    cache key, as are the mesh bytes and the parameters.
+    """
+    mesh_path = Path(mesh_path)
+    mesh = load_checked_mesh(mesh_path)
+    encoder = encoder if encoder is not None else load_encoder()
+    params = dict(v=CACHE_VERSION, n=num_samples, seed=seed, spacing=grid_spacing, pad=SDF_PAD,
+                  max_nodes=MAX_GRID_NODES)
+    h = hashlib.sha256(mesh_path.read_bytes())
+    h.update(json.dumps(params, sort_keys=True).encode())
+    h.update(_encoder_digest(encoder).encode())
+    key = h.hexdigest()[:32]
+    path = cache_dir() / "dexrep" / f"{key}.npz"
+    if use_cache and path.exists():
+        with np.load(path) as z:
+            return ObjectGeometry(
+                key=key, vertices=z["vertices"], faces=z["faces"], samples=z["samples"],
+                normals=z["normals"], local_features=z["local_features"],
+                global_feature=z["global_feature"],
+                sdf=SdfGrid(z["sdf_origin"], float(z["sdf_spacing"]), z["sdf_values"]),
+            )
+    geom = compute_object_geometry(mesh, encoder, key, num_samples, seed, grid_spacing)
+    if use_cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        buf = io.BytesIO()
+        np.savez_compressed(
+            buf, vertices=geom.vertices, faces=geom.faces, samples=geom.samples, normals=geom.normals,
+            local_features=geom.local_features, global_feature=geom.global_feature,
+            sdf_origin=geom.sdf.origin, sdf_spacing=geom.sdf.spacing, sdf_values=geom.sdf.values,
+        )
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(buf.getvalue())
+        tmp.replace(path)  # atomic: parallel workers never read a half-written file
+    return geom
+
+
+@cache
+def object_geometry(name: str) -> ObjectGeometry:
+    """The ObjectGeometry of a library object (see dexdrake.objects.library)."""
+    from dexdrake.objects.library import get_object
+
+    return load_object_geometry(get_object(name).mesh_path)

@@ -1,0 +1,154 @@
+"""Behaviour cloning of the DexRepNet policy from demonstration (observation, action) pairs.
+
+Paper defaults: Adam, 150 epochs, batch 64, lr 1e-5, loss mean_i ||pi(s_i) - a_i||^2.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.learn.curves import CsvLog, plot_curves
+from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset, save_demo_dataset
+from dexdrake.learn.policy import DexRepNetPolicy, save_policy
+
+__all__ = ["BCConfig", "BCResult", "train_bc", "split_train_val", "load_demo_dataset", "save_demo_dataset"]
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    epochs: int = 150
+    batch_size: int = 64
+    lr: float = 1e-5
+    val_fraction: float = 0.1  # split by episode when the dataset has episode_starts
+    checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
+    seed: int = 0
+    fit_normalization: bool = True  # set the policy's observation stats from the train split
+    progress: bool = True  # tqdm bar
+    device: str = "cpu"
+
+
+@dataclass
+class BCResult:
+    train_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+    best_epoch: int = -1
+    best_val_loss: float = float("inf")
+    best_checkpoint: Path | None = None
+    last_checkpoint: Path | None = None
+    log_csv: Path | None = None
+
+
+def split_train_val(dataset: DemoDataset, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Train/validation sample indices; whole episodes go to one side when episodes are known."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise DexdrakeError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    rng = np.random.default_rng(seed)
+    n = len(dataset)
+    if val_fraction == 0.0:
+        return np.arange(n), np.arange(0)
+    episodes = dataset.episode_ids()
+    n_ep = int(episodes.max()) + 1
+    if n_ep >= 2:
+        n_val_ep = max(1, int(round(val_fraction * n_ep)))
+        if n_val_ep >= n_ep:
+            raise DexdrakeError(f"val_fraction {val_fraction} leaves no training episode out of {n_ep}")
+        val_eps = rng.choice(n_ep, size=n_val_ep, replace=False)
+        is_val = np.isin(episodes, val_eps)
+    else:
+        n_val = max(1, int(round(val_fraction * n)))
+        if n_val >= n:
+            raise DexdrakeError(f"val_fraction {val_fraction} leaves no training sample out of {n}")
+        is_val = np.zeros(n, dtype=bool)
+        is_val[rng.choice(n, size=n_val, replace=False)] = True
+    return np.nonzero(~is_val)[0], np.nonzero(is_val)[0]
+
+
+def _bc_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    return ((policy(obs) - act) ** 2).sum(-1).mean()
+
+
+@torch.no_grad()
+def _eval_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor, batch: int = 4096) -> float:
+    total = 0.0
+    for i in range(0, obs.shape[0], batch):
+        total += float(_bc_loss(policy, obs[i : i + batch], act[i : i + batch])) * min(batch, obs.shape[0] - i)
+    return total / obs.shape[0]
+
+
+def train_bc(
+    policy: DexRepNetPolicy,
+    dataset: DemoDataset,
+    out_dir: str | Path,
+    config: BCConfig = BCConfig(),
+    metadata: Mapping[str, Any] | None = None,
+) -> BCResult:
+    """Fit the policy mean to the demo actions; writes bc_log.csv/png and checkpoints to out_dir.
+
+    Checkpoints: bc_best.pt (lowest validation loss; training loss without a split),
+    bc_last.pt, and bc_epoch_XXXX.pt every `checkpoint_every` epochs. The policy is left
+    with its final-epoch weights.
+    """
+    if config.epochs <= 0 or config.batch_size <= 0 or config.lr <= 0:
+        raise DexdrakeError(f"epochs, batch_size and lr must be positive: {config}")
+    d, a = policy.config.obs_dim, policy.config.action_dim
+    if dataset.observations.shape[1] != d or dataset.actions.shape[1] != a:
+        raise DexdrakeError(
+            f"dataset has obs/action sizes {dataset.observations.shape[1]}/{dataset.actions.shape[1]}, "
+            f"policy expects {d}/{a}"
+        )
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    train_idx, val_idx = split_train_val(dataset, config.val_fraction, config.seed)
+    if config.fit_normalization:
+        tr = dataset.observations[train_idx]
+        policy.set_obs_normalization(tr.mean(0), tr.std(0))
+    device = torch.device(config.device)
+    policy.to(device).train()
+    obs = torch.as_tensor(dataset.observations, device=device)
+    act = torch.as_tensor(dataset.actions, device=device)
+    obs_tr, act_tr = obs[train_idx], act[train_idx]
+    obs_va, act_va = obs[val_idx], act[val_idx]
+    optimiser = torch.optim.Adam(policy.trainable_parameters(), lr=config.lr)
+    gen = torch.Generator().manual_seed(config.seed)
+    meta = {"stage": "bc", "bc_config": asdict(config), **dict(metadata or {})}
+    result = BCResult(log_csv=out_dir / "bc_log.csv")
+    log = CsvLog(result.log_csv, ["epoch", "train_loss", "val_loss", "seconds"])
+    bar = tqdm(range(1, config.epochs + 1), desc="BC", unit="epoch", disable=not config.progress)
+    for epoch in bar:
+        t0 = time.perf_counter()
+        perm = torch.randperm(obs_tr.shape[0], generator=gen).to(device)
+        total = 0.0
+        for i in range(0, perm.shape[0], config.batch_size):
+            idx = perm[i : i + config.batch_size]
+            loss = _bc_loss(policy, obs_tr[idx], act_tr[idx])
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            total += loss.item() * idx.shape[0]
+        train_loss = total / perm.shape[0]
+        val_loss = _eval_loss(policy, obs_va, act_va) if len(val_idx) else float("nan")
+        result.train_loss.append(train_loss)
+        result.val_loss.append(val_loss)
+        log.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0})
+        bar.set_postfix(train=f"{train_loss:.4g}", val=f"{val_loss:.4g}")
+        score = val_loss if len(val_idx) else train_loss
+        ep_meta = {**meta, "epoch": epoch, "train_loss": train_loss, "val_loss": val_loss}
+        if score < result.best_val_loss:
+            result.best_val_loss, result.best_epoch = score, epoch
+            result.best_checkpoint = save_policy(out_dir / "bc_best.pt", policy, ep_meta)
+        if config.checkpoint_every and epoch % config.checkpoint_every == 0:
+            save_policy(out_dir / f"bc_epoch_{epoch:04d}.pt", policy, ep_meta)
+    result.last_checkpoint = save_policy(out_dir / "bc_last.pt", policy, ep_meta)
+    plot_curves(result.log_csv, out_dir / "bc_log.png", "epoch", ["train_loss", "val_loss"], title="behaviour cloning")
+    policy.cpu().eval()
+    return result

@@ -1,0 +1,316 @@
+"""DAPG: natural policy gradient fine-tuning with a demo-augmented gradient (Rajeswaran 2018).
+
+Gradient (DexRepNet spec):
+    g = sum_{rollouts} grad log pi(a|s) A(s,a) + sum_{demos} grad log pi(a|s) w_k,
+    w_k = lambda0 * lambda1^k * max A,  lambda0 = 0.1, lambda1 = 0.95, max A = 1,
+where A is GAE with rollout advantages standardised to zero mean and unit std (so max A = 1
+is on that scale) and the sum is averaged over all rollout and demo samples, as in mjrl.
+Each iteration: sample seeded rollouts, compute advantages with the current baseline, take
+one NPG step, then refit the baseline on the new returns.
+
+Artefacts in out_dir: dapg_log.csv + dapg_log.png (per-iteration curves), dapg_state.pt
+(resumable: policy, baseline + optimiser, iteration, RNG states), dapg_policy_last.pt and
+dapg_policy_best.pt (policy checkpoints, see policy.load_policy; "best" is the policy whose
+own rollouts had the highest mean return), dapg_iter_XXXX.pt and a plot refresh every
+`checkpoint_every` iterations, and dapg.rrd (dapg_from_XXXX.rrd after a resume) when rerun
+logging is on.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.learn.baseline import MLPBaseline
+from dexdrake.learn.curves import CsvLog, plot_curves
+from dexdrake.learn.demo_dataset import DemoDataset
+from dexdrake.learn.gae import discounted_returns, gae_advantages
+from dexdrake.learn.npg import flat_grad, gaussian_kl, natural_gradient_step
+from dexdrake.learn.policy import DexRepNetPolicy, policy_payload, save_payload, save_policy
+from dexdrake.learn.samplers import Sampler
+from dexdrake.learn.trajectory import Trajectory
+
+STATE_FORMAT = "dexdrake.dapg/1"
+LOG_COLUMNS = [
+    "iteration", "mean_return", "success_rate", "mean_length", "num_samples", "demo_weight",
+    "alpha", "kl", "baseline_mse_before", "baseline_mse_after", "seconds",
+]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class DAPGConfig:
+    iterations: int = 500  # total; a resumed run continues up to this count
+    rollouts_per_iteration: int = 10
+    gamma: float = 0.995
+    gae_lambda: float = 0.97
+    step_size: float = 0.05  # normalised NPG step (KL radius)
+    cg_iters: int = 10
+    damping: float = 1e-4
+    lam0: float = 0.1
+    lam1: float = 0.95
+    max_adv: float = 1.0
+    demo_samples: int | None = None  # demo pairs per iteration (None: all)
+    fisher_samples: int | None = None  # rollout samples for Fisher products (None: all)
+    baseline_epochs: int = 2
+    baseline_batch: int = 64
+    baseline_lr: float = 1e-3
+    baseline_hidden: tuple[int, ...] = (128, 128)
+    time_scale: int = 200  # steps per trajectory; normalises the baseline's time feature
+    freeze_encoders: bool = True  # paper: encoders frozen after behaviour cloning
+    checkpoint_every: int = 10
+    seed: int = 0
+    progress: bool = True
+    rerun: bool = False  # also log curves to out_dir/dapg.rrd (needs rerun-sdk)
+
+
+@dataclass
+class DAPGResult:
+    rows: list[dict[str, float]] = field(default_factory=list)  # this run's log rows
+    iterations_done: int = 0  # total, including iterations before a resume
+    log_csv: Path | None = None
+    plot_png: Path | None = None
+    state_path: Path | None = None
+
+
+def rollout_seeds(seed: int, iteration: int, n: int) -> list[int]:
+    """The n rollout seeds of an iteration: a pure function of (run seed, iteration)."""
+    return [int(s) for s in np.random.SeedSequence([seed, iteration]).generate_state(n)]
+
+
+def demo_weight(config: DAPGConfig, iteration: int) -> float:
+    """lambda0 * lambda1^k * max A for iteration k."""
+    return config.lam0 * config.lam1**iteration * config.max_adv
+
+
+class _RerunCurves:
+    def __init__(self, path: Path):
+        try:
+            import rerun as rr
+        except ImportError as exc:
+            raise DexdrakeError("rerun logging needs the rerun-sdk package") from exc
+        self._rr = rr
+        self._rec = rr.RecordingStream("dexdrake_dapg")
+        self._rec.save(path)
+
+    def log(self, row: Mapping[str, float]) -> None:
+        self._rec.set_time("iteration", sequence=int(row["iteration"]))
+        for key, value in row.items():
+            if key != "iteration":
+                self._rec.log(f"dapg/{key}", self._rr.Scalars(float(value)))
+
+    def flush(self) -> None:
+        self._rec.flush()
+
+
+class DAPGTrainer:
+    """Owns the policy, value baseline, RNGs and artefacts of one DAPG run."""
+
+    def __init__(
+        self,
+        policy: DexRepNetPolicy,
+        sampler: Sampler,
+        out_dir: str | Path,
+        config: DAPGConfig = DAPGConfig(),
+        demos: DemoDataset | None = None,
+        metadata: Mapping[str, Any] | None = None,
+    ):
+        if config.rollouts_per_iteration < 1 or config.iterations < 0:
+            raise DexdrakeError(f"need rollouts_per_iteration >= 1 and iterations >= 0: {config}")
+        self.policy, self.sampler, self.config = policy, sampler, config
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.metadata = {"stage": "dapg", "dapg_config": asdict(config), **dict(metadata or {})}
+        if demos is not None and (
+            demos.observations.shape[1] != policy.config.obs_dim or demos.actions.shape[1] != policy.config.action_dim
+        ):
+            raise DexdrakeError(
+                f"demos have obs/action sizes {demos.observations.shape[1]}/{demos.actions.shape[1]}, "
+                f"policy expects {policy.config.obs_dim}/{policy.config.action_dim}"
+            )
+        self.demos = demos
+        if config.freeze_encoders:
+            policy.freeze_encoders()
+        torch.manual_seed(config.seed)  # baseline initialisation
+        random.seed(config.seed)
+        self.baseline = MLPBaseline(
+            policy.config.obs_dim,
+            config.time_scale,
+            policy.obs_mean.numpy(),
+            policy.obs_std.numpy(),
+            config.baseline_hidden,
+            config.baseline_lr,
+        )
+        self.iteration = 0
+        self.best_return = -float("inf")
+        self.rng = np.random.default_rng(config.seed)
+        self.state_path = self.out_dir / "dapg_state.pt"
+        self.log_csv, self.plot_png = self.out_dir / "dapg_log.csv", self.out_dir / "dapg_log.png"
+        self._rerun: _RerunCurves | None = None
+        self._sampled_state: dict[str, torch.Tensor] = {}  # weights that produced the last rollouts
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_state(self, path: Path | None = None) -> Path:
+        path = path or self.state_path
+        state = {
+            "format": STATE_FORMAT,
+            "iteration": self.iteration,
+            "best_return": self.best_return,
+            "policy": policy_payload(self.policy, self.metadata),
+            "baseline": self.baseline.full_state(),
+            "numpy_rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "python_rng": random.getstate(),
+        }
+        return save_payload(path, state)
+
+    def load_state(self, path: Path | None = None) -> None:
+        """Restore a run saved by `save_state`; the policy architecture must match."""
+        path = path or self.state_path
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:
+            raise DexdrakeError(f"cannot read DAPG state {path}: {exc}") from exc
+        if state.get("format") != STATE_FORMAT:
+            raise DexdrakeError(f"{path} is not a {STATE_FORMAT} file")
+        saved_cfg = state["policy"]["config"]
+        if saved_cfg != self.policy.config.to_dict():
+            raise DexdrakeError(f"{path} holds a policy with config {saved_cfg}, not {self.policy.config.to_dict()}")
+        self.policy.load_weights(state["policy"]["state_dict"])
+        self.baseline.load_full_state(state["baseline"])
+        self.iteration = int(state["iteration"])
+        self.best_return = float(state["best_return"])
+        self.rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        random.setstate(state["python_rng"])
+
+    # ------------------------------------------------------------------ one iteration
+    def _subsample(self, n: int, k: int | None) -> np.ndarray:
+        return np.arange(n) if k is None or k >= n else np.sort(self.rng.choice(n, size=k, replace=False))
+
+    def step(self) -> dict[str, float]:
+        """Run one DAPG iteration (sample, NPG step, baseline refit); returns its log row."""
+        cfg, t0, k = self.config, time.perf_counter(), self.iteration
+        trajs: list[Trajectory] = self.sampler.sample(self.policy, rollout_seeds(cfg.seed, k, cfg.rollouts_per_iteration))
+        if not trajs or any(len(tr) == 0 for tr in trajs):
+            raise DexdrakeError(f"iteration {k}: the sampler returned an empty trajectory")
+        obs = np.concatenate([tr.observations for tr in trajs])
+        act = np.concatenate([tr.actions for tr in trajs])
+        times = np.concatenate([np.arange(len(tr)) for tr in trajs])
+        values = self.baseline.predict(obs, times) if bool(self.baseline.fitted) else np.zeros(len(obs))
+        adv_parts, ret_parts, start = [], [], 0
+        for tr in trajs:
+            v = values[start : start + len(tr)]
+            adv_parts.append(gae_advantages(tr.rewards, v, cfg.gamma, cfg.gae_lambda))
+            ret_parts.append(discounted_returns(tr.rewards, cfg.gamma))
+            start += len(tr)
+        adv = np.concatenate(adv_parts)
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        returns = np.concatenate(ret_parts)
+
+        weights = [torch.as_tensor(adv, dtype=torch.float32)]
+        all_obs, all_act = [torch.as_tensor(obs)], [torch.as_tensor(act)]
+        w_demo = demo_weight(cfg, k) if self.demos is not None else 0.0
+        if self.demos is not None and w_demo > 0.0:
+            idx = self._subsample(len(self.demos), cfg.demo_samples)
+            all_obs.append(torch.as_tensor(self.demos.observations[idx]))
+            all_act.append(torch.as_tensor(self.demos.actions[idx]))
+            weights.append(torch.full((len(idx),), w_demo))
+        o, a, w = torch.cat(all_obs), torch.cat(all_act), torch.cat(weights)
+        params = list(self.policy.trainable_parameters())
+        objective = (self.policy.log_prob(o, a) * w).sum() / w.shape[0]
+        grad = flat_grad(objective, params)
+
+        self._sampled_state = {name: t.clone() for name, t in self.policy.state_dict().items()}
+        fisher_obs = torch.as_tensor(obs[self._subsample(len(obs), cfg.fisher_samples)])
+        obs_t = torch.as_tensor(obs)
+        with torch.no_grad():
+            mean_old, log_std_old = self.policy(obs_t), self.policy.clamped_log_std().clone()
+        npg = natural_gradient_step(self.policy, grad, fisher_obs, cfg.step_size, cfg.cg_iters, cfg.damping)
+        with torch.no_grad():
+            kl = float(gaussian_kl(mean_old, log_std_old, self.policy(obs_t), self.policy.clamped_log_std()))
+
+        mse_before, mse_after = self.baseline.fit(
+            obs, times, returns, self.rng, epochs=cfg.baseline_epochs, batch_size=cfg.baseline_batch
+        )
+        self.iteration = k + 1
+        return {
+            "iteration": k,
+            "mean_return": float(np.mean([tr.total_reward for tr in trajs])),
+            "success_rate": float(np.mean([tr.success for tr in trajs])),
+            "mean_length": float(np.mean([len(tr) for tr in trajs])),
+            "num_samples": len(obs),
+            "demo_weight": w_demo,
+            "alpha": npg.alpha,
+            "kl": kl,
+            "baseline_mse_before": mse_before,
+            "baseline_mse_after": mse_after,
+            "seconds": time.perf_counter() - t0,
+        }
+
+    # ------------------------------------------------------------------ the loop
+    def train(self) -> DAPGResult:
+        """Iterate from the current iteration up to config.iterations, writing artefacts."""
+        cfg = self.config
+        log = CsvLog(self.log_csv, LOG_COLUMNS, resume=True, key="iteration", resume_from=self.iteration)
+        result = DAPGResult(log_csv=self.log_csv, plot_png=self.plot_png, state_path=self.state_path)
+        if cfg.rerun and self._rerun is None:
+            name = "dapg.rrd" if self.iteration == 0 else f"dapg_from_{self.iteration:04d}.rrd"
+            self._rerun = _RerunCurves(self.out_dir / name)
+        bar = tqdm(range(self.iteration, cfg.iterations), desc="DAPG", unit="it", disable=not cfg.progress)
+        for _ in bar:
+            row = self.step()
+            result.rows.append(row)
+            log.append(row)
+            if self._rerun is not None:
+                self._rerun.log(row)
+            bar.set_postfix(ret=f"{row['mean_return']:.3g}", succ=f"{row['success_rate']:.2f}")
+            save_policy(self.out_dir / "dapg_policy_last.pt", self.policy, {**self.metadata, "updates": self.iteration})
+            if row["mean_return"] > self.best_return:
+                self.best_return = row["mean_return"]
+                self._save_best(row)
+            self.save_state()
+            if cfg.checkpoint_every and self.iteration % cfg.checkpoint_every == 0:
+                self.save_state(self.out_dir / f"dapg_iter_{self.iteration:04d}.pt")
+                self._plot()
+        if result.rows:
+            self._plot()
+        if self._rerun is not None:
+            self._rerun.flush()
+        result.iterations_done = self.iteration
+        return result
+
+    def _save_best(self, row: Mapping[str, float]) -> None:
+        """Checkpoint the weights that were sampled in `row`'s iteration (before its update)."""
+        meta = {**self.metadata, "updates": int(row["iteration"]), "mean_return": row["mean_return"],
+                "success_rate": row["success_rate"]}  # fmt: skip
+        payload = policy_payload(self.policy, meta)
+        payload["state_dict"] = self._sampled_state
+        save_payload(self.out_dir / "dapg_policy_best.pt", payload)
+
+    def _plot(self) -> None:
+        plot_curves(self.log_csv, self.plot_png, "iteration", ["mean_return", "success_rate", "kl"], title="DAPG")
+
+
+def train_dapg(
+    policy: DexRepNetPolicy,
+    sampler: Sampler,
+    out_dir: str | Path,
+    config: DAPGConfig = DAPGConfig(),
+    demos: DemoDataset | None = None,
+    resume: bool = False,
+    metadata: Mapping[str, Any] | None = None,
+) -> DAPGResult:
+    """Fine-tune `policy` with DAPG; with resume=True continue from out_dir/dapg_state.pt if present."""
+    trainer = DAPGTrainer(policy, sampler, out_dir, config, demos, metadata)
+    if resume and trainer.state_path.is_file():
+        trainer.load_state()
+    return trainer.train()

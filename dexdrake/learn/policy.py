@@ -1,0 +1,215 @@
+"""The DexRepNet policy: one linear encoder per observation group, an MLP, a Gaussian head.
+
+Architecture (paper): each observation group (e.g. hand state 105, occupancy+surface 1088,
+local-geo 1408) passes its own single fully-connected layer to 128 features; we follow each
+encoder with a ReLU (`encoder_activation="relu"`, the default; "none" keeps it purely
+linear, which would compose with the first MLP layer into one low-rank linear map). The
+features are concatenated and fed to an MLP with hidden sizes [512, 128] and ReLU whose
+output is the action mean (no tanh; the env clips actions to [-1, 1]). For RL the policy is
+a diagonal Gaussian around that mean with a learned, state-independent log-std.
+
+Observations are normalised inside the module with stored (mean, std) buffers, so a
+checkpoint carries everything needed to run the policy on raw env observations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.learn.env_protocol import observation_dim
+
+CHECKPOINT_FORMAT = "dexdrake.policy/1"
+ENCODER_ACTIVATIONS = ("relu", "none")
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Everything needed to rebuild a policy's architecture (stored in checkpoints)."""
+
+    blocks: tuple[tuple[str, int], ...]  # ordered (group name, size)
+    action_dim: int
+    feature_set: str = "unspecified"  # e.g. "dexrep", "hand2obj", "pglo"
+    hand: str = "unspecified"  # hand description name, e.g. "adroit"
+    encoder_dim: int = 128
+    hidden_sizes: tuple[int, ...] = (512, 128)
+    encoder_activation: str = "relu"
+    init_log_std: float = 0.0
+    min_log_std: float = -3.0
+
+    @classmethod
+    def from_blocks(cls, blocks: Mapping[str, int], action_dim: int, **kwargs: Any) -> PolicyConfig:
+        """Config from an env's `observation_blocks` mapping."""
+        return cls(blocks=tuple((str(k), int(v)) for k, v in blocks.items()), action_dim=action_dim, **kwargs)
+
+    @property
+    def obs_dim(self) -> int:
+        return observation_dim(dict(self.blocks))
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["blocks"] = [[name, size] for name, size in self.blocks]
+        d["hidden_sizes"] = list(self.hidden_sizes)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PolicyConfig:
+        d = dict(d)
+        d["blocks"] = tuple((str(n), int(s)) for n, s in d["blocks"])
+        d["hidden_sizes"] = tuple(int(h) for h in d["hidden_sizes"])
+        return cls(**d)
+
+
+class DexRepNetPolicy(nn.Module):
+    """Per-group encoders -> MLP [512, 128] -> action mean; Gaussian head for RL."""
+
+    def __init__(self, config: PolicyConfig):
+        super().__init__()
+        obs_dim = config.obs_dim  # validates the blocks
+        if config.action_dim <= 0:
+            raise DexdrakeError(f"action_dim must be positive, got {config.action_dim}")
+        if config.encoder_activation not in ENCODER_ACTIVATIONS:
+            raise DexdrakeError(
+                f"encoder_activation {config.encoder_activation!r} not in {ENCODER_ACTIVATIONS}"
+            )
+        self.config = config
+        self.block_names = [name for name, _ in config.blocks]
+        self.block_sizes = [size for _, size in config.blocks]
+        self.encoders = nn.ModuleDict({name: nn.Linear(size, config.encoder_dim) for name, size in config.blocks})
+        layers: list[nn.Module] = []
+        width = config.encoder_dim * len(config.blocks)
+        for h in config.hidden_sizes:
+            layers += [nn.Linear(width, h), nn.ReLU()]
+            width = h
+        layers.append(nn.Linear(width, config.action_dim))
+        self.mlp = nn.Sequential(*layers)
+        self.log_std = nn.Parameter(torch.full((config.action_dim,), float(config.init_log_std)))
+        self.register_buffer("obs_mean", torch.zeros(obs_dim))
+        self.register_buffer("obs_std", torch.ones(obs_dim))
+        self.register_buffer("encoders_frozen", torch.tensor(False))
+
+    # ---------------------------------------------------------------- forward passes
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Action mean for raw (unnormalised) observations of shape (..., obs_dim)."""
+        if obs.shape[-1] != self.obs_mean.shape[0]:
+            raise DexdrakeError(f"observation has size {obs.shape[-1]}, policy expects {self.obs_mean.shape[0]}")
+        x = (obs - self.obs_mean) / self.obs_std
+        parts = torch.split(x, self.block_sizes, dim=-1)
+        feats = [self.encoders[name](part) for name, part in zip(self.block_names, parts)]
+        if self.config.encoder_activation == "relu":
+            feats = [torch.relu(f) for f in feats]
+        return self.mlp(torch.cat(feats, dim=-1))
+
+    def clamped_log_std(self) -> torch.Tensor:
+        return torch.clamp(self.log_std, min=self.config.min_log_std)
+
+    def log_prob(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Gaussian log-likelihood of `actions` (N, A) under the policy at `obs` (N, D)."""
+        mean = self.forward(obs)
+        log_std = self.clamped_log_std()
+        z = (actions - mean) / torch.exp(log_std)
+        return -0.5 * (z**2).sum(-1) - log_std.sum() - 0.5 * self.config.action_dim * math.log(2 * math.pi)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, float]:
+        """One action for one observation: the mean if `rng` is None, else a Gaussian sample.
+
+        Returns (action, log-probability of that action under the Gaussian).
+        """
+        o = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
+        mean = self.forward(o)[0].numpy().astype(np.float64)
+        log_std = self.clamped_log_std().numpy().astype(np.float64)
+        noise = np.zeros_like(mean) if rng is None else rng.standard_normal(mean.shape)
+        action = mean + np.exp(log_std) * noise
+        logp = -0.5 * float(noise @ noise) - float(log_std.sum()) - 0.5 * len(mean) * math.log(2 * math.pi)
+        return action, logp
+
+    # ---------------------------------------------------------------- normalisation
+    def set_obs_normalization(self, mean: np.ndarray, std: np.ndarray, min_std: float = 1e-3) -> None:
+        """Store observation statistics; std below `min_std` (constant features) becomes 1."""
+        mean = np.asarray(mean, dtype=np.float32)
+        std = np.asarray(std, dtype=np.float32)
+        d = self.obs_mean.shape[0]
+        if mean.shape != (d,) or std.shape != (d,):
+            raise DexdrakeError(f"normalisation stats must have shape ({d},), got {mean.shape} and {std.shape}")
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
+            raise DexdrakeError("normalisation stats contain non-finite values")
+        std = np.where(std < min_std, 1.0, std).astype(np.float32)
+        self.obs_mean.copy_(torch.from_numpy(mean))
+        self.obs_std.copy_(torch.from_numpy(std))
+
+    # ---------------------------------------------------------------- parameters
+    def freeze_encoders(self) -> None:
+        """Stop training the per-group encoders (done after behaviour cloning)."""
+        for p in self.encoders.parameters():
+            p.requires_grad_(False)
+        self.encoders_frozen.fill_(True)
+
+    def trainable_parameters(self) -> Iterator[nn.Parameter]:
+        return (p for p in self.parameters() if p.requires_grad)
+
+    def load_weights(self, state_dict: Mapping[str, torch.Tensor]) -> None:
+        """Load a state dict and re-apply the encoder freeze it records."""
+        self.load_state_dict(state_dict)
+        if bool(self.encoders_frozen):
+            self.freeze_encoders()
+
+
+def policy_payload(policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint contents: format tag, config dict, CPU state dict, free-form metadata."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "config": policy.config.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
+        "metadata": dict(metadata or {}),
+    }
+
+
+def save_policy(path: str | Path, policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> Path:
+    """Write a checkpoint (format tag, config dict, state dict, free-form metadata)."""
+    return save_payload(path, policy_payload(policy, metadata))
+
+
+def save_payload(path: str | Path, payload: Mapping[str, Any]) -> Path:
+    """Write a checkpoint payload atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(dict(payload), tmp)
+    tmp.replace(path)
+    return path
+
+
+def policy_from_payload(payload: Mapping[str, Any]) -> DexRepNetPolicy:
+    """Rebuild a policy from an in-memory checkpoint payload (see `save_policy`)."""
+    if payload.get("format") != CHECKPOINT_FORMAT:
+        raise DexdrakeError(f"not a {CHECKPOINT_FORMAT} checkpoint (format={payload.get('format')!r})")
+    try:
+        policy = DexRepNetPolicy(PolicyConfig.from_dict(payload["config"]))
+        policy.load_weights(payload["state_dict"])
+    except (KeyError, TypeError, RuntimeError) as exc:
+        raise DexdrakeError(f"policy checkpoint does not match its config: {exc}") from exc
+    return policy
+
+
+def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
+    """Rebuild a policy from a checkpoint file alone; returns (policy in eval mode, metadata)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DexdrakeError(f"policy checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a bad file
+        raise DexdrakeError(f"cannot read policy checkpoint {path}: {exc}") from exc
+    policy = policy_from_payload(payload)
+    policy.eval()
+    return policy, dict(payload.get("metadata", {}))
+

@@ -1,0 +1,53 @@
+"""Simulation speed of the Adroit grasp scene during a scripted grasp, on one core.
+
+Prints, per plant time step, control steps per second (50 Hz control) and plant steps per
+second, with the ratio to the named baseline: MuJoCo stepping the paper's Adroit relocate
+scene at about 13,000 plant steps/s on this machine (specs/drake.md).
+
+    python scripts/bench_sim.py [--object sphere_medium] [--episodes 2] [--steps 150]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+MUJOCO_STEPS_PER_S = 13000.0  # specs/drake.md, same 2-core machine
+TIME_STEPS = (0.001, 0.002, 0.004)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hand", default="adroit")
+    parser.add_argument("--object", default="sphere_medium")
+    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=150)
+    args = parser.parse_args()
+
+    import torch
+
+    torch.set_num_threads(1)
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scripted_grasp import ScriptedGrasp
+
+    print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps (50 Hz)")
+    print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'vs MuJoCo':>11}{'success':>9}")
+    for dt in TIME_STEPS:
+        env = GraspEnv(SceneConfig(hand=args.hand, object=args.object, time_step=dt), horizon=args.steps)
+        env.rollout(ScriptedGrasp, seed=0)  # warm-up (first-use allocations)
+        start, successes = time.perf_counter(), 0
+        for seed in range(args.episodes):
+            successes += env.rollout(ScriptedGrasp, seed=seed).success
+        wall = time.perf_counter() - start
+        control = args.episodes * args.steps / wall
+        plant = control * env.base_config.control_period / dt
+        print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{plant / MUJOCO_STEPS_PER_S:>10.2f}x"
+              f"{successes:>6}/{args.episodes}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""A step-by-step grasp environment over the Drake scene (the learning `Env` protocol).
+
+Actions are normalised joint set-points in [-1, 1] over each joint's range (policy order).
+Each `step` holds the set-point for one control period of the plant and scores the step
+with `dexdrake.task`. Observations are the selected DexRep feature set (hand state always
+included); with `feature_set=None` the observation is the hand state [q; v] alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+
+from dexdrake.task import RewardTerms, SuccessTracker, TaskSpec, reward_terms
+from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
+
+
+@dataclass
+class StepInfo:
+    success: bool
+    lift: float
+    terms: RewardTerms
+
+
+@dataclass
+class EpisodeSummary:
+    object: str
+    seed: int
+    success: bool
+    max_lift: float
+    steps: int
+    total_reward: float
+    rewards: list[float] = field(default_factory=list)
+
+
+class GraspEnv:
+    """One hand, one object at a time; the scene is rebuilt only when the object changes."""
+
+    def __init__(
+        self,
+        config: SceneConfig = SceneConfig(),
+        feature_set: str | None = None,
+        horizon: int = 200,
+        task: TaskSpec = TaskSpec(),
+        objects: list[str] | None = None,
+    ):
+        self.base_config, self.feature_set, self.horizon, self.task = config, feature_set, horizon, task
+        self.objects = objects or [config.object]
+        self._scenes: dict[str, tuple[GraspScene, Simulator, object]] = {}
+        self._use(self.objects[0])
+        lo, hi = self.scene.hand.joint_limits()
+        self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
+        self.action_dim = self.scene.hand.num_actuators
+        self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
+
+    # -- scene management -------------------------------------------------------------
+    def _use(self, name: str) -> None:
+        if name not in self._scenes:
+            scene = build_grasp_scene(replace(self.base_config, object=name))
+            sim = Simulator(scene.diagram)
+            features = self._make_features(scene)
+            self._scenes[name] = (scene, sim, features)
+        self.scene, self.simulator, self._features = self._scenes[name]
+        self.context = self.simulator.get_mutable_context()
+        self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
+        self.sg_context = self.scene.scene_graph.GetMyContextFromRoot(self.context)
+        self._command_port = self.scene.diagram.get_input_port(0)
+
+    def _make_features(self, scene: GraspScene):
+        if self.feature_set is None:
+            return None
+        from dexdrake.dexrep.feature_sets import FeatureExtractor
+        from dexdrake.dexrep.geometry import object_geometry
+
+        geometry = object_geometry(scene.object_info.name)
+        return FeatureExtractor(scene.hand, scene.plant, scene.hand_instance, geometry, self.feature_set)
+
+    # -- protocol -----------------------------------------------------------------------
+    def reset(self, seed: int, q_hand: np.ndarray | None = None) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        self._use(self.objects[rng.integers(len(self.objects))])
+        self.seed = seed
+        self.context.SetTime(0.0)
+        q0 = self.scene.hand.pregrasp_vector() if q_hand is None else np.asarray(q_hand, float)
+        self.scene.set_initial_state(self.plant_context, ObjectPlacement.sample(rng), q0)
+        self.simulator.Initialize()
+        self.p_start = self.object_position()
+        self.tracker = SuccessTracker(self.p_start, self.task)
+        self.steps = 0
+        self.q_command = q0.copy()
+        return self.observation()
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
+        a = np.asarray(action, dtype=float)
+        a = np.clip(np.nan_to_num(a, nan=0.0), -1.0, 1.0)
+        return self.step_positions(self._mid + a * self._half)
+
+    def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
+        """Like `step` with joint set-points in physical units (rad, m), clamped to limits."""
+        self.q_command = np.clip(q_command, self._mid - self._half, self._mid + self._half)
+        self._command_port.FixValue(self.context, self.q_command)
+        self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
+        self.steps += 1
+        p_obj = self.object_position()
+        terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
+        success = self.tracker.update(p_obj)
+        done = self.steps >= self.horizon
+        info = {"success": success, "lift": float(p_obj[2] - self.p_start[2]), "terms": terms}
+        return self.observation(), terms.total, done, info
+
+    # -- state access -------------------------------------------------------------------
+    def observation(self) -> np.ndarray:
+        if self._features is None:
+            return self.hand_state()
+        return self._features(self.plant_context, self.scene.object_pose(self.plant_context))
+
+    def hand_state(self) -> np.ndarray:
+        plant, ctx = self.scene.plant, self.plant_context
+        return np.concatenate([plant.GetPositions(ctx)[self.scene.q_index], plant.GetVelocities(ctx)[self.scene.v_index]])
+
+    def object_position(self) -> np.ndarray:
+        return self.scene.object_pose(self.plant_context).translation().copy()
+
+    def points_in_world(self, points) -> np.ndarray:
+        """World positions (k x 3) of hand-description BodyPoints."""
+        plant, ctx, inst = self.scene.plant, self.plant_context, self.scene.hand_instance
+        return np.array(
+            [
+                plant.CalcPointsPositions(ctx, plant.GetFrameByName(p.body, inst), np.array(p.offset), plant.world_frame())[:, 0]
+                for p in points
+            ]
+        )
+
+    def fingertip_distances(self) -> np.ndarray:
+        """Distance (>= 0) of each fingertip to the object's surface, from SceneGraph."""
+        query = self.scene.diagram.GetOutputPort("query_object").Eval(self.context)
+        target = self.scene.distance_geometry_id
+        out = []
+        for p in self.points_in_world(self.scene.hand.fingertips):
+            d = [r.distance for r in query.ComputeSignedDistanceToPoint(p, 10.0) if r.id_G == target]
+            out.append(max(d[0], 0.0) if d else 10.0)
+        return np.array(out)
+
+    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeSummary:
+        """Runs one episode from `reset(seed)`. `make_controller(env)` is called once after
+        the reset and returns `controller(env) -> q_command`, called every control step."""
+        self.reset(seed)
+        controller = make_controller(self)
+        rewards = []
+        if logger is not None:
+            logger.log_step(self, None)
+        done = False
+        while not done:
+            _, r, done, info = self.step_positions(controller(self))
+            rewards.append(r)
+            if logger is not None:
+                logger.log_step(self, info)
+        return EpisodeSummary(
+            self.scene.object_info.name, seed, self.tracker.success, self.tracker.max_lift, self.steps, float(sum(rewards)), rewards
+        )

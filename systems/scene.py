@@ -1,0 +1,189 @@
+"""The simulated grasp scene: a hand, a table and one object in a Drake diagram.
+
+Defaults and why they are stable: the plant steps at 2 ms with the SAP solver and point
+contact. SAP treats the joint PD controllers implicitly, so the stiff finger and arm gains
+of the model files stay stable at this step (and at 1 ms); 2 ms keeps contact between
+7-10 mm finger capsules and the object resolved for finger speeds up to ~1 m/s. The
+controller acts every 20 ms (50 Hz, 10 plant steps): commands are PD set-points, so a
+slower policy rate does not destabilise the plant. The robot is gravity compensated (the
+virtual arm of the paper's model is a free-floating base held by servos).
+
+Ports of the diagram (policy joint order, see the hand description):
+  input  "command"     joint position set-points (n)
+  output "hand_state"  [q; v] (2n)
+  output "object_pose" [x, y, z, qw, qx, qy, qz]
+  output "query_object" SceneGraph's QueryObject (for signed-distance queries)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.geometry import Box, GeometryId, ProximityProperties, Role, SceneGraph
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.multibody.plant import (
+    AddMultibodyPlant,
+    CoulombFriction,
+    MultibodyPlant,
+    MultibodyPlantConfig,
+)
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.tree import ModelInstanceIndex
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder
+from pydrake.systems.primitives import MatrixGain
+
+from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.objects.library import (
+    DISTANCE_GEOMETRY_NAME,
+    ObjectInfo,
+    add_object,
+    exclude_distance_geometry_from_contact,
+    get_object,
+)
+
+TABLE_SIZE = (1.0, 1.0, 0.04)  # a thin box with its top face at z = 0 (not a half-space)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    hand: str = "adroit"
+    object: str = "sphere_medium"
+    seed: int = 0
+    time_step: float = 0.002  # plant step (s)
+    control_period: float = 0.02  # command / policy period (s)
+    friction: float = 1.0
+
+
+@dataclass(frozen=True)
+class ObjectPlacement:
+    """The paper's randomisation: x in [-0.05, 0.05], y in [-0.05, 0], yaw in [-pi, pi]."""
+
+    x: float
+    y: float
+    yaw: float
+
+    @staticmethod
+    def sample(rng: np.random.Generator) -> "ObjectPlacement":
+        return ObjectPlacement(rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.0), rng.uniform(-np.pi, np.pi))
+
+    def pose(self, info: ObjectInfo) -> RigidTransform:
+        return RigidTransform(RollPitchYaw(0.0, 0.0, self.yaw), [self.x, self.y, info.rest_height])
+
+
+@dataclass
+class GraspScene:
+    config: SceneConfig
+    diagram: Diagram
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    hand: HandDescription
+    hand_instance: ModelInstanceIndex
+    object_instance: ModelInstanceIndex
+    object_info: ObjectInfo
+    distance_geometry_id: GeometryId
+    # policy order <-> plant position/velocity indices of the hand's joints
+    q_index: np.ndarray
+    v_index: np.ndarray
+
+    def hand_positions(self, plant_context: Context) -> np.ndarray:
+        return self.plant.GetPositions(plant_context)[self.q_index]
+
+    def object_pose(self, plant_context: Context) -> RigidTransform:
+        return self.plant.EvalBodyPoseInWorld(plant_context, self.object_body)
+
+    @property
+    def object_body(self):
+        return self.plant.GetBodyByName(self.object_info.name, self.object_instance)
+
+    def set_initial_state(self, plant_context: Context, placement: ObjectPlacement, q_hand: np.ndarray) -> None:
+        """Hand at rest at `q_hand` (policy order), object at `placement`, all at rest."""
+        q = self.plant.GetPositions(plant_context).copy()
+        q[self.q_index] = q_hand
+        self.plant.SetPositions(plant_context, q)
+        self.plant.SetVelocities(plant_context, np.zeros(self.plant.num_velocities()))
+        self.plant.SetFreeBodyPose(plant_context, self.object_body, placement.pose(self.object_info))
+
+
+def _joint_indices(plant: MultibodyPlant, instance: ModelInstanceIndex, names) -> tuple[np.ndarray, np.ndarray]:
+    joints = [plant.GetJointByName(n, instance) for n in names]
+    return np.array([j.position_start() for j in joints]), np.array([j.velocity_start() for j in joints])
+
+
+def _add_table(plant: MultibodyPlant, friction: float) -> None:
+    X = RigidTransform([0.0, 0.0, -TABLE_SIZE[2] / 2])
+    props = ProximityProperties()
+    props.AddProperty("material", "coulomb_friction", CoulombFriction(friction, friction))
+    world = plant.world_body()
+    plant.RegisterCollisionGeometry(world, X, Box(*TABLE_SIZE), "table", props)
+    plant.RegisterVisualGeometry(world, X, Box(*TABLE_SIZE), "table", np.array([0.45, 0.35, 0.25, 1.0]))
+
+
+def _command_gains(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDescription) -> MatrixGain:
+    """Maps policy-order set-points q_d to the plant's desired state [q_d; 0] in actuator order."""
+    actuators = [plant.get_joint_actuator(i) for i in plant.GetJointActuatorIndices(instance)]
+    order = [a.joint().name() for a in actuators]
+    if sorted(order) != sorted(hand.policy_joints):
+        raise ValueError(f"hand {hand.name!r}: actuated joints {order} differ from policy_joints")
+    n = len(order)
+    D = np.zeros((2 * n, n))
+    for row, joint in enumerate(order):
+        D[row, hand.policy_joints.index(joint)] = 1.0
+    return MatrixGain(D)
+
+
+def build_grasp_scene(config: SceneConfig = SceneConfig()) -> GraspScene:
+    """Builds the diagram for `config`; the object placement is applied by `set_initial_state`."""
+    hand = load_hand(config.hand)
+    info = get_object(config.object)
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(
+        MultibodyPlantConfig(
+            time_step=config.time_step,
+            discrete_contact_approximation="sap",
+            contact_model="point",
+        ),
+        builder,
+    )
+    (hand_instance,) = Parser(plant).AddModels(hand.model_path)
+    plant.set_gravity_enabled(hand_instance, False)
+    _add_table(plant, config.friction)
+    object_instance = add_object(plant, info)
+    plant.Finalize()
+
+    # The object's watertight mesh serves distance queries only: keep it out of contact.
+    exclude_distance_geometry_from_contact(scene_graph)
+    inspector = scene_graph.model_inspector()
+    object_frame = plant.GetBodyFrameIdOrThrow(plant.GetBodyByName(info.name, object_instance).index())
+    (distance_id,) = [
+        g
+        for g in inspector.GetGeometries(object_frame, Role.kProximity)
+        if inspector.GetName(g).endswith(DISTANCE_GEOMETRY_NAME)
+    ]
+
+    gains = builder.AddSystem(_command_gains(plant, hand_instance, hand))
+    builder.Connect(gains.get_output_port(), plant.get_desired_state_input_port(hand_instance))
+    builder.ExportInput(gains.get_input_port(), "command")
+
+    q_index, v_index = _joint_indices(plant, hand_instance, hand.policy_joints)
+    n, nq = hand.num_actuators, plant.num_positions()
+    S = np.zeros((2 * n, nq + plant.num_velocities()))
+    S[np.arange(n), q_index] = 1.0
+    S[n + np.arange(n), nq + v_index] = 1.0
+    select = builder.AddSystem(MatrixGain(S))
+    builder.Connect(plant.get_state_output_port(), select.get_input_port())
+    builder.ExportOutput(select.get_output_port(), "hand_state")
+
+    # Free body state is [qw qx qy qz x y z; w; v]: reorder to [x y z qw qx qy qz].
+    P = np.zeros((7, 13))
+    for row, col in enumerate([4, 5, 6, 0, 1, 2, 3]):
+        P[row, col] = 1.0
+    pose = builder.AddSystem(MatrixGain(P))
+    builder.Connect(plant.get_state_output_port(object_instance), pose.get_input_port())
+    builder.ExportOutput(pose.get_output_port(), "object_pose")
+    builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
+
+    diagram = builder.Build()
+    return GraspScene(
+        config, diagram, plant, scene_graph, hand, hand_instance, object_instance, info, distance_id, q_index, v_index
+    )

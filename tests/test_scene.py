@@ -1,0 +1,117 @@
+"""The grasp scene, the env, the scripted grasp, rerun logging and the `sim` CLI."""
+
+import numpy as np
+import pytest
+
+from dexdrake.cli import main as cli_main
+from dexdrake.systems.grasp_env import GraspEnv
+from dexdrake.systems.scene import ObjectPlacement, SceneConfig, build_grasp_scene
+from dexdrake.systems.scripted_grasp import ScriptedGrasp, closed_pose
+
+
+@pytest.fixture(scope="module")
+def sphere_env():
+    return GraspEnv(SceneConfig(object="sphere_medium"), horizon=150)
+
+
+def test_scene_ports_and_sizes():
+    scene = build_grasp_scene(SceneConfig(object="box_cube"))
+    d = scene.diagram
+    assert d.GetInputPort("command").size() == 30
+    assert d.GetOutputPort("hand_state").size() == 60
+    assert d.GetOutputPort("object_pose").size() == 7
+    assert scene.plant.time_step() == pytest.approx(0.002)
+
+
+def test_placement_follows_paper_ranges():
+    rng = np.random.default_rng(0)
+    samples = [ObjectPlacement.sample(rng) for _ in range(500)]
+    xs, ys, yaws = (np.array([getattr(s, k) for s in samples]) for k in ("x", "y", "yaw"))
+    assert xs.min() >= -0.05 and xs.max() <= 0.05 and np.ptp(xs) > 0.08
+    assert ys.min() >= -0.05 and ys.max() <= 0.0
+    assert yaws.min() >= -np.pi and yaws.max() <= np.pi
+
+
+def test_reset_places_object_at_rest_on_table(sphere_env):
+    env = sphere_env
+    env.reset(3)
+    p0 = env.object_position()
+    assert p0[2] == pytest.approx(env.scene.object_info.rest_height)
+    # Holding the pre-grasp pose for a while: object stays put, hand stays at its set-points.
+    q0 = env.scene.hand.pregrasp_vector()
+    for _ in range(10):
+        obs, reward, done, info = env.step_positions(q0)
+    assert np.all(np.isfinite(obs))
+    assert np.linalg.norm(env.object_position() - p0) < 1e-3
+    assert np.abs(env.scene.hand_positions(env.plant_context) - q0).max() < 1e-2
+    assert info["terms"].r_g == 0 and not info["success"]
+
+
+def test_hand_state_port_matches_env_state(sphere_env):
+    env = sphere_env
+    env.reset(0)
+    port = env.scene.diagram.GetOutputPort("hand_state").Eval(env.context)
+    np.testing.assert_allclose(port, env.hand_state())
+    pose = env.scene.diagram.GetOutputPort("object_pose").Eval(env.context)
+    np.testing.assert_allclose(pose[:3], env.object_position())
+
+
+def test_normalised_actions_map_onto_joint_ranges(sphere_env):
+    env = sphere_env
+    env.reset(0)
+    env.step(np.ones(env.action_dim))
+    lo, hi = env.scene.hand.joint_limits()
+    np.testing.assert_allclose(env.q_command, hi)
+    env.step(np.full(env.action_dim, np.nan))  # NaN actions become the range midpoint
+    np.testing.assert_allclose(env.q_command, (lo + hi) / 2)
+
+
+def test_fingertip_distances_shrink_when_hand_closes_on_object(sphere_env):
+    env = sphere_env
+    env.reset(0)
+    far = env.fingertip_distances()
+    assert np.all(far > 0.01) and np.all(np.isfinite(far))
+
+
+def test_closed_pose_moves_finger_joints_toward_their_limits():
+    from dexdrake.hands.description import load_hand
+
+    hand = load_hand("adroit")
+    q_open, q_closed = hand.pregrasp_vector(), closed_pose(hand)
+    _, hi = hand.joint_limits()
+    i = hand.policy_joints.index("FFJ1")
+    assert q_closed[i] == pytest.approx(hi[i])
+    arm = slice(0, len(hand.arm_joints))
+    np.testing.assert_allclose(q_closed[arm], q_open[arm])
+
+
+def test_scripted_grasp_lifts_the_sphere(sphere_env):
+    summary = sphere_env.rollout(ScriptedGrasp, seed=0)
+    assert summary.success, summary
+    assert summary.max_lift > 0.1
+
+
+def test_rerun_recording_is_written(tmp_path, sphere_env):
+    from dexdrake.systems.rerun_logger import RerunEpisodeLogger
+
+    path = tmp_path / "ep.rrd"
+    env = GraspEnv(SceneConfig(object="box_cube"), horizon=5)
+    logger = RerunEpisodeLogger(path)
+    env.rollout(ScriptedGrasp, seed=0, logger=logger)
+    logger.close()
+    assert path.stat().st_size > 10_000
+
+
+def test_cli_unknown_names_list_valid_ones(capsys):
+    assert cli_main(["sim", "--object", "no_such_thing"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown object 'no_such_thing'" in err and "sphere_medium" in err
+    assert cli_main(["sim", "--hand", "shadow"]) == 2
+    assert "adroit" in capsys.readouterr().err
+
+
+def test_cli_models_check_lists_every_hand(capsys):
+    assert cli_main(["models", "check"]) == 0
+    out = capsys.readouterr().out
+    assert "adroit" in out and "allegro_z1" in out
+    assert any(line.split()[0] == "adroit" and line.split()[2] == "30" for line in out.splitlines()[1:])

@@ -1,4 +1,5 @@
-"""CLI: `demos synth` (synthetic human grasps) and `retarget` (demo -> robot joint angles)."""
+"""CLI: `demos synth` (synthetic human grasps), `demos replay` (see replay_commands) and
+`retarget` (demo -> robot joint angles)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ _CHAINS = [[0, 1, 2, 3, 4], [0, 5, 6, 7, 8], [0, 9, 10, 11, 12], [0, 13, 14, 15,
 
 
 def add_parser(subparsers) -> None:
-    """Add `demos synth ...` and `retarget ...` to an argparse subparsers object."""
+    """Add `demos synth ...`, `demos replay ...` and `retarget ...` to an argparse subparsers object."""
     demos = subparsers.add_parser("demos", help="human grasp demonstrations")
     sub = demos.add_subparsers(dest="demos_command", required=True)
     synth = sub.add_parser("synth", help="generate synthetic human grasp demos")
@@ -23,6 +24,9 @@ def add_parser(subparsers) -> None:
     synth.add_argument("--per-object", type=int, default=3, help="demos per object")
     synth.add_argument("--seed", type=int, default=0)
     synth.set_defaults(func=cmd_synth)
+    from dexdrake.demos import replay_commands
+
+    replay_commands.add_parser(sub)
 
     rt = subparsers.add_parser("retarget", help="retarget a human demo to a robot hand")
     rt.add_argument("demo", type=Path, help="demo .npz (dexdrake demo format)")

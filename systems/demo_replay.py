@@ -9,6 +9,8 @@ One episode per demo (episode seed s):
    `GraspEnv.step_positions`; after the demo's last frame (object lifted ~4 cm) the fingers
    keep their last set-points while the arm raises the palm grasp centre so that the object
    reaches the task target (0.15 m above its start), then everything holds until the horizon;
+   every attempt adds a closure squeeze (`config.squeeze`) once the demo's fingers have
+   closed, so the position servos grip instead of resting on the surface;
 3. correlated sampling (the paper's drop recovery): if the raw replay fails, up to K more
    attempts add a temporally correlated (Ornstein-Uhlenbeck) perturbation to all commands and
    an extra finger-closure ramp in each joint's `hand.closing` direction from the grasp phase
@@ -46,6 +48,8 @@ class ReplayConfig:
     closure: tuple[float, float] = (0.05, 0.30)  # extra closure, fraction of half range (uniform)
     closure_ramp_time: float = 0.2  # s: the closure ramp's rise time
     grasp_onset: float = 0.2  # grasp phase starts at this fraction of the demo's finger closure
+    squeeze: float = 0.3  # extra closure (fraction of half range) of every replay, raw included,
+    squeeze_onset: float = 0.9  # ... ramped in from this fraction of the demo's finger closure
     task: TaskSpec = TaskSpec()  # success criterion and lift target
 
     def __post_init__(self):
@@ -58,6 +62,8 @@ class ReplayConfig:
         lo, hi = self.closure
         if not 0 <= lo <= hi:
             raise DexdrakeError(f"ReplayConfig.closure must be 0 <= low <= high, got {self.closure}")
+        if self.squeeze < 0 or not 0 < self.squeeze_onset <= 1:
+            raise DexdrakeError("ReplayConfig: squeeze >= 0 and 0 < squeeze_onset <= 1 required")
 
 
 # -- pure helpers ------------------------------------------------------------------------
@@ -163,6 +169,7 @@ class ReplayPlan:
     placement: ObjectPlacement
     q_demo: np.ndarray  # (S + 1, n) resampled set-points; row 0 is the initial hand pose
     grasp_step: int  # control step where the grasp phase (finger closing) starts
+    squeeze: np.ndarray | None = None  # (horizon, n) closure offsets added to every attempt
 
 
 @dataclass
@@ -223,7 +230,10 @@ class DemoReplayer:
         placed = place_demo(demo, placement, info.rest_height)
         q = self.retargeter.retarget_sequence(placed, self._mesh(info), progress=False)
         q_demo = resample_trajectory(q, placed.time, env.base_config.control_period)
-        return ReplayPlan(seed, placement, q_demo, grasp_onset_step(self.hand, q_demo, self.config.grasp_onset))
+        c = self.config
+        squeeze = closure_ramp(self.hand, c.horizon, grasp_onset_step(self.hand, q_demo, c.squeeze_onset),
+                               int(round(c.closure_ramp_time / env.base_config.control_period)), c.squeeze)
+        return ReplayPlan(seed, placement, q_demo, grasp_onset_step(self.hand, q_demo, c.grasp_onset), squeeze)
 
     def _check_placement(self, env: GraspEnv, placement: ObjectPlacement) -> None:
         X = env.scene.object_pose(env.plant_context)
@@ -257,11 +267,13 @@ class DemoReplayer:
                 s = _smooth(np.array((k - demo_steps + 1) / raise_steps))
                 q = q_end.copy()
                 q[: self.n_arm] = q_end[: self.n_arm] + s * (q_lift - q_end[: self.n_arm])
+            if plan.squeeze is not None:
+                q = q + plan.squeeze[k]
             if offsets is not None:
                 q = q + offsets[k]
             obs.append(env.observation())
             env.step_positions(q)
-            act.append((env.q_command - env._mid) / env._half)
+            act.append(env.normalise(env.q_command))
         return Episode(np.asarray(obs, np.float32), np.asarray(act, np.float32), bool(env.tracker.success),
                        float(env.tracker.max_lift), attempt, demo_steps)
 
@@ -281,7 +293,7 @@ class DemoReplayer:
         noise = correlated_noise(rng, H, self.hand.num_actuators, c.noise_time / dt)
         amount = rng.uniform(*c.closure)
         ramp = closure_ramp(self.hand, H, plan.grasp_step, int(round(c.closure_ramp_time / dt)), amount)
-        return c.noise_scale * noise * env._half[None, :] + ramp
+        return c.noise_scale * noise * env.half_range[None, :] + ramp
 
     def replay(self, demo: HumanDemo, seed: int, attempts: int | None = None) -> DemoReplayResult:
         """Raw replay, then up to `attempts` (default config.attempts) correlated-sampling

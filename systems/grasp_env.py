@@ -97,6 +97,15 @@ class GraspEnv:
         a = np.clip(np.nan_to_num(a, nan=0.0), -1.0, 1.0)
         return self.step_positions(self._mid + a * self._half)
 
+    def normalise(self, q_command: np.ndarray) -> np.ndarray:
+        """The normalised action in [-1, 1] that `step` maps to set-points `q_command`."""
+        return (np.asarray(q_command, dtype=float) - self._mid) / self._half
+
+    @property
+    def half_range(self) -> np.ndarray:
+        """Half of each joint's range (policy order): the set-point change of action 1."""
+        return self._half
+
     def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
         """Like `step` with joint set-points in physical units (rad, m), clamped to limits."""
         self.q_command = np.clip(q_command, self._mid - self._half, self._mid + self._half)

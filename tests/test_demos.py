@@ -136,3 +136,23 @@ def test_synthetic_grasps_are_seeded_and_distinct():
     c = synthesize_demo(mesh, "box", "side", seed=7)
     np.testing.assert_array_equal(a.keypoints, b.keypoints)
     assert np.abs(a.keypoints[-1] - c.keypoints[-1]).max() > 0.02
+
+
+def test_object_demos_head_where_the_arm_reaches_after_placement():
+    from dexdrake.demos.synthetic import ADROIT_HEADING, HEADING_SPREAD, synthesize_object_demos
+    from dexdrake.systems.demo_replay import episode_placement
+
+    for demo in synthesize_object_demos("sphere_small", 2, seed=3):
+        extra = demo.meta.extra
+        assert extra["grasp"] != "side" and extra["episode_seed"] == extra["seed"]
+        psi = episode_placement(extra["episode_seed"]).yaw
+        assert abs(extra["placement_yaw"] - psi) < 1e-6
+        fingers = demo.keypoints[-1, 9] - demo.keypoints[-1, 0]  # wrist -> middle MCP, object frame
+        world_yaw = np.arctan2(fingers[1], fingers[0]) + psi
+        assert abs(np.angle(np.exp(1j * (world_yaw - ADROIT_HEADING)))) < HEADING_SPREAD + 0.3
+
+
+def test_palm_centre_is_in_front_of_the_palm():
+    kp = hh.open_hand_keypoints()
+    np.testing.assert_allclose(hh.palm_centre(kp, out=0.05, along=0.5),
+                               0.5 * kp[9] + [0.05, 0, 0], atol=1e-12)

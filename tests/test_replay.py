@@ -126,6 +126,8 @@ def test_replay_config_validation():
         ReplayConfig(horizon=1)
     with pytest.raises(DexdrakeError, match="closure"):
         ReplayConfig(closure=(0.3, 0.1))
+    with pytest.raises(DexdrakeError, match="squeeze"):
+        ReplayConfig(squeeze=-0.1)
 
 
 @pytest.fixture(scope="module")
@@ -224,3 +226,17 @@ def test_parallel_workers_match_serial(demo_dir, tmp_path):
     a, b = load_demo_dataset(tmp_path / "a.npz"), load_demo_dataset(tmp_path / "b.npz")
     np.testing.assert_allclose(a.observations, b.observations, atol=1e-6)
     np.testing.assert_allclose(a.actions, b.actions, atol=1e-6)
+
+
+def test_demos_made_for_an_episode_are_replayed_at_its_placement(demo_dir):
+    from dexdrake.demos.format import load_demo
+    from dexdrake.demos.replay_commands import _find_demos
+    from dexdrake.systems.demo_replay import DemoReplayer
+
+    ((path, name, made_for),) = _find_demos(demo_dir, None)
+    demo = load_demo(path)
+    assert name == "sphere_small" and made_for == demo.meta.extra["episode_seed"]
+    plan = DemoReplayer("adroit", config=ReplayConfig(attempts=0)).plan(demo, made_for)
+    assert abs(plan.placement.yaw - demo.meta.extra["placement_yaw"]) < 1e-6
+    # the squeeze adds closure only in the closing directions, after the grasp onset
+    assert np.all(plan.squeeze[0] == 0) and plan.squeeze[-1].max() > 0 and plan.squeeze.min() >= 0

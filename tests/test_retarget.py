@@ -244,3 +244,30 @@ def test_bad_inputs(toy):
         r.retarget_frame(np.zeros((21, 3)), None, np.zeros(3))
     with pytest.raises(Exception, match="fingers"):
         Retargeter(hand, {"fingers": {"index": config["fingers"]["index"]}})
+
+
+def test_palm_term_and_squeeze_targets():
+    from dexdrake.demos.human_hand import palm_centre
+
+    r = Retargeter("adroit")
+    assert r.config.palm is not None and r.config.weight("object_depth") > 0
+    rng = np.random.default_rng(0)
+    q_true = np.clip(r.reference_q() + rng.normal(0, 0.05, r.num_joints), r.lower, r.upper)
+    kp = np.zeros((21, 3))
+    kp[r.human_index] = r.robot_points(q_true)
+    target = palm_centre(kp, r.config.palm.out, r.config.palm.along)
+    T, w, _ = r.targets(kp, None)
+    palm = np.array([k == "palm" for k in r.kv.kind])
+    np.testing.assert_allclose(T[palm][0], target)
+    assert w[palm][0] == r.config.weight("palm")
+    # a human tip touching the object: the robot tip's goal lies object_depth inside
+    tip_to_anchor = np.array([[0.0, 0.0, -0.005], [0.0, 0.0, -0.05]])  # 5 mm and 5 cm away
+    out = r._squeeze(tip_to_anchor, np.array([0.005, 0.05]), np.array([[0, 0, 1.0]] * 2))
+    np.testing.assert_allclose(out[0], [0, 0, r.config.weight("object_depth")])  # anchor - goal
+    np.testing.assert_allclose(out[1], tip_to_anchor[1])  # far tips keep the human target
+
+
+def test_unknown_weight_is_refused(toy):
+    hand, config = toy
+    with pytest.raises(Exception, match="unknown weights"):
+        Retargeter(hand, {**config, "weights": {"objekt": 1.0}})

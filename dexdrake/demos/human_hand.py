@@ -120,5 +120,18 @@ def palm_samples(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pts, np.full(len(pts), PALM_RADIUS)
 
 
+def palm_centre(keypoints: np.ndarray, out: float = 0.051, along: float = 0.72) -> np.ndarray:
+    """The grasp centre in front of the palm for 21 keypoints in any frame, (..., 21, 3) ->
+    (..., 3): `along` of the way from the wrist to the middle MCP, moved `out` along the
+    palm normal (x of the hand frame: (index MCP - little MCP) x (middle MCP - wrist))."""
+    kp = np.asarray(keypoints, float)
+    z = kp[..., 9, :] - kp[..., 0, :]
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    y = kp[..., 5, :] - kp[..., 17, :]
+    y = y - z * np.sum(y * z, axis=-1, keepdims=True)
+    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    return kp[..., 0, :] + along * (kp[..., 9, :] - kp[..., 0, :]) + out * np.cross(y, z)
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / (np.linalg.norm(v) or 1.0)

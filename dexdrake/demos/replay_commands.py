@@ -44,6 +44,11 @@ def add_parser(subparsers) -> None:
 def find_demos(folder: Path, objects: list[str] | None = None) -> list[tuple[Path, str]]:
     """(path, object name) of every demo-format .npz in `folder`, sorted by path, optionally
     only those of `objects`. Other .npz files (e.g. retargeted joint trajectories) are skipped."""
+    return [(p, name) for p, name, _ in _find_demos(folder, objects)]
+
+
+def _find_demos(folder: Path, objects: list[str] | None) -> list[tuple[Path, str, int | None]]:
+    """(path, object name, the episode seed the demo was made for or None) per demo."""
     from dexdrake.demos.format import DemoFormatError, load_demo
 
     folder = Path(folder)
@@ -52,22 +57,26 @@ def find_demos(folder: Path, objects: list[str] | None = None) -> list[tuple[Pat
     found = []
     for path in sorted(folder.glob("*.npz")):
         try:
-            found.append((path, load_demo(path).object_name))
+            demo = load_demo(path)
+            made_for = demo.meta.extra.get("episode_seed")
+            found.append((path, demo.object_name, None if made_for is None else int(made_for)))
         except DemoFormatError:
             continue
     if not found:
         raise DexdrakeError(f"no demo-format .npz files in {folder} (make some with `dexdrake demos synth`)")
     if objects is None:
         return found
-    missing = sorted(set(objects) - {name for _, name in found})
+    missing = sorted(set(objects) - {name for _, name, _ in found})
     if missing and len(missing) == len(set(objects)):
-        have = sorted({name for _, name in found})
+        have = sorted({name for _, name, _ in found})
         raise DexdrakeError(f"no demos of {missing} in {folder}; it has demos of {have}")
-    return [(p, name) for p, name in found if name in set(objects)]
+    return [d for d in found if d[1] in set(objects)]
 
 
 def demo_seed(base_seed: int, index: int) -> int:
-    """The episode seed of the `index`-th demo (deterministic, 31-bit)."""
+    """The episode seed of the `index`-th demo (deterministic, 31-bit) when the demo was
+    not made for an episode (demos with meta.extra["episode_seed"] are replayed at that
+    episode's placement, which their approach was synthesised to reach)."""
     return int(np.random.SeedSequence([base_seed, index]).generate_state(1)[0] >> 1)
 
 
@@ -196,8 +205,9 @@ def run_replay(demos_dir: Path, out: Path, hand: str, config, feature_set: str |
     from dexdrake.systems.demo_replay import observation_blocks_for
 
     blocks = observation_blocks_for(hand, feature_set)  # fails early on a bad name
-    demos = find_demos(demos_dir, objects)
-    jobs = [(i, str(p), demo_seed(seed, i)) for i, (p, _) in enumerate(demos)]
+    demos = _find_demos(demos_dir, objects)
+    jobs = [(i, str(p), demo_seed(seed, i) if made_for is None else made_for)
+            for i, (p, _, made_for) in enumerate(demos)]
     results = replay_demos(jobs, hand, feature_set, config, workers, progress)
     summary = summarize(results)
     if progress:
@@ -205,7 +215,7 @@ def run_replay(demos_dir: Path, out: Path, hand: str, config, feature_set: str |
         o = summary["overall"]
         print(f"overall: {o['demos']} demos, raw {100 * o['raw_rate']:.1f} %, after sampling "
               f"{100 * o['after_sampling_rate']:.1f} %")
-    obs, act, starts, records = build_dataset(results, [str(p) for p, _ in demos])
+    obs, act, starts, records = build_dataset(results, [str(p) for p, _, _ in demos])
     if sum(blocks.values()) != obs.shape[1]:
         raise DexdrakeError(f"observation blocks {blocks} sum to {sum(blocks.values())}, "
                             f"observations have {obs.shape[1]} columns")

@@ -7,6 +7,13 @@ queries, refined by bisection to 0.5 mm), the hand and object lift together by 8
 sequence is trimmed and canonicalised as the paper does (see `trim`).
 Grasp types: "top" (palm down), "side" (palm facing the object, thumb up), "pinch" (thumb
 and index from above; offered for small objects).
+
+Reachability: a robot arm reaches an object from a limited range of directions (the
+Adroit's virtual arm turns at most 0.75 rad about the vertical). A demo can be made for one
+episode placement (object yaw psi): with a world `heading` h, the hand's heading in the
+object frame is h - psi plus a small spread, so that once the object is placed at psi the
+human hand approaches along h in the world. The heading is the fingers' horizontal
+direction for top/pinch grasps and the approach direction (palm normal) for side grasps.
 """
 
 from __future__ import annotations
@@ -25,12 +32,16 @@ _WRAP = np.array([[-0.45, 0.95, 0.6, 0.7]] + [[0.0, 1.5, 1.7, 1.2]] * 4)
 _PINCH = np.array([[-0.45, 0.45, 0.45, 0.5], [0.0, 1.0, 1.0, 0.6], [0.0, 1.1, 1.1, 0.6],
                    [0.0, 1.5, 1.7, 1.2], [0.0, 1.5, 1.7, 1.2]])
 _CLOSED = {"top": _WRAP, "side": _WRAP, "pinch": _PINCH}
-# point between the fingers (hand frame) put on the object's grasp point before backing off
-_CENTRE = {"top": np.array([0.04, 0.0, 0.08]), "side": np.array([0.04, 0.0, 0.08]),
+# point between the fingers (hand frame) put on the object's grasp point before backing off;
+# for top grasps 1.5 cm nearer the fingertips, so the palm sits back and the fingers reach
+# over the object's far side (as a scripted robot grasp does)
+_CENTRE = {"top": np.array([0.04, 0.0, 0.095]), "side": np.array([0.04, 0.0, 0.08]),
            "pinch": np.array([0.06, 0.03, 0.10])}
 FPS = 60.0
 CONTACT_TOL = 5e-4  # m, bisection tolerance on the contact closure
 CLEARANCE = 0.003  # m, palm/finger clearance kept when placing the open hand
+ADROIT_HEADING = np.pi / 2  # world +y: the Adroit arm's fingers point along it at rest
+HEADING_SPREAD = 0.15  # rad, uniform spread of the hand heading around the requested one
 
 
 @dataclass
@@ -55,8 +66,14 @@ def grasp_types_for(mesh: trimesh.Trimesh) -> list[str]:
     return types
 
 
-def _hand_orientation(grasp: str, rng: np.random.Generator) -> np.ndarray:
-    yaw = rng.uniform(-np.pi, np.pi)
+def _hand_orientation(grasp: str, rng: np.random.Generator, heading: float | None = None
+                      ) -> np.ndarray:
+    """Hand frame in the object frame; `heading` (None: uniform) is the yaw of the fingers
+    (top, pinch: z = (cos, sin, 0)) or of the palm normal (side: x = (cos, sin, 0))."""
+    if heading is None:
+        yaw = rng.uniform(-np.pi, np.pi)
+    else:
+        yaw = heading + rng.uniform(-HEADING_SPREAD, HEADING_SPREAD)
     tilt = rng.uniform(-0.25, 0.25, size=2)
     if grasp == "side":
         a = np.array([np.cos(yaw), np.sin(yaw), 0.0])  # palm normal = approach direction
@@ -112,13 +129,14 @@ def _close_finger(scene: _Scene, R, p, f: int, open_a, closed_a) -> tuple[float,
 
 
 def synthesize_grasp(mesh: trimesh.Trimesh, rest_height: float, grasp: str,
-                     rng: np.random.Generator, attempts: int = 8) -> SyntheticGrasp:
+                     rng: np.random.Generator, attempts: int = 8,
+                     heading: float | None = None) -> SyntheticGrasp:
     """Place the open hand against the object and close every finger onto it; retried with
-    new random hand orientations until at least 2 fingers touch the object (else the
-    attempt with the most contacts is returned)."""
+    new random hand orientations (around `heading`, see `_hand_orientation`) until at least
+    2 fingers touch the object (else the attempt with the most contacts is returned)."""
     best = None
     for _ in range(attempts):
-        g = _attempt_grasp(mesh, rest_height, grasp, rng)
+        g = _attempt_grasp(mesh, rest_height, grasp, rng, heading)
         if best is None or g.contacts.sum() > best.contacts.sum():
             best = g
         if g.contacts.sum() >= 2:
@@ -127,11 +145,11 @@ def synthesize_grasp(mesh: trimesh.Trimesh, rest_height: float, grasp: str,
 
 
 def _attempt_grasp(mesh: trimesh.Trimesh, rest_height: float, grasp: str,
-                   rng: np.random.Generator) -> SyntheticGrasp:
+                   rng: np.random.Generator, heading: float | None) -> SyntheticGrasp:
     if grasp not in GRASP_TYPES:
         raise ValueError(f"unknown grasp type {grasp!r}; valid: {', '.join(GRASP_TYPES)}")
     scene = _Scene(mesh, rest_height)
-    R = _hand_orientation(grasp, rng)
+    R = _hand_orientation(grasp, rng, heading)
     target = scene.offset + rng.uniform(-0.01, 0.01, 3) * np.array([1, 1, 0])
     if grasp == "pinch":
         target = target + np.array([0, 0, 0.5 * mesh.extents[2] - 0.01])
@@ -190,23 +208,49 @@ def demo_from_grasp(g: SyntheticGrasp, mesh: trimesh.Trimesh, rest_height: float
 
 
 def synthesize_demo(mesh: trimesh.Trimesh, object_name: str, grasp: str, seed: int,
-                    rest_height: float | None = None) -> HumanDemo:
-    """One trimmed, canonical demo of `grasp` on `mesh` (object frame, origin at the COM)."""
+                    rest_height: float | None = None, heading: float | None = None
+                    ) -> HumanDemo:
+    """One trimmed, canonical demo of `grasp` on `mesh` (object frame, origin at the COM);
+    `heading`: the hand's heading in the object frame (None: uniform)."""
     rng = np.random.default_rng(seed)
     h = float(-mesh.bounds[0, 2]) if rest_height is None else rest_height
-    g = synthesize_grasp(mesh, h, grasp, rng)
+    g = synthesize_grasp(mesh, h, grasp, rng, heading=heading)
     demo = demo_from_grasp(g, mesh, h, object_name)
     demo.meta.extra["seed"] = seed
     demo = trim_demo(demo, SignedDistance(mesh.vertices, mesh.faces))
     return canonicalize(demo, rest_height=h)
 
 
-def synthesize_object_demos(object_name: str, count: int, seed: int = 0) -> list[HumanDemo]:
-    """`count` demos of a library object, cycling over the grasp types that suit it."""
+def synthesize_object_demos(object_name: str, count: int, seed: int = 0,
+                            heading: float | None = ADROIT_HEADING) -> list[HumanDemo]:
+    """`count` demos of a library object.
+
+    With a world `heading` (default: the Adroit's), demo i is made for the replay episode
+    whose seed is its own seed (seed * 1000 + i): the hand heads along `heading` in the
+    world once the object is placed at that episode's yaw; meta.extra records
+    "episode_seed" and "placement_yaw", and the grasp types are the palm-down ones (top,
+    and pinch for small objects), which a hand on an arm reaching from above can make.
+    With heading None: uniform headings, cycling over every grasp type that suits the object.
+    """
     from dexdrake.objects.library import get_object
 
     info = get_object(object_name)
     mesh = trimesh.load(info.mesh_path, force="mesh")
     types = grasp_types_for(mesh)
-    return [synthesize_demo(mesh, object_name, types[i % len(types)], seed * 1000 + i,
-                            rest_height=float(info.rest_height)) for i in range(count)]
+    if heading is not None:
+        types = [t for t in types if t != "side"]
+    demos = []
+    for i in range(count):
+        s, psi = seed * 1000 + i, None
+        if heading is not None:
+            from dexdrake.systems.demo_replay import episode_placement
+
+            psi = float(episode_placement(s).yaw)
+        demo = synthesize_demo(mesh, object_name, types[i % len(types)], s,
+                               rest_height=float(info.rest_height),
+                               heading=None if psi is None else heading - psi)
+        if psi is not None:
+            demo.meta.extra.update(episode_seed=s, placement_yaw=round(psi, 6),
+                                   world_heading=round(float(heading), 6))
+        demos.append(demo)
+    return demos

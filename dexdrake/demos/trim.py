@@ -56,6 +56,16 @@ class SignedDistance:
         ans = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
         return ans["points"].numpy().astype(float).reshape(np.shape(points_object))
 
+    def closest_points_normals(self, points_object: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray]:
+        """(closest surface points, outward unit normals of their triangles), object frame."""
+        p = np.asarray(points_object, np.float32).reshape(-1, 3)
+        ans = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
+        shape = np.shape(points_object)
+        n = ans["primitive_normals"].numpy().astype(float)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        return ans["points"].numpy().astype(float).reshape(shape), n.reshape(shape)
+
     def world(self, points_world: np.ndarray, pos: np.ndarray, quat_wxyz: np.ndarray):
         """Signed distance of world points for the object at pose (pos, quat)."""
         R = quat_wxyz_to_matrix(quat_wxyz)

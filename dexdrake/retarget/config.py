@@ -7,8 +7,10 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
     fingers:                                             # any subset of thumb..little
       thumb: {tip: {fingertip: thtip}, base: {body: link_14.0}}
       index: {tip: {body: link_3.0_tip, offset: [0, 0, 0]}, base: {body: link_1.0}}
+    palm: {out: 0.051, along: 0.72}                     # optional palm grasp-centre term
     scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
     weights: {wrist: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
+              object_contact: 0.012, object_depth: 0.0, palm: 1.0,
               wrist_position: 0.05, smooth: 4.0e-3}
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
     solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6}
@@ -16,6 +18,14 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
 A point is `{fingertip: NAME}` (a fingertip of the hand description) or
 `{body: BODY, offset: [x, y, z]}`; `human:` overrides the human keypoint it matches
 (defaults: tip 4/8/12/16/20, base 2/5/9/13/17 for thumb/index/middle/ring/little).
+
+`palm` (optional) adds a term that puts a robot palm point (default: the hand
+description's grasp centre; override with body/offset) where the human's palm centre is:
+`out` m out of the human palm plane (wrist, index and little MCPs) along its normal, at
+`along` of the way from the wrist to the middle MCP (see `human_hand.palm_centre`).
+Finger-to-object targets move `object_depth` inside the object's surface when the human
+fingertip is within `object_contact` of it (fading out at twice that), so the position
+servos squeeze the object instead of stopping at its surface.
 """
 
 from __future__ import annotations
@@ -54,6 +64,13 @@ class PinchParams:
 
 
 @dataclass(frozen=True)
+class PalmTerm:
+    point: RobotPoint  # robot palm point (its `human` field is unused: -1)
+    out: float = 0.051  # m out of the human palm plane
+    along: float = 0.72  # fraction of the wrist -> middle MCP segment
+
+
+@dataclass(frozen=True)
 class RetargetConfig:
     hand: str
     wrist: RobotPoint
@@ -63,6 +80,7 @@ class RetargetConfig:
     scales: dict[str, float | str] = field(default_factory=dict)
     weights: dict[str, float] = field(default_factory=dict)
     pinch: PinchParams = PinchParams()
+    palm: PalmTerm | None = None
     iterations: int = 10
     first_iterations: int = 80
     damping: float = 1e-6
@@ -75,6 +93,7 @@ class RetargetConfig:
 
 
 _DEFAULT_WEIGHTS = {"wrist": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
+                    "object_contact": 0.012, "object_depth": 0.0, "palm": 1.0,
                     "wrist_position": 0.05, "smooth": 4e-3}
 
 
@@ -94,6 +113,15 @@ def _point(hand: HandDescription, name: str, d: dict, human: int) -> RobotPoint:
     return RobotPoint(name, body, tuple(offset), int(d.get("human", human)))
 
 
+def _palm(hand: HandDescription, d: dict) -> PalmTerm:
+    if not isinstance(d, dict):
+        raise DexdrakeError(f"retarget config {hand.name}: palm must be a mapping")
+    spec = {k: d[k] for k in ("body", "offset") if k in d} or {
+        "body": hand.palm.body, "offset": list(hand.palm.centre)}
+    return PalmTerm(_point(hand, "palm", spec, -1), float(d.get("out", 0.051)),
+                    float(d.get("along", 0.72)))
+
+
 def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
     """Build a RetargetConfig from its YAML mapping, checking names against the hand."""
     fingers = d.get("fingers") or {}
@@ -106,10 +134,15 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
     bases = tuple(_point(hand, f"{f}.base", fingers[f]["base"], HUMAN_BASE[f]) for f in order)
     wrist = _point(hand, "wrist", d.get("wrist") or {"body": hand.wrist_body}, 0)
     s = d.get("solver") or {}
+    unknown = sorted(set(d.get("weights") or {}) - set(_DEFAULT_WEIGHTS))
+    if unknown:
+        raise DexdrakeError(f"retarget config {hand.name}: unknown weights {unknown}; "
+                            f"valid: {sorted(_DEFAULT_WEIGHTS)}")
     return RetargetConfig(
         hand=hand.name, wrist=wrist, fingers=order, tips=tips, bases=bases,
         scales=dict(d.get("scales") or {}), weights=dict(d.get("weights") or {}),
         pinch=PinchParams(**(d.get("pinch") or {})),
+        palm=_palm(hand, d["palm"]) if d.get("palm") is not None else None,
         iterations=int(s.get("iterations", 10)),
         first_iterations=int(s.get("first_iterations", 80)),
         damping=float(s.get("damping", 1e-6)),

@@ -11,7 +11,12 @@ Key vectors v_i (robot) and their human counterparts v_i^H:
             finger-finger with both fingers pinching: t = eta2 * unit, w = s2
             (eps hysteresis eps_enter / eps_leave)
     object  fingertip -> object anchor (the object point closest to the human fingertip)
-            t_i = v_i^H, w = w_obj / (1 + (d_i / decay)^2) with d_i the human tip's distance
+            t_i = v_i^H, w = w_obj / (1 + (d_i / decay)^2) with d_i the human tip's distance;
+            within `object_contact` of the surface the human tip is replaced by a goal
+            `object_depth` inside the surface (fading out at twice the distance), so the
+            fingers' position servos squeeze the object
+    palm    world origin -> robot palm grasp centre, t = the human palm centre
+            (`human_hand.palm_centre`; optional, config `palm`)
     position  world origin -> wrist point, t = human wrist (small weight: holds the global
             position when no object is given)
 """
@@ -33,18 +38,20 @@ from dexdrake.retarget.kinematics import extract_tree, symbolic_points
 
 @dataclass(frozen=True)
 class KeyVectors:
-    """Index pairs (a -> b) into the extended point list [robot points, anchors, origin]."""
+    """Index pairs (a -> b) into the extended point list [robot points (wrist, tips, bases,
+    palm if configured), anchors, origin]."""
 
     a: np.ndarray
     b: np.ndarray
-    kind: tuple[str, ...]  # "wrist" | "thumb-finger" | "finger-finger" | "object" | "position"
+    kind: tuple[str, ...]  # wrist | thumb-finger | finger-finger | object | position | palm
     fingers: tuple[tuple[int, ...], ...]  # finger indices (into config.fingers) involved
 
 
 def _key_vectors(cfg: RetargetConfig) -> KeyVectors:
-    nf = len(cfg.fingers)
-    wrist, tip, base = 0, 1, 1 + nf
-    anchor, origin = 1 + 2 * nf, 1 + 3 * nf
+    nf, has_palm = len(cfg.fingers), cfg.palm is not None
+    wrist, tip, base, palm = 0, 1, 1 + nf, 1 + 2 * nf
+    anchor = 1 + 2 * nf + has_palm
+    origin = anchor + nf
     a, b, kind, fingers = [], [], [], []
 
     def add(i, j, k, f):
@@ -61,6 +68,8 @@ def _key_vectors(cfg: RetargetConfig) -> KeyVectors:
     for f in range(nf):
         add(tip + f, anchor + f, "object", (f,))
     add(origin, wrist, "position", ())
+    if has_palm:
+        add(origin, palm, "palm", ())
     return KeyVectors(np.array(a), np.array(b), tuple(kind), tuple(fingers))
 
 
@@ -82,8 +91,9 @@ class Retargeter:
         self.points = [cfg.wrist, *cfg.tips, *cfg.bases]
         self.human_index = np.array([p.human for p in self.points])
         tree = extract_tree(self.hand.model_path)
+        fk_points = self.points + ([cfg.palm.point] if cfg.palm is not None else [])
         q, P = symbolic_points(tree, self.joint_names,
-                               [(p.body, np.array(p.offset)) for p in self.points])
+                               [(p.body, np.array(p.offset)) for p in fk_points])
         self.fk = ca.Function("fk", [q], [P])
         nf = len(cfg.fingers)
         self.kv = kv = _key_vectors(cfg)
@@ -103,7 +113,7 @@ class Retargeter:
             self._buf.set_res(i, memoryview(arr))
         kinds = np.array(kv.kind)
         self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
-                                               "object", "position")}
+                                               "object", "position", "palm")}
         self._tf = np.flatnonzero(self._masks["thumb-finger"])
         self._tf_finger = np.array([kv.fingers[i][1] for i in self._tf], int)
         self._ff = np.flatnonzero(self._masks["finger-finger"])
@@ -125,7 +135,7 @@ class Retargeter:
         cfg, kv = self.config, self.kv
         q0 = np.clip(np.zeros(self.num_joints), self.lower, self.upper)
         robot = self._extended(np.asarray(self.fk(q0)), np.zeros((len(cfg.fingers), 3)))
-        human = self._extended(open_hand_keypoints()[self.human_index],
+        human = self._extended(self._human_points(open_hand_keypoints()),
                                np.zeros((len(cfg.fingers), 3)))
         r_len = np.linalg.norm(robot[kv.b] - robot[kv.a], axis=1)
         h_len = np.linalg.norm(human[kv.b] - human[kv.a], axis=1)
@@ -144,13 +154,26 @@ class Retargeter:
     def _extended(points: np.ndarray, anchors: np.ndarray) -> np.ndarray:
         return np.vstack([points, anchors, np.zeros((1, 3))])
 
+    def _human_points(self, kp: np.ndarray) -> np.ndarray:
+        """The human counterparts of the FK points: keypoints, then the palm centre."""
+        pts = kp[self.human_index]
+        palm = self.config.palm
+        if palm is None:
+            return pts
+        from dexdrake.demos.human_hand import palm_centre
+
+        return np.vstack([pts, palm_centre(kp, palm.out, palm.along)[None]])
+
     def reset(self) -> None:
         """Forget the pinch (hysteresis) state, e.g. at the start of a new sequence."""
         self._pinch[:] = False
 
-    def targets(self, keypoints: np.ndarray, anchors: np.ndarray | None
+    def targets(self, keypoints: np.ndarray, anchors: np.ndarray | None,
+                normals: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(targets (m, 3), weights (m,), anchors used) for one frame; updates pinch state."""
+        """(targets (m, 3), weights (m,), anchors used) for one frame; updates pinch state.
+
+        normals: outward surface normals at the anchors (None: from anchor - tip)."""
         cfg, kv, pp = self.config, self.kv, self.config.pinch
         nf = len(cfg.fingers)
         kp = np.asarray(keypoints, float)
@@ -161,16 +184,18 @@ class Retargeter:
         if A.shape != (nf, 3):
             raise DexdrakeError(f"object_points must be ({nf}, 3): one per finger "
                                 f"{cfg.fingers}, got {A.shape}")
-        E = self._extended(kp[self.human_index], A)
+        E = self._extended(self._human_points(kp), A)
         vh = E[kv.b] - E[kv.a]
         T = vh * self.scales[:, None]
         d = np.linalg.norm(vh, axis=1)
         m = self._masks
         w = (cfg.weight("wrist") * m["wrist"] + cfg.weight("wrist_position") * m["position"]
-             + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"]))
+             + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"])
+             + cfg.weight("palm") * m["palm"])
         if has_obj:
-            w[m["object"]] = cfg.weight("object") / (
-                1 + (d[m["object"]] / cfg.weight("object_decay")) ** 2)
+            obj = m["object"]
+            w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
+            T[obj] = self._squeeze(vh[obj], d[obj], normals)
         # DexPilot pinch projection with hysteresis (eps_enter to enter, eps_leave to leave)
         eps = np.where(self._pinch[self._tf_finger], pp.eps_leave, pp.eps_enter)
         self._pinch[self._tf_finger] = d[self._tf] < eps
@@ -182,24 +207,40 @@ class Retargeter:
             T[s2], w[s2] = pp.eta2 * unit[s2], pp.s2
         return T, w, A
 
+    def _squeeze(self, tip_to_anchor: np.ndarray, d: np.ndarray, normals: np.ndarray | None
+                 ) -> np.ndarray:
+        """Object targets (tip -> anchor) with the tip goal moved `object_depth` inside the
+        surface for human tips within `object_contact` (linear fade out to twice that)."""
+        cfg = self.config
+        depth, contact = cfg.weight("object_depth"), cfg.weight("object_contact")
+        if depth <= 0.0:
+            return tip_to_anchor
+        if normals is None:  # outward normal from the anchor towards the (outside) tip
+            normals = -tip_to_anchor / np.maximum(d, 1e-9)[:, None]
+        s = np.clip(2.0 - d / contact, 0.0, 1.0)
+        # goal = tip - s (d + depth) n  =>  anchor - goal = tip_to_anchor + s (d + depth) n
+        return tip_to_anchor + (s * (d + depth))[:, None] * normals
+
     def retarget_frame(self, keypoints: np.ndarray, object_points: np.ndarray | None = None,
-                       q_prev: np.ndarray | None = None) -> np.ndarray:
+                       q_prev: np.ndarray | None = None,
+                       object_normals: np.ndarray | None = None) -> np.ndarray:
         """Joint angles (policy order) for one frame of 21 world keypoints (MediaPipe order).
 
         object_points: (n_fingers, 3) world points of the object closest to each human
         fingertip of the config's fingers (None: no finger-to-object terms). q_prev: the
         previous frame's solution (warm start + smoothness); None = cold start.
+        object_normals: outward surface normals at object_points (None: estimated).
         """
         if q_prev is None:
             self.reset()
-            T, w, A = self.targets(keypoints, object_points)
+            T, w, A = self.targets(keypoints, object_points, object_normals)
             q0 = self.reference_q()
             return self._solve(T, w, A, q0, q0, 0.0, self.config.first_iterations)
         q_prev = np.asarray(q_prev, float)
         if q_prev.shape != (self.num_joints,):
             raise DexdrakeError(f"q_prev must have shape ({self.num_joints},), got "
                                 f"{q_prev.shape}")
-        T, w, A = self.targets(keypoints, object_points)
+        T, w, A = self.targets(keypoints, object_points, object_normals)
         q0 = np.clip(q_prev, self.lower, self.upper)
         return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
 
@@ -244,15 +285,21 @@ class Retargeter:
 
     def robot_points(self, q: np.ndarray) -> np.ndarray:
         """World positions of the config's robot points [wrist, tips..., bases...]."""
-        return np.asarray(self.fk(np.asarray(q, float)))
+        return np.asarray(self.fk(np.asarray(q, float)))[: len(self.points)]
+
+    def palm_point(self, q: np.ndarray) -> np.ndarray:
+        """World position of the palm term's robot point (config `palm`)."""
+        if self.config.palm is None:
+            raise DexdrakeError(f"retarget config {self.hand.name} has no palm term")
+        return np.asarray(self.fk(np.asarray(q, float)))[-1]
 
     def residuals(self, keypoints: np.ndarray, q: np.ndarray) -> dict[str, np.ndarray]:
         """Key-vector residuals ||v^R - k v^H|| (m) without pinch projection: 'wrist'
         (wrist->tip/base), 'finger' (tip->tip), and 'thumb' (vectors that involve the thumb)."""
         kv = self.kv
         nf = len(self.config.fingers)
-        H = self._extended(np.asarray(keypoints)[self.human_index], np.zeros((nf, 3)))
-        R = self._extended(self.robot_points(q), np.zeros((nf, 3)))
+        H = self._extended(self._human_points(np.asarray(keypoints)), np.zeros((nf, 3)))
+        R = self._extended(np.asarray(self.fk(np.asarray(q, float))), np.zeros((nf, 3)))
         err = np.linalg.norm((R[kv.b] - R[kv.a]) - self.scales[:, None] * (H[kv.b] - H[kv.a]),
                              axis=1)
         kinds = np.array(kv.kind)
@@ -264,8 +311,11 @@ class Retargeter:
 
     def object_points(self, keypoints: np.ndarray, closest) -> np.ndarray:
         """Anchors for one frame: `closest(points (n, 3)) -> (n, 3)` object surface points."""
-        tips = np.asarray(keypoints)[[p.human for p in self.config.tips]]
-        return np.asarray(closest(tips))
+        return np.asarray(closest(self.human_tips(keypoints)))
+
+    def human_tips(self, keypoints: np.ndarray) -> np.ndarray:
+        """The human fingertip keypoints of the config's fingers, (n_fingers, 3)."""
+        return np.asarray(keypoints)[[p.human for p in self.config.tips]]
 
     def retarget_sequence(self, demo: HumanDemo, object_mesh=None, progress: bool = True
                           ) -> np.ndarray:
@@ -284,15 +334,17 @@ class Retargeter:
         for t in tqdm(range(demo.num_frames), desc=f"retarget {self.hand.name}",
                       disable=not progress, unit="frame"):
             kp = demo.keypoints[t]
-            anchors = None if closest is None else self.object_points(
-                kp, lambda p, t=t: closest(p, t))
-            q = self.retarget_frame(kp, anchors, q)
+            anchors = normals = None
+            if closest is not None:
+                anchors, normals = closest(self.human_tips(kp), t)
+            q = self.retarget_frame(kp, anchors, q, normals)
             out[t] = q
         return out
 
 
 def _closest_point_fn(demo: HumanDemo, mesh):
-    """closest(points_world, frame) -> object surface points in the world, or None."""
+    """closest(points_world, frame) -> (object surface points, outward normals) in the
+    world, or None."""
     from dexdrake.demos.trim import SignedDistance, quat_wxyz_to_matrix
 
     if mesh is None and demo.object_name:
@@ -311,6 +363,7 @@ def _closest_point_fn(demo: HumanDemo, mesh):
 
     def closest(p, t):
         R, x = Rs[t], demo.object_pos[t]
-        return sdf.closest_points((p - x) @ R) @ R.T + x
+        c, n = sdf.closest_points_normals((p - x) @ R)
+        return c @ R.T + x, n @ R.T
 
     return closest

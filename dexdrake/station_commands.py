@@ -119,12 +119,15 @@ class EpisodeResult:
 
 
 def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
-    """Run `steps` control periods of `controller` on a built station (in real time unless
-    sim), scoring the lift with dexdrake.task. A StationFault ends the episode early (the
-    station is stopped by the caller's context manager)."""
+    """Run `steps` control periods of `controller` on a built station, scoring the lift with
+    dexdrake.task: sim as fast as it goes, hil on the world's simulated clock (the world
+    pauses at each control step until the controller has run), real in wall-clock real
+    time. A StationFault
+    ends the episode early (the station is stopped by the caller's context manager)."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
 
+    from dexdrake.hardware.safety import HardwareError
     from dexdrake.systems.station import ControllerSystem, StationFault
     from dexdrake.task import SuccessTracker
 
@@ -147,11 +150,17 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
         placement = ObjectPlacement.sample(np.random.default_rng(sc.seed))
         scene.set_initial_state(plant_context, placement, scene.hand.pregrasp_vector())
         object_pose = lambda: scene.object_pose(plant_context).translation()  # noqa: E731
-    else:
+    elif station.world is None:  # real: the devices run on the wall clock
         simulator.set_target_realtime_rate(1.0)
-        object_pose = lambda: station.world.object_pose().translation() if station.world else None  # noqa: E731
+        object_pose = lambda: None  # noqa: E731
+    else:  # hil: the control loop follows the world's simulated clock (hardware/hil_world.py)
+        object_pose = lambda: station.world.object_pose().translation()  # noqa: E731
     if station.perception is not None:
         _await_first_pose(station)
+    t_world = 0.0
+    if station.world is not None:  # pause the world where the episode starts
+        station.world.advance_to(station.world.time)
+        t_world = station.world.time
     simulator.Initialize()
     t_start = context.get_time()
     p_start = object_pose()
@@ -161,6 +170,8 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
     done = 0
     try:
         for k in range(1, steps + 1):
+            if station.world is not None:  # lockstep: the world pauses at each control step
+                station.world.advance_to(t_world + k * sc.control_period)
             simulator.AdvanceTo(t_start + k * sc.control_period)
             done = k
             p = object_pose()
@@ -168,12 +179,15 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
                 tracker.update(p)
             if logger is not None:
                 logger.log_step(k, diagram, context, ctrl, station)
-    except StationFault as err:
+    except (StationFault, HardwareError) as err:
         fault = str(err)
     except RuntimeError as err:  # a Python exception raised inside a Drake event
         if "StationFault" not in repr(err) and "fault" not in str(err).lower():
             raise
         fault = str(err)
+    finally:
+        if station.world is not None:
+            station.world.release()
     wall = time.perf_counter() - wall0
     stats = station.stats()
     stats["policy"] = ctrl.timer.stats()
@@ -224,10 +238,18 @@ def run_hil(args: argparse.Namespace) -> int:
     print(f"hil: {scenario.object} seed={scenario.seed} controller={description}")
     print(f"success={result.success} max_lift={result.max_lift:.3f} m steps={result.steps} "
           f"wall={result.wall_s:.1f} s" + (f" rrd={rrd}" if rrd else ""))
+    clock = "simulated clock" if scenario.mode == "hil" else "wall clock"
+    print(f"  loop rates on the devices' {clock}:")
     for key, name in (("can", "CAN (Allegro PD loop)"), ("z1", "Z1 UDP loop"), ("policy", "policy/control")):
         if key in result.stats:
-            print("  " + _fmt_rate(name, result.stats[key]))
-    print(f"  world: {result.stats.get('world')}  nan_holds={result.stats['policy']['nan_holds']}")
+            print("    " + _fmt_rate(name, result.stats[key]))
+    world = result.stats.get("world")
+    if world:
+        print(f"  world: {world['sim_time_s']:.2f} s simulated in {world['wall_s']:.2f} s wall "
+              f"(real-time factor {world['real_time_factor']:.2f}), step p50 {world['step_p50_ms']:.2f} ms "
+              f"p99 {world['step_p99_ms']:.2f} ms wall, late hand replies {world['late_replies']:.0f}")
+    print(f"  policy on the wall clock: {result.stats['policy']['wall_rate_hz']:.1f} Hz, "
+          f"nan_holds={result.stats['policy']['nan_holds']}")
     if result.fault:
         print(f"  stopped safely: {result.fault}")
         return 1

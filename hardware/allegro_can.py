@@ -642,7 +642,8 @@ class AllegroHand:
             self._cycle(self._clock())
 
     def _cycle(self, now: float) -> None:
-        """One PD step after a complete set of 4 position frames."""
+        """One PD step after a complete set of 4 position frames. The first cycle after
+        start or reset holds the measured position and answers with zero torque."""
         self._stats.cycle_times.append(now)
         with self._lock:
             if not self._initialised:
@@ -654,17 +655,20 @@ class AllegroHand:
                     self.limits.reset(self._target)
                 self._t_cycle = now
                 self._initialised = True
-                return
-            dt = max(now - self._t_cycle, 1e-4)
-            alpha = dt / (dt + 1.0 / (2 * math.pi * self.config.filter_cutoff_hz))
-            q_new = self._q + alpha * (self._raw - self._q)
-            self._dq = (q_new - self._q) / dt
-            self._q, self._t_cycle = q_new, now
-            if self.fault.tripped:
-                return
-            q_ref = self._rate.step(self._target, dt)
-            pwm = self.kp * (q_ref - self._q) - self.kd * self._dq
-            pwm = np.clip(np.rint(pwm), -self.pwm_limit, self.pwm_limit)
+                if self.fault.tripped:
+                    return
+                pwm = np.zeros(NUM_JOINTS)
+            else:
+                dt = max(now - self._t_cycle, 1e-4)
+                alpha = dt / (dt + 1.0 / (2 * math.pi * self.config.filter_cutoff_hz))
+                q_new = self._q + alpha * (self._raw - self._q)
+                self._dq = (q_new - self._q) / dt
+                self._q, self._t_cycle = q_new, now
+                if self.fault.tripped:
+                    return
+                q_ref = self._rate.step(self._target, dt)
+                pwm = self.kp * (q_ref - self._q) - self.kd * self._dq
+                pwm = np.clip(np.rint(pwm), -self.pwm_limit, self.pwm_limit)
             self._tau = pwm
         for f in range(NUM_FINGERS):
             self._send(Torque(f, tuple(int(v) for v in pwm[4 * f: 4 * f + 4])))

@@ -2,9 +2,12 @@
 
 It answers RTR info / serial / status / temperature / position / IMU requests, streams
 position (and temperature/status) frames at the periods the host sets, obeys servo on/off
-and integrates simple per-joint dynamics from the torque frames:
-    ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits,
-with zero torque when the servo is off or no torque frame arrived for `torque_timeout_s`.
+and moves its joints with a pluggable `JointDynamics` model, stepped every tick with the
+effective PWM (zero when the servo is off or no torque frame arrived for
+`torque_timeout_s`). The default, `PwmJointDynamics`, is a per-joint double integrator:
+    ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits.
+A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
+Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
 Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature.
 """
 
@@ -15,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import can
 import numpy as np
@@ -68,6 +72,37 @@ class EmulatorConfig:
     seed: int = 0
 
 
+class JointDynamics(Protocol):
+    """The hand's joints as the emulator sees them (16 values, bus order)."""
+
+    def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Apply `pwm` (the effective PWM duty) for `dt` seconds; return (q, dq) after it."""
+        ...
+
+
+class PwmJointDynamics:
+    """Per-joint double integrator ddq = accel_per_pwm * pwm - damping * dq inside hard stops,
+    integrated with sub-steps of at most `physics_dt_s`."""
+
+    def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                 accel_per_pwm: float = 2.0, damping: float = 5.0, physics_dt_s: float = 0.0005):
+        self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
+        self.q = np.clip(np.asarray(q0, float), self.lower, self.upper)
+        self.dq = np.zeros_like(self.q)
+        self.accel_per_pwm, self.damping, self.physics_dt_s = accel_per_pwm, damping, physics_dt_s
+
+    def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        steps = max(1, int(np.ceil(dt / self.physics_dt_s)))
+        h = dt / steps
+        for _ in range(steps):
+            self.dq = self.dq + h * (self.accel_per_pwm * pwm - self.damping * self.dq)
+            self.q = self.q + h * self.dq
+            low, high = self.q < self.lower, self.q > self.upper
+            self.q = np.clip(self.q, self.lower, self.upper)
+            self.dq[(low & (self.dq < 0)) | (high & (self.dq > 0))] = 0.0
+        return self.q.copy(), self.dq.copy()
+
+
 @dataclass
 class _Injection:
     stall_until: float = -np.inf
@@ -79,10 +114,12 @@ class _Injection:
 
 
 class AllegroEmulator:
-    """The hand side of the bus, run in a thread: `start()` / `stop()` or a context manager."""
+    """The hand side of the bus, run in a thread: `start()` / `stop()` or a context manager
+    (or driven by the caller through `poll(now)`). `dynamics` moves the joints (default:
+    `PwmJointDynamics` with the config's accel_per_pwm, damping and physics_dt_s)."""
 
     def __init__(self, bus: can.BusABC, device_id: int = 0, config: EmulatorConfig | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, dynamics: JointDynamics | None = None):
         self.bus, self.device_id = bus, device_id
         self.config = cfg = config or EmulatorConfig()
         self._clock = clock
@@ -97,8 +134,15 @@ class AllegroEmulator:
         self._lock = threading.Lock()
         self._q = np.clip(q0, self.lower, self.upper)
         self._dq = np.zeros(NUM_JOINTS)
+        self.dynamics: JointDynamics = dynamics or PwmJointDynamics(
+            self._q, self.lower, self.upper, cfg.accel_per_pwm, cfg.damping, cfg.physics_dt_s)
         self._pwm = np.zeros(NUM_JOINTS)
         self._last_torque = -np.inf
+        self._last_tick: float | None = None
+        self._due = {"position": 0.0, "temperature": 0.0, "status": 0.0}
+        self._torque_fingers: set[int] = set()
+        self.position_batches = 0  # complete position batches streamed
+        self.answered_batches = 0  # of those, answered by a full set of 4 torque frames
         self.servo_on = False
         self.periods = SetPeriod(0, 0, 0, 0)
         self.log: collections.deque = collections.deque(maxlen=10000)  # decoded frames received
@@ -110,6 +154,7 @@ class AllegroEmulator:
 
     # --------------------------------------------------------------- control
     def start(self) -> None:
+        self._last_tick = None
         self._running.set()
         self._thread = threading.Thread(target=self._run, name="allegro-emulator", daemon=True)
         self._thread.start()
@@ -141,9 +186,19 @@ class AllegroEmulator:
             return self._q.copy()
 
     @property
+    def dq(self) -> np.ndarray:
+        with self._lock:
+            return self._dq.copy()
+
+    @property
     def pwm(self) -> np.ndarray:
         with self._lock:
             return self._pwm.copy()
+
+    @property
+    def torque_pending(self) -> bool:
+        """True while the last streamed position batch has no full set of torque replies."""
+        return self.answered_batches < self.position_batches
 
     def status_bits(self) -> int:
         return (STATUS_SERVO_ON if self.servo_on else 0) | (
@@ -219,53 +274,66 @@ class AllegroEmulator:
                 with self._lock:
                     self._pwm[4 * finger: 4 * finger + 4] = pwm
                 self._last_torque = now
+                self._torque_fingers.add(finger)
+                if len(self._torque_fingers) == NUM_FINGERS:
+                    self._torque_fingers.clear()
+                    self.answered_batches = self.position_batches
 
-    # --------------------------------------------------------------- thread
+    # --------------------------------------------------------------- tick
     def _integrate(self, dt: float, now: float) -> None:
-        cfg = self.config
-        active = self.servo_on and now - self._last_torque <= cfg.torque_timeout_s
+        """Zero the PWM when inactive (servo off / torque timeout), then step the dynamics."""
+        active = self.servo_on and now - self._last_torque <= self.config.torque_timeout_s
         with self._lock:
             if not active:
                 self._pwm[:] = 0.0
-            steps = max(1, int(np.ceil(dt / cfg.physics_dt_s)))
-            h = dt / steps
-            for _ in range(steps):
-                self._dq += h * (cfg.accel_per_pwm * self._pwm - cfg.damping * self._dq)
-                self._q += h * self._dq
-                low, high = self._q < self.lower, self._q > self.upper
-                self._q = np.clip(self._q, self.lower, self.upper)
-                self._dq[(low & (self._dq < 0)) | (high & (self._dq > 0))] = 0.0
+            pwm = self._pwm.copy()
+        q, dq = self.dynamics.step(pwm, dt)
+        with self._lock:
+            self._q = np.asarray(q, float).copy()
+            self._dq = np.asarray(dq, float).copy()
 
+    def _stream(self, now: float) -> None:
+        streaming = now >= self.inject.stall_until and not self.inject.silent
+        p = self.periods
+        for name, period_ms in (("position", p.position_ms), ("temperature", p.temperature_ms),
+                                ("status", p.status_ms or 0)):
+            if period_ms <= 0:
+                self._due[name] = now
+                continue
+            if now < self._due[name]:
+                continue
+            self._due[name] = max(self._due[name] + period_ms / 1e3, now - period_ms / 1e3)
+            if not streaming:
+                continue
+            if name == "position":
+                for f in range(NUM_FINGERS):
+                    self._send(self._position(f), periodic=True)
+                self.position_batches += 1
+                self._torque_fingers.clear()
+            elif name == "temperature":
+                for f in range(NUM_FINGERS):
+                    self._send(Temperature(f, self._temperatures(f)), periodic=True)
+            else:
+                self._send(Status(self.status_bits()), periodic=True)
+
+    def poll(self, now: float, timeout: float = 0.0) -> None:
+        """One emulator tick at time `now` (of the emulator's clock): step the dynamics by the
+        time since the last tick (at most 50 ms), stream the frames that are due, then handle
+        the frames received within `timeout` seconds (wall) or before the next frame is due."""
+        if self._last_tick is None:
+            self._last_tick = now
+            self._due = dict.fromkeys(self._due, now)
+        self._integrate(min(now - self._last_tick, 0.05), now)
+        self._last_tick = now
+        self._stream(now)
+        due = [d for d in self._due.values() if d > now]
+        wait = min([timeout] + [d - now for d in due])
+        msg = self.bus.recv(max(wait, 0.0))
+        while msg is not None:
+            self._handle(msg, self._clock())
+            msg = self.bus.recv(0.0)
+
+    # --------------------------------------------------------------- thread
     def _run(self) -> None:
-        last = self._clock()
-        due = {"position": last, "temperature": last, "status": last}
         while self._running.is_set():
-            now = self._clock()
-            self._integrate(min(now - last, 0.05), now)
-            last = now
-            streaming = now >= self.inject.stall_until and not self.inject.silent
-            p = self.periods
-            for name, period_ms in (("position", p.position_ms),
-                                    ("temperature", p.temperature_ms),
-                                    ("status", p.status_ms or 0)):
-                if period_ms <= 0:
-                    due[name] = now
-                    continue
-                if now < due[name]:
-                    continue
-                due[name] = max(due[name] + period_ms / 1e3, now - period_ms / 1e3)
-                if not streaming:
-                    continue
-                if name == "position":
-                    for f in range(NUM_FINGERS):
-                        self._send(self._position(f), periodic=True)
-                elif name == "temperature":
-                    for f in range(NUM_FINGERS):
-                        self._send(Temperature(f, self._temperatures(f)), periodic=True)
-                else:
-                    self._send(Status(self.status_bits()), periodic=True)
-            wait = min([d for d in due.values() if d > now] + [now + 0.001]) - now
-            msg = self.bus.recv(max(wait, 0.0))
-            while msg is not None:
-                self._handle(msg, self._clock())
-                msg = self.bus.recv(0.0)
+            self.poll(self._clock(), 0.001)

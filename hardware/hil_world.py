@@ -1,25 +1,44 @@
-"""The hardware-in-the-loop world: a Drake plant co-simulated in real time with the
-Allegro firmware emulator and the Z1 controller emulator.
+"""The hardware-in-the-loop world: a Drake plant co-simulated with the Allegro firmware
+emulator and the Z1 controller emulator, on one simulated clock.
 
 The emulators keep their bus/UDP behaviour (framing, periods, servo and FSM logic, fault
-injection) but hand their joint dynamics to the plant:
-  Allegro: torque frames (PWM) -> plant actuation tau = pwm * torque_per_pwm on the finger
-           joints (zero when the servo is off or torque frames stop, as the firmware does);
-  Z1:      the controller's joint PD (LOWCMD/JOINTCTRL set-points, gains kp*25.6 and
-           kd*0.0128, feed-forward torque) -> the plant's implicit PD actuators;
-           PASSIVE -> hold with damping only;
-  plant joint positions/velocities -> the emulators' streamed positions and states.
-The emulators have no pluggable dynamics hook, so `CoSimAllegroEmulator` and
-`CoSimZ1Emulator` subclass them and replace their private `_integrate` step.
+injection) and get their joints from the plant through their public dynamics hooks:
+  Allegro (`JointDynamics`): effective PWM -> plant actuation tau = pwm * torque_per_pwm on the
+           finger joints (zero when the servo is off or torque frames stop, as the firmware does);
+  Z1 (`ArmDynamics`): the controller's LOWCMD/JOINTCTRL set-points -> the plant's implicit PD
+           actuators (gains kp*25.6 and kd*0.0128, feed-forward torque); PASSIVE -> hold
+           with damping only;
+  plant joint positions/velocities (and arm torques) -> what the emulators stream and reply.
+
+Timing design (correctness must not depend on how the host schedules threads):
+- One clock. `HilWorld.clock()` is the plant's time. The emulators, both drivers (their PD
+  dt, rate limits and watchdogs) and the station's control loop all run on it, so every
+  device period, timeout and derivative is measured in simulated seconds.
+- Lockstep with the hand's PD loop. The world thread advances the plant one time step,
+  services both emulators (they stream the frames that are due on the simulated clock),
+  and, when a position batch went out with the servo on, waits (at most `reply_timeout_s`
+  of wall time) for the driver's 4 torque frames before the next step: the PD always acts on
+  the newest positions, exactly one CAN cycle old, however slow the host is.
+- Lockstep with the control loop. `advance_to(t)` lets the world run up to `t` and waits
+  for it there: the station's control loop calls it once per control period, so each
+  policy step sees the world at the same simulated time whatever the host's speed
+  (without it the world runs freely).
+- Real time at most. The world never runs ahead of the wall clock; when the host cannot keep
+  up it runs slower (real-time factor < 1, reported by `stats()`) instead of taking larger
+  steps, so a loaded machine slows the episode down but does not change its outcome. After
+  a hiccup it catches up at most `max_lag_s` (briefly running faster than real time).
 The robot is gravity compensated (as in the simulated scene); the object is not.
 """
 
 from __future__ import annotations
 
+import collections
+import math
 import threading
 import time
 from dataclasses import dataclass
 
+import can
 import numpy as np
 from pydrake.geometry import SceneGraph
 from pydrake.math import RigidTransform
@@ -30,49 +49,13 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.hardware.allegro_emulator import AllegroEmulator
-from dexdrake.hardware.safety import HardwareError
-from dexdrake.hardware.z1_emulator import Z1Emulator
+from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.safety import HardwareError, period_stats
+from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConfig
 from dexdrake.hardware.z1_udp import KD_SCALE, KP_SCALE, ArmFSMState
 from dexdrake.objects.library import add_object, exclude_distance_geometry_from_contact, get_object
 from dexdrake.systems.scenario import Scenario
 from dexdrake.systems.scene import ObjectPlacement, _add_table
-
-
-class CoSimAllegroEmulator(AllegroEmulator):
-    """The Allegro firmware emulator with its joint state supplied by the HIL world."""
-
-    def _integrate(self, dt: float, now: float) -> None:
-        active = self.servo_on and now - self._last_torque <= self.config.torque_timeout_s
-        if not active:
-            with self._lock:
-                self._pwm[:] = 0.0
-
-    def set_joint_state(self, q: np.ndarray, dq: np.ndarray) -> None:
-        """Joint positions/velocities (bus order) measured in the world."""
-        with self._lock:
-            self._q = np.clip(q, self.lower, self.upper)
-            self._dq = np.asarray(dq, float).copy()
-
-
-class CoSimZ1Emulator(Z1Emulator):
-    """The Z1 controller emulator with its joint state supplied by the HIL world."""
-
-    def _integrate(self, dt: float, now: float) -> None:
-        with self._lock:
-            if self.fsm != ArmFSMState.PASSIVE and now - self._last_cmd > self.config.command_timeout_s:
-                self.fsm = ArmFSMState.PASSIVE
-
-    def joint_command(self) -> tuple[ArmFSMState, np.ndarray, np.ndarray, np.ndarray]:
-        """(state, q_d, dq_d, tau_ff) the controller is tracking now."""
-        with self._lock:
-            return self.fsm, self._q_d.copy(), self._dq_d.copy(), self._tau_ff.copy()
-
-    def set_joint_state(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray) -> None:
-        with self._lock:
-            self._q = np.clip(q, self.lower, self.upper)
-            self._dq = np.asarray(dq, float).copy()
-            self._tau = np.asarray(tau, float).copy()
 
 
 @dataclass
@@ -137,20 +120,44 @@ def _actuator_of(plant: MultibodyPlant, robot, joint_name: str):
     raise HardwareError(f"joint {joint_name!r} has no actuator in the robot model")
 
 
+class _PlantFingers:
+    """The Allegro emulator's `JointDynamics`: the PWM goes to the world, the state comes back."""
+
+    def __init__(self, q: np.ndarray):
+        self.pwm = np.zeros(len(q))
+        self.q, self.dq = q.copy(), np.zeros(len(q))
+
+    def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        self.pwm = np.asarray(pwm, float).copy()
+        return self.q.copy(), self.dq.copy()
+
+
+class _PlantArm:
+    """The Z1 emulator's `ArmDynamics`: the command goes to the world, the state comes back."""
+
+    def __init__(self, q: np.ndarray):
+        n = len(q)
+        self.command = ArmCommand(ArmFSMState.PASSIVE, q.copy(), np.zeros(n), np.zeros(n),
+                                  np.zeros(n), np.zeros(n))
+        self.q, self.dq, self.tau = q.copy(), np.zeros(n), np.zeros(n)
+
+    def step(self, command: ArmCommand, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self.command = command
+        return self.q.copy(), self.dq.copy(), self.tau.copy()
+
+
 class HilWorld:
-    """Steps the world plant in real time in a thread, exchanging state with the emulators.
+    """The world plant and both device emulators, stepped in lockstep by one thread.
 
-    `start()` / `stop()` or a context manager. The plant time follows the wall clock; when
-    the host is too slow the plant falls behind by at most `max_lag_s` per step (counted in
-    `stats()["lag_s"]`) instead of taking huge steps.
-    """
+    `start()` / `stop()` or a context manager. `hand_emulator` answers on `hand_bus`;
+    `arm_emulator` binds the scenario's controller port (0: a free port, see its `.port`
+    after `start()`). Give the drivers `clock=world.clock` so that they run on the same
+    simulated time (module doc)."""
 
-    def __init__(self, scenario: Scenario, hand_emulator: CoSimAllegroEmulator,
-                 arm_emulator: CoSimZ1Emulator, q0: np.ndarray, placement: ObjectPlacement):
+    def __init__(self, scenario: Scenario, hand_bus: can.BusABC, q0: np.ndarray,
+                 placement: ObjectPlacement):
         self.scenario = scenario
-        self.world = build_world_plant(scenario)
-        self.hand_emulator, self.arm_emulator = hand_emulator, arm_emulator
-        w = self.world
+        self.world = w = build_world_plant(scenario)
         self.n_arm = len(w.hand.arm_joints)
         self.bus_perm = w.hand.hardware_permutation()  # q_bus = q_policy[perm]
         self._simulator = Simulator(w.diagram)
@@ -162,21 +169,44 @@ class HilWorld:
         info = get_object(scenario.object)
         w.plant.SetFreeBodyPose(self._plant_context, w.object_body, placement.pose(info))
         self.placement = placement
-        n = w.hand.num_actuators
-        self._desired = np.zeros(2 * n)
+        self._fingers = _PlantFingers(q0[self.bus_perm])
+        self._arm = _PlantArm(q0[: self.n_arm])
+        h, a = scenario.drivers.hand, scenario.drivers.arm
+        self.hand_emulator = AllegroEmulator(
+            hand_bus, h.device_id, EmulatorConfig(q0=tuple(q0[self.bus_perm]), seed=scenario.seed,
+                                                  lower=h.lower, upper=h.upper),
+            clock=self.clock, dynamics=self._fingers)
+        self.arm_emulator = Z1Emulator(Z1EmulatorConfig(host=a.host, port=a.controller_port,
+                                                        q0=tuple(q0[: self.n_arm]), seed=scenario.seed),
+                                       clock=self.clock, dynamics=self._arm)
+        self._desired = np.zeros(2 * w.hand.num_actuators)
         self._actuation = np.zeros(w.plant.num_actuators())
         self._lock = threading.Lock()
-        self._object_pose = w.plant.EvalBodyPoseInWorld(self._plant_context, w.object_body)
         self._q = q0.copy()
+        self._object_pose = RigidTransform()
         self._running = threading.Event()
+        self._stepped = threading.Condition()  # notified after every world step
         self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None  # what ended the world thread, if anything
+        self._t = 0.0
+        self._horizon = math.inf  # the world pauses here (advance_to)
         self.steps = 0
-        self.max_lag_s = 0.0
+        self.late_replies = 0  # hand cycles whose torques did not come within reply_timeout_s
+        self._wall0: float | None = None
+        self._step_walls: collections.deque[float] = collections.deque(maxlen=20000)
         self._push_inputs()
         self._simulator.Initialize()
         self._publish()
 
     # -------------------------------------------------------------- state access
+    def clock(self) -> float:
+        """The simulated time now (s): the clock of the emulators, drivers and control loop."""
+        return self._t
+
+    @property
+    def time(self) -> float:
+        return self._t
+
     def object_pose(self) -> RigidTransform:
         """The object's pose in the world now (a copy)."""
         with self._lock:
@@ -187,32 +217,68 @@ class HilWorld:
         with self._lock:
             return self._q.copy()
 
-    @property
-    def time(self) -> float:
-        return self._context.get_time()
-
     def stats(self) -> dict[str, float]:
-        return {"steps": float(self.steps), "sim_time_s": self.time, "lag_s": self.max_lag_s}
+        """Steps, simulated and wall time, real-time factor, lag behind the wall clock,
+        world step period statistics (ms of wall time) and late hand replies."""
+        wall = 0.0 if self._wall0 is None else time.monotonic() - self._wall0
+        out = {"steps": float(self.steps), "sim_time_s": self._t, "wall_s": wall,
+               "real_time_factor": self._t / wall if wall > 0 else float("nan"),
+               "lag_s": max(wall - self._t, 0.0), "late_replies": float(self.late_replies)}
+        step = period_stats(list(self._step_walls))
+        out.update(step_p50_ms=step["p50_ms"], step_p99_ms=step["p99_ms"], step_max_ms=step["max_ms"])
+        return out
+
+    def advance_to(self, t: float, stall_timeout_s: float = 5.0) -> None:
+        """Let the world run up to simulated time `t`, pause there, and return when it has
+        arrived (see wait_until for the errors). `release()` lets it run freely again."""
+        with self._stepped:
+            self._horizon = t
+            self._stepped.notify_all()
+        self.wait_until(t, stall_timeout_s)
+
+    def release(self) -> None:
+        """Let the world run freely (no pause point)."""
+        with self._stepped:
+            self._horizon = math.inf
+            self._stepped.notify_all()
+
+    def wait_until(self, t: float, stall_timeout_s: float = 5.0) -> None:
+        """Block until the simulated time reaches `t`; HardwareError if the world thread died
+        or its time did not move for `stall_timeout_s` of wall time."""
+        if t > self._horizon + 1e-9:
+            raise HardwareError(f"HIL world: waiting for t={t:.3f} s beyond its pause point "
+                                f"{self._horizon:.3f} s (use advance_to)")
+        last, since = self._t, time.monotonic()
+        with self._stepped:
+            while self._t < t - 1e-9:
+                if self.error is not None or not self._running.is_set():
+                    raise HardwareError(f"HIL world stopped at t={self._t:.3f} s: {self.error!r}")
+                now = time.monotonic()
+                if self._t != last:
+                    last, since = self._t, now
+                elif now - since > stall_timeout_s:
+                    raise HardwareError(f"HIL world made no progress for {stall_timeout_s} s "
+                                        f"at t={self._t:.3f} s")
+                self._stepped.wait(0.05)
 
     # -------------------------------------------------------------- exchange
     def _push_inputs(self) -> None:
         w, n_arm = self.world, self.n_arm
         n = w.hand.num_actuators
-        q_now = w.plant.GetPositions(self._plant_context)[w.q_index]
-        fsm, q_d, dq_d, tau_ff = self.arm_emulator.joint_command()
+        cmd = self._arm.command
+        q_d, dq_d, tau_ff = cmd.q_d, cmd.dq_d, cmd.tau_ff
         arm = w.act_index[:n_arm]
-        if fsm == ArmFSMState.PASSIVE:  # damping only: hold wherever the arm is
+        if cmd.fsm == ArmFSMState.PASSIVE:  # damping only: hold wherever the arm is
+            q_now = w.plant.GetPositions(self._plant_context)[w.q_index]
             q_d, dq_d, tau_ff = q_now[:n_arm], np.zeros(n_arm), np.zeros(n_arm)
         self._desired[:] = 0.0
         self._desired[arm] = q_d
         self._desired[n + arm] = dq_d
         self._actuation[:] = 0.0
         self._actuation[arm] = tau_ff
-        pwm_bus = self.hand_emulator.pwm
-        fingers = w.act_index[n_arm:]
         tau_fingers = np.zeros(n - n_arm)
-        tau_fingers[self.bus_perm - n_arm] = pwm_bus * self.scenario.hil.torque_per_pwm
-        self._actuation[fingers] = tau_fingers
+        tau_fingers[self.bus_perm - n_arm] = self._fingers.pwm * self.scenario.hil.torque_per_pwm
+        self._actuation[w.act_index[n_arm:]] = tau_fingers
         w.diagram.get_input_port(0).FixValue(self._context, self._desired)
         w.diagram.get_input_port(1).FixValue(self._context, self._actuation)
 
@@ -221,25 +287,54 @@ class HilWorld:
         q = w.plant.GetPositions(self._plant_context)[w.q_index]
         v = w.plant.GetVelocities(self._plant_context)[w.v_index]
         tau = w.plant.get_net_actuation_output_port().Eval(self._plant_context)[w.act_index]
-        self.arm_emulator.set_joint_state(q[:n_arm], v[:n_arm], tau[:n_arm])
-        self.hand_emulator.set_joint_state(q[self.bus_perm], v[self.bus_perm])
+        self._arm.q, self._arm.dq, self._arm.tau = q[:n_arm], v[:n_arm], tau[:n_arm]
+        self._fingers.q, self._fingers.dq = q[self.bus_perm], v[self.bus_perm]
+        pose = w.plant.EvalBodyPoseInWorld(self._plant_context, w.object_body)
         with self._lock:
             self._q = q
-            self._object_pose = w.plant.EvalBodyPoseInWorld(self._plant_context, w.object_body)
+            self._object_pose = RigidTransform(pose)
+        self._t = self._context.get_time()
+
+    def step(self) -> None:
+        """One lockstep world step (module doc); the world thread calls it in a loop."""
+        h = self.scenario.time_step
+        self._push_inputs()
+        self._simulator.AdvanceTo(self._t + h)
+        self._publish()
+        now = self._t
+        hand, arm = self.hand_emulator, self.arm_emulator
+        arm.poll(now)
+        hand.poll(now)
+        if hand.torque_pending and hand.servo_on:
+            deadline = time.monotonic() + self.scenario.hil.reply_timeout_s
+            while hand.torque_pending and (left := deadline - time.monotonic()) > 0:
+                hand.poll(now, left)
+            if hand.torque_pending:
+                self.late_replies += 1
+        self.steps += 1
 
     # -------------------------------------------------------------- thread
     def start(self) -> None:
+        """Open the Z1 emulator's port and start the world thread."""
         if self._thread is not None:
             raise HardwareError("HIL world: already started")
+        self.arm_emulator.open()
         self._running.set()
         self._thread = threading.Thread(target=self._run, name="hil-world", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
+        """Stop the thread, let the emulators read what the drivers sent last (their safe
+        stop), and close the Z1 emulator's port."""
         self._running.clear()
+        self.release()
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=5.0)
             self._thread = None
+        for _ in range(3):
+            self.hand_emulator.poll(self._t, 0.002)
+            self.arm_emulator.poll(self._t, 0.002)
+        self.arm_emulator.close()
 
     def __enter__(self) -> HilWorld:
         self.start()
@@ -249,18 +344,27 @@ class HilWorld:
         self.stop()
 
     def _run(self) -> None:
-        h = self.scenario.time_step
-        max_lag = self.scenario.hil.max_lag_s
-        wall0 = time.monotonic() - self.time
-        while self._running.is_set():
-            wall = time.monotonic() - wall0
-            t = self.time
-            if wall - t >= h:
-                target = min(wall, t + max_lag)
-                self._push_inputs()
-                self._simulator.AdvanceTo(target)
-                self._publish()
-                self.steps += 1
-                self.max_lag_s = max(self.max_lag_s, wall - self.time)
-            time.sleep(max(h - (time.monotonic() - wall0 - self.time), 0.0005))
-
+        h, max_lag = self.scenario.time_step, self.scenario.hil.max_lag_s
+        self._wall0 = anchor = time.monotonic() - self._t  # wall time of simulated t = 0
+        try:
+            while self._running.is_set():
+                if self._t + h > self._horizon + 1e-9:  # paused for the control loop
+                    with self._stepped:
+                        self._stepped.wait_for(lambda: self._t + h <= self._horizon + 1e-9
+                                               or not self._running.is_set(), 0.01)
+                    continue
+                ahead = self._t + h - (time.monotonic() - anchor)
+                if ahead > 0:  # never run ahead of the wall clock
+                    time.sleep(ahead)
+                elif ahead < -max_lag:  # behind by more than max_lag: run slower than real time
+                    anchor -= ahead + max_lag
+                self.step()
+                self._step_walls.append(time.monotonic())
+                with self._stepped:
+                    self._stepped.notify_all()
+        except BaseException as err:  # the drivers' watchdogs see the world stop
+            self.error = err
+            raise
+        finally:
+            with self._stepped:
+                self._stepped.notify_all()

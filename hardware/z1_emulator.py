@@ -5,9 +5,13 @@ It binds the controller port (8072 by default) and answers every SendCmd with a 
 PASSIVE (joint damping only); LOWCMD is entered only from PASSIVE and left only to PASSIVE;
 JOINTCTRL is entered from PASSIVE and tracks the commanded positions with the controller's
 default gains; other states are not emulated and are refused. Silence in LOWCMD/JOINTCTRL
-for `command_timeout_s` drops the arm to PASSIVE. Joint dynamics (no gravity, i.e. a
-gravity-compensated arm): I * ddq = clip(tau, +-effort) - b * dq inside hard joint stops, with
-LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff.
+for `command_timeout_s` drops the arm to PASSIVE. The joints move with a pluggable
+`ArmDynamics` model stepped every tick with the controller's current `ArmCommand`; the
+default, `SimpleArmDynamics` (no gravity, i.e. a gravity-compensated arm), integrates
+I * ddq = clip(tau, +-effort) - b * dq inside hard joint stops, with
+LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff (PASSIVE: damping only).
+A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
+Run it in its own thread (`start()`), or `open()` it and call `poll(now)` from yours.
 Fault injection: stall replies, corrupt replies, report a motor error.
 """
 
@@ -22,6 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -70,6 +75,62 @@ def flange_posture(q: Sequence[float]) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
+class ArmCommand:
+    """What the controller tracks now: its state and the LOWCMD law's terms (6 joints).
+    `kp`, `kd` are the raw LOWCMD gains (scaled by 25.6 and 0.0128 in the law)."""
+
+    fsm: ArmFSMState
+    q_d: np.ndarray
+    dq_d: np.ndarray
+    tau_ff: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+
+    def torque(self, q: np.ndarray, dq: np.ndarray, passive_damping: float,
+               effort: np.ndarray) -> np.ndarray:
+        """Motor torques at (q, dq): damping in PASSIVE, else the LOWCMD law; clipped to effort."""
+        if self.fsm == ArmFSMState.PASSIVE:
+            tau = -passive_damping * dq
+        else:
+            tau = self.kp * KP_SCALE * (self.q_d - q) + self.kd * KD_SCALE * (self.dq_d - dq) + self.tau_ff
+        return np.clip(tau, -effort, effort)
+
+
+class ArmDynamics(Protocol):
+    """The arm's joints as the controller emulator sees them."""
+
+    def step(self, command: ArmCommand, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Track `command` for `dt` seconds; return (q, dq, tau) after it."""
+        ...
+
+
+class SimpleArmDynamics:
+    """Independent joints: I * ddq = tau - b * dq inside hard stops, sub-stepped at physics_dt_s."""
+
+    def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                 inertia: Sequence[float], damping: float, passive_damping: float,
+                 effort: Sequence[float], physics_dt_s: float = 0.0005):
+        self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
+        self.q = np.clip(np.asarray(q0, float), self.lower, self.upper)
+        self.dq = np.zeros(NUM_ARM_JOINTS)
+        self.tau = np.zeros(NUM_ARM_JOINTS)
+        self.inertia, self.effort = np.asarray(inertia, float), np.asarray(effort, float)
+        self.damping, self.passive_damping, self.physics_dt_s = damping, passive_damping, physics_dt_s
+
+    def step(self, command: ArmCommand, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        steps = max(1, int(math.ceil(dt / self.physics_dt_s)))
+        h = dt / steps
+        for _ in range(steps):
+            self.tau = command.torque(self.q, self.dq, self.passive_damping, self.effort)
+            self.dq = self.dq + h * (self.tau - self.damping * self.dq) / self.inertia
+            self.q = self.q + h * self.dq
+            low, high = self.q < self.lower, self.q > self.upper
+            self.q = np.clip(self.q, self.lower, self.upper)
+            self.dq[(low & (self.dq < 0)) | (high & (self.dq > 0))] = 0.0
+        return self.q.copy(), self.dq.copy(), self.tau.copy()
+
+
+@dataclass(frozen=True)
 class Z1EmulatorConfig:
     host: str = "127.0.0.1"
     port: int = CONTROLLER_PORT  # 0: an ephemeral port (tests)
@@ -89,13 +150,15 @@ class Z1EmulatorConfig:
 
 
 class Z1Emulator:
-    """The controller side, in a thread: `start()` / `stop()` or a context manager."""
+    """The controller side, in a thread: `start()` / `stop()` or a context manager (or
+    `open()` / `close()` and `poll(now)` from the caller's thread). `dynamics` moves the
+    joints (default: `SimpleArmDynamics` with the config's inertia, damping and effort)."""
 
     _ENTRY = {ArmFSMState.LOWCMD: {ArmFSMState.PASSIVE, ArmFSMState.LOWCMD},
               ArmFSMState.JOINTCTRL: {ArmFSMState.PASSIVE, ArmFSMState.JOINTCTRL}}
 
     def __init__(self, config: Z1EmulatorConfig | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, dynamics: ArmDynamics | None = None):
         self.config = cfg = config or Z1EmulatorConfig()
         self._clock = clock
         lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
@@ -109,6 +172,10 @@ class Z1Emulator:
         self._effort = np.asarray(cfg.effort, float)
         self._lock = threading.Lock()
         self._q, self._dq, self._tau = q0, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS)
+        self.dynamics: ArmDynamics = dynamics or SimpleArmDynamics(
+            q0, self.lower, self.upper, cfg.inertia, cfg.damping, cfg.passive_damping, cfg.effort,
+            cfg.physics_dt_s)
+        self._last_tick: float | None = None
         self.fsm = ArmFSMState.PASSIVE
         self._q_d = q0.copy()
         self._dq_d = np.zeros(NUM_ARM_JOINTS)
@@ -140,6 +207,16 @@ class Z1Emulator:
             return self._q.copy()
 
     def start(self) -> None:
+        """Open the socket and run `poll` in a thread."""
+        self.open()
+        self._running.set()
+        self._thread = threading.Thread(target=self._run, name="z1-emulator", daemon=True)
+        self._thread.start()
+
+    def open(self) -> None:
+        """Bind the controller port (without starting a thread)."""
+        if self._sock is not None:
+            raise HardwareError("Z1 emulator: already open")
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((self.config.host, self.config.port))
@@ -148,15 +225,17 @@ class Z1Emulator:
             raise HardwareError(f"Z1 emulator: cannot bind {self.config.host}:{self.config.port}: {err}") from err
         sock.setblocking(False)
         self._sock = sock
-        self._running.set()
-        self._thread = threading.Thread(target=self._run, name="z1-emulator", daemon=True)
-        self._thread.start()
+        self._last_tick = None
 
     def stop(self) -> None:
         self._running.clear()
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
+        self.close()
+
+    def close(self) -> None:
+        """Close the socket."""
         if self._sock is not None:
             self._sock.close()
             self._sock = None
@@ -202,29 +281,26 @@ class Z1Emulator:
             self._tau = self._torque()  # the reply reports the torque of the new command
             self._last_cmd = now
 
+    def command(self) -> ArmCommand:
+        """The command the controller is tracking now (a copy)."""
+        with self._lock:
+            return self._command()
+
+    def _command(self) -> ArmCommand:
+        return ArmCommand(self.fsm, self._q_d.copy(), self._dq_d.copy(), self._tau_ff.copy(),
+                          self._kp.copy(), self._kd.copy())
+
     def _torque(self) -> np.ndarray:
-        """Motor torques now: damping in PASSIVE, else the LOWCMD law; clipped to effort."""
-        if self.fsm == ArmFSMState.PASSIVE:
-            tau = -self.config.passive_damping * self._dq
-        else:
-            tau = (self._kp * KP_SCALE * (self._q_d - self._q)
-                   + self._kd * KD_SCALE * (self._dq_d - self._dq) + self._tau_ff)
-        return np.clip(tau, -self._effort, self._effort)
+        return self._command().torque(self._q, self._dq, self.config.passive_damping, self._effort)
 
     def _integrate(self, dt: float, now: float) -> None:
-        cfg = self.config
         with self._lock:
-            if self.fsm != ArmFSMState.PASSIVE and now - self._last_cmd > cfg.command_timeout_s:
+            if self.fsm != ArmFSMState.PASSIVE and now - self._last_cmd > self.config.command_timeout_s:
                 self.fsm = ArmFSMState.PASSIVE
-            steps = max(1, int(math.ceil(dt / cfg.physics_dt_s)))
-            h = dt / steps
-            for _ in range(steps):
-                self._tau = tau = self._torque()
-                self._dq = self._dq + h * (tau - cfg.damping * self._dq) / self._inertia
-                self._q = self._q + h * self._dq
-                low, high = self._q < self.lower, self._q > self.upper
-                self._q = np.clip(self._q, self.lower, self.upper)
-                self._dq[(low & (self._dq < 0)) | (high & (self._dq > 0))] = 0.0
+            command = self._command()
+        q, dq, tau = self.dynamics.step(command, dt)
+        with self._lock:
+            self._q, self._dq, self._tau = (np.asarray(v, float).copy() for v in (q, dq, tau))
 
     def _reply_bytes(self) -> bytes:
         with self._lock:
@@ -249,33 +325,40 @@ class Z1Emulator:
                 data = data[:6] + b"\xff\xff\xc0\x7f" + data[10:]  # NaN torque of joint 1
         return data
 
-    def _run(self) -> None:
-        assert self._sock is not None
-        last = self._clock()
-        while self._running.is_set():
-            ready, _, _ = select.select([self._sock], [], [], 0.001)
-            now = self._clock()
-            self._integrate(min(now - last, 0.05), now)
-            last = now
-            if not ready:
+    def poll(self, now: float, timeout: float = 0.0) -> None:
+        """One tick at time `now` (of the emulator's clock): step the dynamics by the time
+        since the last tick (at most 50 ms), then answer the commands that arrive within
+        `timeout` seconds (wall)."""
+        if self._sock is None:
+            raise HardwareError("Z1 emulator: not open")
+        if self._last_tick is None:
+            self._last_tick = now
+        self._integrate(min(now - self._last_tick, 0.05), now)
+        self._last_tick = now
+        ready, _, _ = select.select([self._sock], [], [], timeout)
+        if not ready:
+            return
+        while True:
+            try:
+                data, addr = self._sock.recvfrom(4096)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self.packet_errors["socket"] += 1
+                break
+            try:
+                cmd = SendCmd.unpack(data)
+            except PacketError as err:
+                self.packet_errors[err.kind] += 1
                 continue
-            while True:
-                try:
-                    data, addr = self._sock.recvfrom(4096)
-                except (BlockingIOError, InterruptedError):
-                    break
-                except OSError:
-                    self.packet_errors["socket"] += 1
-                    break
-                try:
-                    cmd = SendCmd.unpack(data)
-                except PacketError as err:
-                    self.packet_errors[err.kind] += 1
-                    continue
-                self.commands_received += 1
-                self._apply(cmd, now)
-                if now < self.stall_until:
-                    continue
-                dest = addr if self.config.reply_port is None else (self.config.host, self.config.reply_port)
-                with contextlib.suppress(OSError):
-                    self._sock.sendto(self._reply_bytes(), dest)
+            self.commands_received += 1
+            self._apply(cmd, now)
+            if now < self.stall_until:
+                continue
+            dest = addr if self.config.reply_port is None else (self.config.host, self.config.reply_port)
+            with contextlib.suppress(OSError):
+                self._sock.sendto(self._reply_bytes(), dest)
+
+    def _run(self) -> None:
+        while self._running.is_set():
+            self.poll(self._clock(), 0.001)

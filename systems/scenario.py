@@ -99,6 +99,8 @@ class Drivers:
 @dc.dataclass
 class HilWorldConfig:
     """How the co-simulated world turns bus commands into plant torques (hil only).
+    Its timing (one simulated clock, lockstep with the hand's PD loop, never faster than
+    real time) is described in hardware/hil_world.py.
 
     The Allegro PWM -> torque map is not documented (specs/allegro_v4.md); the default
     treats the normalised torque pwm / 1200 as N*m, and the reflected inertia and damping
@@ -107,7 +109,8 @@ class HilWorldConfig:
     torque_per_pwm: float = 1.0 / 1200.0  # N*m per PWM count
     finger_reflected_inertia: float = 4.2e-4  # kg*m^2, per finger joint
     finger_damping: float = 2.1e-3  # N*m*s/rad
-    max_lag_s: float = 0.05  # the world never jumps more than this per step when behind
+    max_lag_s: float = 0.05  # at most this much lag behind the wall clock is caught up
+    reply_timeout_s: float = 0.1  # wall time a world step waits for the hand's torque reply
 
 
 @dc.dataclass
@@ -231,8 +234,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  "drivers.camera.recording must name a folder or .npz for kind 'recorded'")
     w = s.hil
     _require(w.torque_per_pwm > 0 and w.finger_reflected_inertia >= 0 and w.finger_damping >= 0
-             and w.max_lag_s > 0, source,
-             "hil.torque_per_pwm and .max_lag_s must be > 0, inertia and damping >= 0")
+             and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
+             "hil.torque_per_pwm, .max_lag_s and .reply_timeout_s must be > 0, inertia and "
+             "damping >= 0")
     if s.policy is not None:
         from dexdrake.dexrep.feature_sets import FEATURE_SETS
 

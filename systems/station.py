@@ -7,10 +7,12 @@ Every mode exposes the same ports (policy joint order of the hand description):
 sim:  the Drake grasp scene (systems/scene.py).
 hil:  AllegroDriverSystem (the CAN driver on a python-can `virtual` bus, talking to the
       firmware emulator), Z1DriverSystem (the UDP client, talking to the controller emulator
-      on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant
-      co-simulated in real time); object pose from PerceptionSystem (rendered RGB-D of the
-      world -> segmentation -> registration, in a worker process) or, with camera kind
-      "sim", straight from the world.
+      on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
+      every device and the control loop run on its simulated clock, in lockstep with the
+      hand's PD loop and never faster than real time: see hardware/hil_world.py); object
+      pose from PerceptionSystem (rendered RGB-D of the world -> segmentation ->
+      registration, in a worker process; it paces itself on the wall clock) or, with
+      camera kind "sim", straight from the world.
 real: the same driver systems on socketcan / the real z1_controller, and a K4A camera.
 
 Safety at the station level (the drivers keep their own limits, watchdogs and safe stop):
@@ -71,18 +73,25 @@ def pose_from_vector(x: np.ndarray) -> RigidTransform:
 
 
 class _Timer:
-    """Wall-clock times of periodic calls, for loop rate and jitter statistics."""
+    """Times of periodic calls on the diagram's clock (the simulated clock in hil) and on
+    the wall clock, for loop rate and jitter statistics."""
 
     def __init__(self) -> None:
         self.times: list[float] = []
+        self.wall_times: list[float] = []
 
-    def tick(self) -> None:
-        self.times.append(time.monotonic())
+    def tick(self, t: float) -> None:
+        self.times.append(t)
+        self.wall_times.append(time.monotonic())
 
     def stats(self) -> dict[str, float]:
-        from dexdrake.hardware.allegro_can import period_stats
+        """period_stats on the diagram clock, plus the wall-clock rate and p99 period."""
+        from dexdrake.hardware.safety import period_stats
 
-        return period_stats(self.times)
+        out = period_stats(self.times)
+        wall = period_stats(self.wall_times)
+        out.update(wall_rate_hz=wall["rate_hz"], wall_p99_ms=wall["p99_ms"])
+        return out
 
 
 # ----------------------------------------------------------------------------- drivers
@@ -291,7 +300,7 @@ class ControllerSystem(LeafSystem):
 
     Inputs "hand_state", "object_pose"; output "command". The command starts at the
     measured position; a non-finite controller output is not used: the last command is
-    held and `nan_holds` counts it. Wall-clock times of the updates give the policy rate."""
+    held and `nan_holds` counts it. The update times give the policy rate (`timer`)."""
 
     def __init__(self, controller: Controller, n: int, period: float):
         super().__init__()
@@ -310,7 +319,7 @@ class ControllerSystem(LeafSystem):
         state.set_value(0, self._hand.Eval(context)[: self.n])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
-        self.timer.tick()
+        self.timer.tick(context.get_time())
         q = np.asarray(self.controller(context.get_time(), self._hand.Eval(context),
                                        self._pose.Eval(context)), float)
         if q.shape != (self.n,) or not np.all(np.isfinite(q)):
@@ -440,34 +449,18 @@ def open_can_bus(scenario: Scenario):
         raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
 
 
-def _start_emulators(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
-    """hil: virtual CAN firmware emulator, loopback Z1 emulator and the world joining them."""
-    from dexdrake.hardware.allegro_emulator import EmulatorConfig
-    from dexdrake.hardware.hil_world import CoSimAllegroEmulator, CoSimZ1Emulator, HilWorld
-    from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
+def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
+    """hil: the world plant with the CAN firmware emulator and the loopback Z1 emulator."""
+    from dexdrake.hardware.hil_world import HilWorld
     from dexdrake.systems.scene import ObjectPlacement
 
-    rng = np.random.default_rng(scenario.seed)
-    placement = ObjectPlacement.sample(rng)
-    q0 = hand.pregrasp_vector()
-    n_arm = len(hand.arm_joints)
-    perm = hand.hardware_permutation()
-    h = scenario.drivers.hand
+    placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))
     emu_bus = open_can_bus(scenario)
     stack.callback(emu_bus.shutdown)
-    hand_emu = CoSimAllegroEmulator(emu_bus, h.device_id, EmulatorConfig(q0=tuple(q0[perm]), seed=scenario.seed,
-                                                                        lower=h.lower, upper=h.upper))
-    a = scenario.drivers.arm
-    arm_emu = CoSimZ1Emulator(Z1EmulatorConfig(host=a.host, port=a.controller_port, q0=tuple(q0[:n_arm]),
-                                               seed=scenario.seed))
-    world = HilWorld(scenario, hand_emu, arm_emu, q0, placement)
-    hand_emu.start()
-    stack.callback(hand_emu.stop)
-    arm_emu.start()
-    stack.callback(arm_emu.stop)
+    world = HilWorld(scenario, emu_bus, hand.pregrasp_vector(), placement)
     world.start()
     stack.callback(world.stop)
-    return world, hand_emu, arm_emu
+    return world
 
 
 def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
@@ -488,17 +481,19 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     devices: dict = {}
     world = None
     arm_port = None
-    if scenario.mode == "hil":
-        world, devices["allegro_emulator"], devices["z1_emulator"] = _start_emulators(scenario, stack, hand)
-        arm_port = devices["z1_emulator"].port
+    clock = time.monotonic
+    if scenario.mode == "hil":  # every device runs on the world's simulated clock
+        world = _start_world(scenario, stack, hand)
+        devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
+        arm_port, clock = world.arm_emulator.port, world.clock
     hand_cfg, arm_cfg = _driver_configs(scenario, arm_port)
     bus = open_can_bus(scenario)
     stack.callback(bus.shutdown)
-    allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg)
+    allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg, clock=clock)
     stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
     devices["allegro"] = allegro
     _await_first_cycle(allegro)
-    z1 = Z1Arm(arm_cfg)
+    z1 = Z1Arm(arm_cfg, clock=clock)
     stack.enter_context(z1)
     devices["z1"] = z1
 

@@ -327,6 +327,53 @@ def test_emulator_torque_timeout_zeroes_pwm(rig):
     assert wait_for(lambda: np.all(emu.pwm == 0), 0.5)
 
 
+class RecordingDynamics:
+    """A JointDynamics that records what it is stepped with and reports a fixed pose."""
+
+    def __init__(self, q: np.ndarray):
+        self.q, self.calls = q, []
+
+    def step(self, pwm, dt):
+        self.calls.append((np.array(pwm), dt))
+        return self.q.copy(), np.zeros(16)
+
+
+def test_emulator_dynamics_hook_gets_the_effective_pwm_and_streams_its_state(channel):
+    """Driven by `poll` on a fake clock: the hook sees the PWM of the torque frames, zero
+    after the torque timeout; position frames carry the hook's q; a position batch is
+    pending until all 4 fingers' torque frames answer it."""
+    host = can.Bus(interface="virtual", channel=channel)
+    dev = can.Bus(interface="virtual", channel=channel)
+    now = [0.0]
+    q = np.clip(np.linspace(-0.2, 0.9, 16), LOWER, UPPER)
+    dynamics = RecordingDynamics(q)
+    emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, torque_timeout_s=0.05),
+                          clock=lambda: now[0], dynamics=dynamics)
+    try:
+        for frame in (SetPeriod(3), ServoOn(), Torque(3, (100, -50, 0, 7))):
+            host.send(encode(frame))
+        emu.poll(0.0, 0.05)
+        now[0] = 0.002
+        emu.poll(now[0])
+        pwm, dt = dynamics.calls[-1]
+        assert dt == pytest.approx(0.002)
+        np.testing.assert_array_equal(pwm[12:], [100, -50, 0, 7])
+        frames = [decode(host.recv(0.5)) for _ in range(4)]
+        got = np.concatenate([np.array(f.counts) for f in sorted(frames, key=lambda f: f.finger)])
+        np.testing.assert_allclose(got * 333.3 / 65536 * np.pi / 180, q, atol=1e-4)
+        assert emu.torque_pending
+        for f in range(4):
+            host.send(encode(Torque(f, (1, 2, 3, 4))))
+        emu.poll(now[0], 0.05)
+        assert not emu.torque_pending
+        now[0] = 0.2  # no torque frame for longer than the timeout: the hook gets zero PWM
+        emu.poll(now[0])
+        assert not np.any(dynamics.calls[-1][0])
+    finally:
+        host.shutdown()
+        dev.shutdown()
+
+
 def test_default_limits_come_from_hand_description_in_bus_order():
     from dexdrake.hardware.allegro_can import default_joint_limits
 

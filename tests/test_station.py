@@ -38,6 +38,7 @@ def test_shipped_scenarios_load():
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),
     ("time_step: [1]", "time_step"),
+    ("hil: {reply_timeout_s: 0}", "reply_timeout_s must be > 0"),
 ])
 def test_bad_scenarios_are_refused_with_a_clear_message(text, message):
     with pytest.raises(ScenarioError, match=message):
@@ -69,26 +70,83 @@ def _hold_then(offset: np.ndarray, after: float = 0.0, nan_after: float | None =
     return controller
 
 
-def test_sim_and_hil_expose_identical_ports_and_hil_joints_track_commands():
+# one joint of every finger, both directions, thumb included (policy joint name -> offset, rad)
+FINGER_OFFSETS = {"joint_0.0": 0.2, "joint_5.0": 0.5, "joint_10.0": 0.4, "joint_12.0": -0.4,
+                  "joint_15.0": 0.3}
+
+
+def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | None = None):
+    """Command FINGER_OFFSETS from the start pose; (start q, end q, offsets, result).
+    `world_minus_control` collects world time - control time at every controller call."""
     from dexdrake.station_commands import run_episode
+
+    hand = station.hand
+    offset = np.zeros(hand.num_actuators)
+    for joint, value in FINGER_OFFSETS.items():
+        offset[hand.policy_joints.index(joint)] = value
+    hold = _hold_then(offset)
+
+    def controller(t, hand_state, object_pose):
+        if world_minus_control is not None:
+            world_minus_control.append(station.world.time - t)
+        return hold(t, hand_state, object_pose)
+
+    q0 = station.world.robot_positions()
+    result = run_episode(station, controller, steps=steps)
+    return q0, station.world.robot_positions(), offset, result
+
+
+def _assert_tracks(q0, q1, offset, n_arm):
+    """Commanded finger joints reach their targets, the others and the arm hold still."""
+    moved = q1 - q0
+    error = np.abs(moved - offset)
+    assert np.max(error[n_arm:]) < 0.03, f"finger tracking errors {np.round(error[n_arm:], 3)}"
+    assert np.max(np.abs(moved[:n_arm])) < 0.01, f"arm moved {np.round(moved[:n_arm], 4)}"
+
+
+def test_sim_and_hil_expose_identical_ports_and_hil_joints_track_commands():
     from dexdrake.systems.station import make_station
 
     sim = make_station(load_scenario(CONFIGS / "sim.yaml"))
     with make_station(hil_scenario()) as station:
         assert _ports(sim.diagram) == _ports(station.diagram) == (["command"], ["hand_state", "object_pose"])
-        n = station.hand.num_actuators
-        offset = np.zeros(n)
-        fingers = [station.hand.policy_joints.index(j) for j in ("joint_1.0", "joint_5.0", "joint_9.0")]
-        offset[fingers] = 0.6
-        q0 = station.world.robot_positions()
-        result = run_episode(station, _hold_then(offset), steps=40)
-        q1 = station.world.robot_positions()
+        q0, q1, offset, result = _track_finger_offsets(station)
+        world = station.world.stats()
     assert result.fault is None and result.steps == 40
-    moved = q1[fingers] - q0[fingers]
-    assert np.all(moved > 0.25), f"finger joints moved only {moved}"  # toward +0.6 rad
-    arm = np.arange(len(station.hand.arm_joints))
-    assert np.max(np.abs(q1[arm] - q0[arm])) < 0.05  # the arm holds while the fingers move
-    assert result.stats["can"]["cycles"] > 50 and result.stats["z1"]["packets_received"] > 50
+    _assert_tracks(q0, q1, offset, len(station.hand.arm_joints))
+    # every device runs on the world's clock: the CAN PD loop at 333 Hz of simulated time,
+    # the control loop in lockstep at 50 Hz
+    assert result.stats["can"]["rate_hz"] == pytest.approx(1000 / 3, rel=0.05)
+    assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
+    assert result.stats["z1"]["packets_received"] > 50
+    assert world["real_time_factor"] <= 1.05  # never faster than real time
+
+
+def test_hil_outcome_does_not_depend_on_host_speed(monkeypatch):
+    """A world that takes 3x real time per step (a loaded host) slows the episode down but
+    tracks exactly as well: the drivers' PD, rate limits and watchdogs run on its clock."""
+    import time
+
+    from dexdrake.hardware.hil_world import HilWorld
+    from dexdrake.systems.station import make_station
+
+    step = HilWorld.step
+
+    def slow_step(self):
+        time.sleep(2 * self.scenario.time_step)
+        step(self)
+
+    monkeypatch.setattr(HilWorld, "step", slow_step)
+    offsets: list[float] = []
+    with make_station(hil_scenario()) as station:
+        q0, q1, offset, result = _track_finger_offsets(station, world_minus_control=offsets)
+        world = station.world.stats()
+    assert result.fault is None and result.steps == 40
+    assert world["real_time_factor"] < 0.5
+    _assert_tracks(q0, q1, offset, len(station.hand.arm_joints))
+    # the control loop is in lockstep with the world: every policy step sees the world
+    # exactly one fixed offset after its own time
+    assert len(offsets) == 40 and np.ptp(offsets) < 1e-9
 
 
 def test_nan_command_holds_and_is_never_sent():

@@ -172,6 +172,40 @@ def test_emulator_lowcmd_torque_law(emulator):
         c.close()
 
 
+def test_emulator_dynamics_hook_gets_the_command_and_reports_its_state():
+    """A custom ArmDynamics is stepped with the controller's command; replies carry its state."""
+    from dexdrake.hardware.z1_emulator import ArmCommand
+
+    class Fixed:
+        def __init__(self):
+            self.commands: list[ArmCommand] = []
+
+        def step(self, command, dt):
+            self.commands.append(command)
+            return TARGET.copy(), np.full(6, 0.25), np.full(6, -1.5)
+
+    dynamics = Fixed()
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER), dynamics=dynamics)
+    emu.start()
+    c = RawClient(emu.port)
+    try:
+        c.send(SendCmd(ArmFSMState.LOWCMD))
+        cmd = SendCmd(ArmFSMState.LOWCMD, (JointCmd(T=0.5, W=0.1, Pos=0.2, K_P=3.0, K_W=40.0),) * 6
+                      + (JointCmd(),))
+        c.send(cmd)
+        assert wait_for(lambda: dynamics.commands[-1].fsm == ArmFSMState.LOWCMD
+                        and dynamics.commands[-1].q_d[0] == pytest.approx(0.2), 1.0)
+        last = dynamics.commands[-1]
+        np.testing.assert_allclose([last.dq_d[5], last.tau_ff[5], last.kp[5], last.kd[5]],
+                                   [0.1, 0.5, 3.0, 40.0], rtol=1e-6)
+        st = c.send(cmd)
+        np.testing.assert_allclose([j.Pos for j in st.joints[:6]], TARGET, rtol=1e-6)
+        np.testing.assert_allclose([j.W for j in st.joints[:6]], 0.25)
+    finally:
+        c.close()
+        emu.stop()
+
+
 # ------------------------------------------------------------------ client
 @pytest.mark.parametrize("mode", [ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL])
 def test_client_tracks_target(emulator, mode):

@@ -2,8 +2,9 @@
 
 It proves the physics can grasp and serves as a baseline. The arm set-points come from a
 small inverse-kinematics solve that places the palm's grasp centre (hand description
-`palm.centre`) at a way-point while keeping the arm's rotation joints near their pre-grasp
-values; the fingers move between the pre-grasp pose and a closed pose.
+`palm.centre`) at a way-point with the palm facing down and the fingers turned across the
+object's shorter horizontal axis; the fingers move between the pre-grasp pose and a closed
+pose.
 """
 
 from __future__ import annotations
@@ -25,12 +26,13 @@ class GraspScript:
     close_end: float = 1.3
     lift_end: float = 2.1
     hover: float = 0.06  # approach way-point: this far above the object's top (m)
-    grasp_depth: float = 0.0  # grasp centre height above the object centre (m), except ...
-    top_clearance: float = 0.028  # ... tall objects: this far below the top, when that is ...
-    tall_margin: float = 0.02  # ... more than this above the centre height
+    palm_depth: float = 0.045  # grasp centre this far below the object's top (m), except ...
+    tall_palm_depth: float = 0.028  # ... on tall objects (top more than palm_depth + tall_margin
+    tall_margin: float = 0.01  # above the centre), which are grasped around their upper part
     reach: float = -0.03  # grasp centre shift along the fingers' direction (m)
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
+    orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
 
 
 def closed_pose(hand: HandDescription, closure: float = 1.0) -> np.ndarray:
@@ -45,6 +47,11 @@ def closed_pose(hand: HandDescription, closure: float = 1.0) -> np.ndarray:
         elif sign < 0:
             q[i] += closure * (lo[i] - q[i])
     return q
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _smooth(s: float) -> float:
@@ -70,46 +77,55 @@ class ScriptedGrasp:
         self.q_closed = closed_pose(self.hand, script.closure)
         self._plan(env)
 
-    def _grasp_centre(self, q_arm: np.ndarray) -> np.ndarray:
+    def _palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grasp-centre position and palm rotation in the world for arm set-points q_arm."""
         q = self.plant.GetPositions(self.ctx)
         q[self.q_index[: self.n_arm]] = q_arm
         self.plant.SetPositions(self.ctx, q)
-        return self.plant.CalcPointsPositions(self.ctx, self.palm_frame, self.centre, self.plant.world_frame())[:, 0]
+        X = self.palm_frame.CalcPoseInWorld(self.ctx)
+        return X.multiply(self.centre), X.rotation().matrix()
 
-    def solve_arm(self, target: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
-        """Arm set-points that put the grasp centre at `target` (rotations kept near seed)."""
+    def solve_arm(self, target: np.ndarray, R_target: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
+        """Arm set-points that put the grasp centre at `target` with the palm rotation near
+        `R_target` (orientation weighted lightly: position wins)."""
         lo, hi = self.lo[: self.n_arm], self.hi[: self.n_arm]
-        nominal = self.q_open[: self.n_arm]
-        weight = np.full(self.n_arm, 0.05)
 
         def residual(q_arm):
-            return np.concatenate([self._grasp_centre(q_arm) - target, weight * (q_arm - nominal)])
+            p, R = self._palm_pose(q_arm)
+            return np.concatenate([p - target, self.script.orientation_weight * (R - R_target)[:, 1:].ravel()])
 
-        sol = least_squares(residual, np.clip(q_seed, lo, hi), bounds=(lo, hi), xtol=1e-8)
-        return sol.x
+        return least_squares(residual, np.clip(q_seed, lo, hi), bounds=(lo, hi), xtol=1e-8).x
 
     def _plan(self, env) -> None:
         q_now = env.scene.hand_positions(env.plant_context)
         self.q_start_arm = q_now[: self.n_arm]
-        p_obj = env.object_position()
-        fingers_dir = self._finger_direction()
+        _, R_start = self._palm_pose(self.q_start_arm)
+        X_obj = env.scene.object_pose(env.plant_context)
+        R_grasp = _rot_z(self._grasp_yaw(R_start, X_obj.rotation().matrix(), env.scene.object_info.extents)) @ R_start
+        fingers_dir = R_grasp[:, 2].copy()
+        fingers_dir[2] = 0.0
+        fingers_dir /= np.linalg.norm(fingers_dir)
+        p_obj = X_obj.translation()
         top = p_obj[2] + env.scene.object_info.extents[2] / 2
-        height = p_obj[2] + self.script.grasp_depth
-        if top - self.script.top_clearance > height + self.script.tall_margin:
-            height = top - self.script.top_clearance
+        tall = top - self.script.palm_depth > p_obj[2] + self.script.tall_margin
+        height = top - (self.script.tall_palm_depth if tall else self.script.palm_depth)
         grasp = np.array([p_obj[0], p_obj[1], height]) + self.script.reach * fingers_dir
         above = grasp + np.array([0.0, 0.0, top - height + self.script.hover])
         lift = grasp + np.array([0.0, 0.0, self.script.lift])
-        self.q_above = self.solve_arm(above, self.q_start_arm)
-        self.q_grasp = self.solve_arm(grasp, self.q_above)
-        self.q_lift = self.solve_arm(lift, self.q_grasp)
+        self.q_above = self.solve_arm(above, R_grasp, self.q_start_arm)
+        self.q_grasp = self.solve_arm(grasp, R_grasp, self.q_above)
+        self.q_lift = self.solve_arm(lift, R_grasp, self.q_grasp)
 
-    def _finger_direction(self) -> np.ndarray:
-        """Horizontal unit vector along the fingers (palm frame +z) at the start pose."""
-        self._grasp_centre(self.q_start_arm)
-        z = self.palm_frame.CalcPoseInWorld(self.ctx).rotation().matrix()[:, 2].copy()
-        z[2] = 0.0
-        return z / np.linalg.norm(z)
+    @staticmethod
+    def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
+        """Yaw (about world z) that turns the fingers across the object's shorter horizontal
+        axis; square footprints have a quarter-turn symmetry, others a half turn."""
+        ex, ey = extents[0], extents[1]
+        short_axis = R_obj[:, 1] if ex >= ey else R_obj[:, 0]
+        period = np.pi / 2 if abs(ex - ey) < 0.15 * max(ex, ey) else np.pi
+        f = R_start[:, 2]
+        yaw = np.arctan2(short_axis[1], short_axis[0]) - np.arctan2(f[1], f[0])
+        return float((yaw + period / 2) % period - period / 2)
 
     def __call__(self, env) -> np.ndarray:
         t, s = env.context.get_time(), self.script

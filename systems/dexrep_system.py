@@ -7,7 +7,6 @@ Output:  "features", the selected feature set's vector (see FeatureExtractor).
 
 from __future__ import annotations
 
-import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
 from pydrake.systems.framework import BasicVector, LeafSystem

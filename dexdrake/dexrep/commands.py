@@ -1,4 +1,4 @@
-"""CLI: `dexdrake features describe` and `dexdrake encoder train`."""
+"""CLI: `dexdrake features describe`, `dexdrake features show` and `dexdrake encoder train`."""
 
 from __future__ import annotations
 
@@ -19,6 +19,17 @@ def _describe(args: argparse.Namespace) -> int:
     return 0
 
 
+def _show(args: argparse.Namespace) -> int:
+    from dexdrake.dexrep.rerun_view import show_features
+
+    rrd = None if args.spawn else (args.rrd or f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd")
+    summary = show_features(args.object, args.hand, rrd, args.seed, args.steps, spawn=args.spawn)
+    where = "the rerun viewer" if args.spawn else rrd
+    print(f"logged {summary.steps} steps of a scripted grasp of {args.object} ({args.hand}, seed {args.seed}, "
+          f"success {summary.success}, max lift {summary.max_lift:.3f} m) to {where}")
+    return 0
+
+
 def _train(args: argparse.Namespace) -> int:
     from dexdrake.dexrep.train_encoder import TrainConfig, train
 
@@ -36,6 +47,14 @@ def add_parser(subparsers) -> None:
     d.add_argument("--hand", default="adroit")
     d.add_argument("--set", default=None, help="one feature set (default: all)")
     d.set_defaults(func=_describe)
+    s = feat.add_parser("show", help="log a scripted-grasp episode's DexRep to rerun, frame by frame")
+    s.add_argument("--object", required=True, help="object library name")
+    s.add_argument("--hand", default="adroit")
+    s.add_argument("--rrd", default=None, help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--steps", type=int, default=200, help="control steps (20 ms each)")
+    s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
+    s.set_defaults(func=_show)
 
     enc = subparsers.add_parser("encoder", help="the PointNet encoder").add_subparsers(dest="action", required=True)
     t = enc.add_parser("train", help="train the PointNet auto-encoder, write the encoder")

@@ -20,6 +20,7 @@ import numpy as np
 
 from dexdrake.dexrep import features as F
 from dexdrake.dexrep.geometry import ClosestPoints, ObjectGeometry
+from dexdrake.dexrep.occupancy import OCCUPANCY_LEVELS, fast_occupancy
 from dexdrake.dexrep.pointnet import GLOBAL_DIM, LOCAL_DIM
 from dexdrake.dexrep.scenegraph import scenegraph_closest_points, scenegraph_occupancy
 from dexdrake.errors import DexdrakeError, UnknownNameError
@@ -59,10 +60,15 @@ def observation_blocks(hand: HandDescription, feature_set: str = "DexRep") -> di
     return {g: sizes[g] for g in FEATURE_SETS[feature_set]}
 
 
-@dataclass
-class _BodyPoints:
-    bodies: list
-    offsets: np.ndarray  # (n, 3)
+@dataclass(frozen=True)
+class DexRepSnapshot:
+    """World-frame hand points (n, 3), grid pose X_WG (4x4), occupancy (r^3,) and closest
+    object points (signed distances, points, outward normals)."""
+
+    hand_points: np.ndarray
+    X_WG: np.ndarray
+    occupancy: np.ndarray
+    closest: ClosestPoints
 
 
 class FeatureExtractor:
@@ -71,6 +77,8 @@ class FeatureExtractor:
     path "fast" uses the object's cached structures; "scenegraph" uses
     QueryObject.ComputeSignedDistanceToPoint on the object's distance geometry (closest
     points and occupancy; local-geo still reads the cached per-point features).
+    Per step it reads each needed body pose once (hand points, wrist, grid anchor) and
+    runs every feature as a few vectorised calls.
     """
 
     def __init__(self, hand: HandDescription, plant, hand_instance, geometry: ObjectGeometry,
@@ -86,64 +94,97 @@ class FeatureExtractor:
         self.surface_clip = surface_clip
         self.observation_blocks = observation_blocks(hand, feature_set)
         self.size = sum(self.observation_blocks.values())
-        body = lambda name: plant.GetBodyByName(name, hand_instance)  # noqa: E731
-        self._points = _BodyPoints([body(p.body) for p in hand.dexrep_points],
-                                   np.array([p.offset for p in hand.dexrep_points], dtype=float))
-        self._wrist = body(hand.wrist_body)
-        self._anchor = body(hand.occupancy.body)
-        self._anchor_offset = np.array(hand.occupancy.offset, dtype=float)
+        self._groups = FEATURE_SETS[feature_set]
+        self._needs_closest = bool({"surf", "occ_surf", "local_geo"} & set(self._groups))
+        names = list(dict.fromkeys([p.body for p in hand.dexrep_points] + [hand.wrist_body, hand.occupancy.body]))
+        self._bodies = [plant.GetBodyByName(name, hand_instance) for name in names]
+        self._point_body = np.array([names.index(p.body) for p in hand.dexrep_points])
+        self._point_offset = np.array([[*p.offset, 1.0] for p in hand.dexrep_points], dtype=float)
+        self._wrist = names.index(hand.wrist_body)
+        self._anchor = names.index(hand.occupancy.body)
+        self._anchor_offset = np.array([*hand.occupancy.offset, 1.0], dtype=float)
+        occ = hand.occupancy
+        self._occupancy = fast_occupancy(occ.size, occ.resolution, OCCUPANCY_LEVELS)
         joints = [plant.GetJointByName(j, hand_instance) for j in hand.policy_joints]
         self._q_index = np.array([j.position_start() for j in joints])
 
+    def _body_poses(self, plant_context) -> np.ndarray:
+        """(B, 3, 4) world poses [R | p] of the bodies the features read."""
+        return np.array([self.plant.EvalBodyPoseInWorld(plant_context, b).GetAsMatrix34() for b in self._bodies])
+
     def hand_points(self, plant_context) -> np.ndarray:
         """World positions (n, 3) of the hand's DexRep points."""
-        out = np.empty((len(self._points.bodies), 3))
-        for i, (b, off) in enumerate(zip(self._points.bodies, self._points.offsets)):
-            out[i] = self.plant.EvalBodyPoseInWorld(plant_context, b).multiply(off)
-        return out
+        return self._points_from(self._body_poses(plant_context))
+
+    def _points_from(self, poses: np.ndarray) -> np.ndarray:
+        return np.einsum("pij,pj->pi", poses[self._point_body], self._point_offset)
 
     def grid_pose(self, plant_context) -> np.ndarray:
         """X_WG: the anchor body's axes, origin at body pose * offset."""
-        X = self.plant.EvalBodyPoseInWorld(plant_context, self._anchor).GetAsMatrix4()
-        X[:3, 3] = X[:3, :3] @ self._anchor_offset + X[:3, 3]
+        return self._grid_from(self._body_poses(plant_context))
+
+    def _grid_from(self, poses: np.ndarray) -> np.ndarray:
+        X = np.eye(4)
+        X[:3, :3] = poses[self._anchor, :, :3]
+        X[:3, 3] = poses[self._anchor] @ self._anchor_offset
         return X
+
+    def snapshot(self, plant_context, X_WO, query_object=None) -> DexRepSnapshot:
+        """The geometric parts of DexRep in the world frame, for viewers and debugging."""
+        X_WO = F.as_matrix(X_WO)
+        poses = self._body_poses(plant_context)
+        p_W = self._points_from(poses)
+        cp = self._closest_points(p_W, X_WO, query_object)
+        R, t = X_WO[:3, :3], X_WO[:3, 3]
+        return DexRepSnapshot(p_W, self._grid_from(poses), self._occupancy_of(poses, X_WO, query_object),
+                              ClosestPoints(cp.distance, cp.points @ R.T + t, cp.normals @ R.T))
 
     def __call__(self, plant_context, X_WO, query_object=None) -> np.ndarray:
         """The feature vector (blocks concatenated in `observation_blocks` order)."""
         if self.path == "scenegraph" and query_object is None:
             raise DexdrakeError("the scenegraph path needs a query_object")
         X_WO = F.as_matrix(X_WO)
-        p_W = self.hand_points(plant_context)
-        groups = FEATURE_SETS[self.feature_set]
-        cp: ClosestPoints | None = None
-        if {"surf", "occ_surf", "local_geo"} & set(groups):
-            cp = (F.closest_points(p_W, X_WO, self.geometry) if self.path == "fast" else
-                  scenegraph_closest_points(query_object, self.distance_geometry_id, p_W))
+        poses = self._body_poses(plant_context)
+        p_W = self._points_from(poses)
+        cp_O = self._closest_points(p_W, X_WO, query_object) if self._needs_closest else None
         parts = []
-        for g in groups:
+        for g in self._groups:
             if g == "hand":
                 q = self.plant.GetPositions(plant_context)[self._q_index]
-                X_WH = self.plant.EvalBodyPoseInWorld(plant_context, self._wrist)
-                parts.append(F.hand_state(q, p_W, X_WH))
+                X_WH = poses[self._wrist]
+                parts.append(F.hand_state_unchecked(q, p_W, X_WH[:, :3], X_WH[:, 3]))
             elif g == "hand2obj":
                 parts.append((p_W - X_WO[:3, 3]).ravel())
             elif g == "pglo":
-                parts.append(np.concatenate([self.geometry.global_feature, F.pose_6d(X_WO)]))
+                parts.append(self.geometry.global_feature)
+                parts.append(F.pose_6d(X_WO))
             elif g == "local_geo":
-                parts.append(F.local_geo_from_closest(cp, X_WO, self.geometry))
+                parts.append(self.geometry.local_features[self.geometry.nearest_samples(cp_O.points)].ravel())
             elif g == "surf":
-                parts.append(F.surface_from_closest(cp, self.surface_clip))
+                parts.append(self._surface(cp_O, X_WO))
             elif g == "occ_surf":
-                parts.append(self._occupancy(plant_context, X_WO, query_object))
-                parts.append(F.surface_from_closest(cp, self.surface_clip))
-        out = np.concatenate(parts)
-        if not np.all(np.isfinite(out)):
+                parts.append(self._occupancy_of(poses, X_WO, query_object))
+                parts.append(self._surface(cp_O, X_WO))
+        out = np.concatenate(parts, dtype=np.float64)
+        if not np.isfinite(out.sum()):
             raise DexdrakeError("feature vector has NaN/Inf (check the object pose and hand state)")
         return out
 
-    def _occupancy(self, plant_context, X_WO, query_object) -> np.ndarray:
-        occ = self.hand.occupancy
-        X_WG = self.grid_pose(plant_context)
+    def _closest_points(self, p_W: np.ndarray, X_WO: np.ndarray, query_object) -> ClosestPoints:
+        """Closest object points in the object frame (normals too)."""
+        R, t = X_WO[:3, :3], X_WO[:3, 3]
         if self.path == "fast":
-            return F.occupancy(X_WG, X_WO, self.geometry, occ.size, occ.resolution)
+            return self.geometry.closest_points((p_W - t) @ R)
+        cp = scenegraph_closest_points(query_object, self.distance_geometry_id, p_W)
+        return ClosestPoints(cp.distance, (cp.points - t) @ R, cp.normals @ R)
+
+    def _surface(self, cp_O: ClosestPoints, X_WO: np.ndarray) -> np.ndarray:
+        d = np.minimum(np.maximum(cp_O.distance, 0.0), self.surface_clip)
+        return np.column_stack([d, cp_O.normals @ X_WO[:3, :3].T]).ravel()
+
+    def _occupancy_of(self, poses: np.ndarray, X_WO: np.ndarray, query_object) -> np.ndarray:
+        occ = self.hand.occupancy
+        X_WG = self._grid_from(poses)
+        if self.path == "fast":
+            return self._occupancy(F.rigid_inverse(X_WO) @ X_WG, self.geometry)
         return scenegraph_occupancy(query_object, self.distance_geometry_id, X_WG, occ.size, occ.resolution)

@@ -4,13 +4,7 @@ Poses are 4x4 homogeneous matrices or pydrake RigidTransforms: X_WG (occupancy g
 frame G in world W), X_WO (object frame O), X_WH (hand root / wrist frame H). Hand points
 are world positions, shape (n, 3).
 
-Occupancy f_o (resolution^3, default 1000): voxel i = 100*ix + 10*iy + iz (x-major in the
-grid frame; voxel centres at (i + 0.5) * size/res - size/2 along each grid axis) is 1 when
-the voxel cube intersects the solid object, else 0. Rule, given a signed distance sd
-(negative inside) at a cube centre with half-diagonal r: sd <= 0 -> occupied; sd > r ->
-empty; otherwise the cube is split into 8 children and the rule repeats (`levels` times);
-at the last level a cube is occupied iff sd <= (edge/2) * |n|_1 with n the unit sd
-gradient, which is exact when the surface is planar across the cube.
+Occupancy f_o (resolution^3, default 1000): see dexdrake.dexrep.occupancy.
 
 Surface f_s (4n): per point [d, nx, ny, nz] with d = min(distance to the surface, clip)
 (0 for points inside or on the object) and n the outward unit normal at the closest
@@ -28,20 +22,13 @@ columns of R_WH (6: R[:,0] then R[:,1])]. Adroit: 30 + 66 + 3 + 6 = 105; Allegro
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from dexdrake.dexrep.geometry import ClosestPoints, ObjectGeometry
+from dexdrake.dexrep.occupancy import OCCUPANCY_LEVELS, fast_occupancy
 from dexdrake.errors import DexdrakeError
 
 SURFACE_CLIP = 0.20  # m
-OCCUPANCY_LEVELS = 1  # refinement levels before the planar rule
-
-# sd_fn(points (m, 3) in frame F, with_gradient) -> sd (m,) or (sd, grad (m, 3))
-SignedDistanceFn = Callable[..., object]
-
-_CHILD_SIGNS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=float) - 0.5
 
 
 def as_matrix(X) -> np.ndarray:
@@ -59,72 +46,19 @@ def _points(p: np.ndarray, label: str = "points") -> np.ndarray:
     return p
 
 
-def voxel_centres(size: float = 0.2, resolution: int = 10) -> np.ndarray:
-    """(resolution^3, 3) voxel centres in the grid frame, x-major (i = r*r*ix + r*iy + iz)."""
-    if size <= 0 or resolution < 1:
-        raise DexdrakeError(f"bad occupancy grid: size {size}, resolution {resolution}")
-    h = size / resolution
-    axis = (np.arange(resolution) + 0.5) * h - size / 2
-    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
-
-
-def occupancy_in_frame(sd_fn: SignedDistanceFn, X_FG: np.ndarray, size: float = 0.2,
-                       resolution: int = 10, levels: int = OCCUPANCY_LEVELS,
-                       coarse_fn: SignedDistanceFn | None = None) -> np.ndarray:
-    """Occupancy of the grid at X_FG given a signed-distance function in frame F.
-
-    `coarse_fn(points)` may return sd with an error bound already subtracted/added as a pair
-    (lower, upper) to decide most voxels cheaply; undecided ones use `sd_fn`.
-    """
-    X_FG = as_matrix(X_FG)
-    R, t = X_FG[:3, :3], X_FG[:3, 3]
-    edge = size / resolution
-    centres = voxel_centres(size, resolution) @ R.T + t
-    occ = np.zeros(len(centres), dtype=bool)
-    idx = np.arange(len(centres))
-    half_diag = edge * np.sqrt(3) / 2
-    if coarse_fn is not None:
-        lower, upper = coarse_fn(centres)
-        occ[upper <= 0.0] = True
-        keep = (upper > 0.0) & (lower <= half_diag)
-        idx, centres = idx[keep], centres[keep]
-    owner = idx
-    for level in range(levels + 1):
-        if len(centres) == 0:
-            break
-        half_diag = edge * np.sqrt(3) / 2
-        last = level == levels
-        if last:
-            sd, grad = sd_fn(centres, True)
-            norm = np.linalg.norm(grad, axis=1)
-            l1 = np.abs(grad).sum(axis=1) / np.where(norm > 0, norm, 1.0)
-            hit = sd <= np.where(norm > 0, 0.5 * edge * l1, 0.0)
-        else:
-            sd = sd_fn(centres, False)
-            hit = sd <= 0.0
-        occ[owner[hit]] = True
-        if last:
-            break
-        open_ = ~hit & (sd <= half_diag) & ~occ[owner]
-        edge /= 2
-        offsets = (_CHILD_SIGNS * edge) @ R.T
-        centres = (centres[open_][:, None, :] + offsets).reshape(-1, 3)
-        owner = np.repeat(owner[open_], 8)
-    return occ.astype(np.float64)
+def rigid_inverse(X: np.ndarray) -> np.ndarray:
+    """The inverse of a 4x4 rigid transform."""
+    out = np.eye(4)
+    out[:3, :3] = X[:3, :3].T
+    out[:3, 3] = -(X[:3, 3] @ X[:3, :3])
+    return out
 
 
 def occupancy(X_WG, X_WO, geometry: ObjectGeometry, size: float = 0.2, resolution: int = 10,
               levels: int = OCCUPANCY_LEVELS) -> np.ndarray:
     """Fast-path occupancy f_o (resolution^3,) from the object's cached signed-distance grid."""
-    X_OG = np.linalg.inv(as_matrix(X_WO)) @ as_matrix(X_WG)
-    grid = geometry.sdf
-    slack = grid.spacing * np.sqrt(3) / 2 + 1e-4  # nearest-node error bound
-
-    def coarse(p):
-        sd = grid.nearest_node_value(p)
-        return sd - slack, sd + slack
-
-    return occupancy_in_frame(grid.evaluate, X_OG, size, resolution, levels, coarse)
+    X_OG = rigid_inverse(as_matrix(X_WO)) @ as_matrix(X_WG)
+    return fast_occupancy(size, resolution, levels)(X_OG, geometry)
 
 
 def closest_points(p_W: np.ndarray, X_WO, geometry: ObjectGeometry) -> ClosestPoints:
@@ -167,11 +101,13 @@ def hand_state(q: np.ndarray, p_W: np.ndarray, X_WH) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64).ravel()
     if not np.all(np.isfinite(q)):
         raise DexdrakeError("hand_state: joint positions contain NaN or Inf")
-    p_W = _points(p_W, "hand points")
     X = as_matrix(X_WH)
-    R, t = X[:3, :3], X[:3, 3]
-    rel = (p_W - t) @ R
-    return np.concatenate([q, rel.ravel(), t, R[:, 0], R[:, 1]])
+    return hand_state_unchecked(q, _points(p_W, "hand points"), X[:3, :3], X[:3, 3])
+
+
+def hand_state_unchecked(q: np.ndarray, p_W: np.ndarray, R_WH: np.ndarray, p_WH: np.ndarray) -> np.ndarray:
+    """`hand_state` without input checks, for per-step callers that check their output."""
+    return np.concatenate([q, ((p_W - p_WH) @ R_WH).ravel(), p_WH, R_WH[:, :2].T.ravel()])
 
 
 def hand_state_size(num_joints: int, num_points: int) -> int:

@@ -58,31 +58,43 @@ class SdfGrid:
         q = np.clip(p, self.origin, self.upper)
         outside = np.sqrt(np.einsum("ij,ij->i", p - q, p - q))
         u = (q - self.origin) * (1.0 / self.spacing)
-        i0 = np.minimum(u.astype(np.intp), self._max_index)
+        if not with_gradient:
+            return self.trilinear_index(u) + outside
+        sd, grad = self.trilinear_index(u, with_gradient=True)
+        return sd + outside, grad * (1.0 / self.spacing)
+
+    def trilinear_index(self, u: np.ndarray, with_gradient: bool = False):
+        """Trilinear sd at (m, 3) points in index coordinates u = (p - origin) / spacing
+        (inside the grid; outside it extrapolates from the border cell). The gradient,
+        if asked, is per index step (multiply by 1/spacing for per metre)."""
+        i0 = u.astype(np.intp)  # floor, for u >= 0
+        np.maximum(i0, 0, out=i0)
+        np.minimum(i0, self._max_index, out=i0)
         f = u - i0
-        corners = np.take(self._flat, (i0 @ self._strides)[:, None] + self._corner_offsets)
-        fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2:3]
+        c = self._flat[(i0 @ self._strides)[:, None] + self._corner_offsets]
+        fx, fy, fz = f[:, 0], f[:, 1:2], f[:, 2:3]
         # corners ordered (x, y, z) bits: 000 001 010 011 100 101 110 111
-        cz = corners[:, 0::2] + (corners[:, 1::2] - corners[:, 0::2]) * fz  # (m, 4): 00 01 10 11
-        cy = cz[:, 0::2] + (cz[:, 1::2] - cz[:, 0::2]) * fy  # (m, 2): 0 1
-        sd = cy[:, 0] + (cy[:, 1] - cy[:, 0]) * fx[:, 0] + outside
+        dz = c[:, 1::2] - c[:, 0::2]  # (m, 4): 00 01 10 11
+        cz = c[:, 0::2] + dz * fz
+        dy = cz[:, 1::2] - cz[:, 0::2]  # (m, 2): 0 1
+        cy = cz[:, 0::2] + dy * fy
+        gx = cy[:, 1] - cy[:, 0]
+        sd = cy[:, 0] + gx * fx
         if not with_gradient:
             return sd
-        gx = cy[:, 1] - cy[:, 0]
-        gy = ((cz[:, 1] - cz[:, 0]) * (1 - fx[:, 0]) + (cz[:, 3] - cz[:, 2]) * fx[:, 0])
-        dz = corners[:, 1::2] - corners[:, 0::2]  # (m, 4)
+        gy = dy[:, 0] + (dy[:, 1] - dy[:, 0]) * fx
         dzy = dz[:, 0::2] + (dz[:, 1::2] - dz[:, 0::2]) * fy
-        gz = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx[:, 0]
-        return sd, np.stack([gx, gy, gz], axis=1) * (1.0 / self.spacing)
+        gz = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx
+        return sd, np.column_stack([gx, gy, gz])
 
-    def nearest_node_value(self, p: np.ndarray) -> np.ndarray:
-        """Signed distance at the grid node nearest to each point (error <= spacing*sqrt(3)/2
-        plus the grid's own error); points outside the grid, at least SDF_PAD from the
-        object, get FAR."""
-        u = np.rint((np.asarray(p, dtype=np.float64) - self.origin) * (1.0 / self.spacing)).astype(np.intp)
-        inside = np.all((u >= 0) & (u <= self._max_index + 1), axis=1)
-        sd = np.take(self._flat, np.clip(u, 0, self._max_index + 1) @ self._strides)
-        return np.where(inside, sd, FAR)
+    def nearest_node_index_value(self, u: np.ndarray) -> np.ndarray:
+        """Signed distance at the grid node nearest to each (m, 3) index-coordinate point.
+        Error <= spacing * sqrt(3) / 2 inside the grid; points outside clamp to border
+        nodes, whose values are >= SDF_PAD (the object is never near them)."""
+        i = (u + 0.5).astype(np.intp)
+        np.maximum(i, 0, out=i)
+        np.minimum(i, self._max_index + 1, out=i)
+        return self._flat[i @ self._strides]
 
     @cached_property
     def _flat(self) -> np.ndarray:
@@ -149,34 +161,42 @@ class ObjectGeometry:
             self._scene = scene
         return self._scene
 
-    def signed_distance(self, p_O: np.ndarray) -> np.ndarray:
-        """Fast (grid) signed distance at (m, 3) object-frame points."""
-        return self.sdf.evaluate(p_O)
-
     def closest_points(self, p_O: np.ndarray) -> ClosestPoints:
-        """Exact closest surface points, signed distances and outward normals."""
+        """Exact closest surface points, signed distances and outward normals (one Open3D
+        query for all points)."""
         import open3d as o3d
 
         p = np.asarray(p_O, dtype=np.float64).reshape(-1, 3)
         if not np.all(np.isfinite(p)):
             raise DexdrakeError("closest_points: query points contain NaN or Inf")
-        scene = self._raycasting_scene()
-        q = o3d.core.Tensor(p.astype(np.float32))
-        res = scene.compute_closest_points(q, nthreads=1)
+        res = self._raycasting_scene().compute_closest_points(
+            o3d.core.Tensor.from_numpy(p.astype(np.float32)), nthreads=1)
         c = res["points"].numpy().astype(np.float64)
-        face_n = res["primitive_normals"].numpy().astype(np.float64)
+        face_n = self.face_normals[res["primitive_ids"].numpy()]
         delta = p - c
-        dist = np.linalg.norm(delta, axis=1)
+        dist = np.sqrt(np.einsum("ij,ij->i", delta, delta))
         # Sign: the grid is reliable away from the surface; near it use the face normal.
-        sd_grid = self.sdf.evaluate(p)
-        near = np.abs(sd_grid) < 2.0 * self.sdf.spacing
+        grid = self.sdf
+        sd_grid = grid.nearest_node_index_value((p - grid.origin) * (1.0 / grid.spacing))
+        near = np.abs(sd_grid) < 2.0 * grid.spacing
         inside = np.where(near, np.einsum("ij,ij->i", delta, face_n) < 0.0, sd_grid < 0.0)
-        sign = np.where(inside, -1.0, 1.0)
-        eps = 1e-6
-        safe = np.maximum(dist, eps)[:, None]
-        normals = np.where((dist > eps)[:, None], sign[:, None] * delta / safe, face_n)
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        return ClosestPoints(sign * dist, c, normals)
+        sd = np.where(inside, -dist, dist)
+        apart = dist > 1e-6
+        normals = np.where(apart[:, None], delta / np.where(apart, sd, 1.0)[:, None], face_n)
+        return ClosestPoints(sd, c, normals)
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) outward unit face normals."""
+        n = np.cross(self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]],
+                     self.vertices[self.faces[:, 2]] - self.vertices[self.faces[:, 0]])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    @cached_property
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        """(centre, radius) of a sphere holding the object: bounding-box centre, max radius."""
+        centre = (self.vertices.min(axis=0) + self.vertices.max(axis=0)) / 2
+        return centre, float(np.linalg.norm(self.vertices - centre, axis=1).max()) + 1e-9
 
     def nearest_samples(self, p_O: np.ndarray) -> np.ndarray:
         """Indices of the sampled surface points nearest to (m, 3) object-frame points."""

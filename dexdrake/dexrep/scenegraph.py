@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dexdrake.dexrep.features import OCCUPANCY_LEVELS, occupancy_in_frame
+from dexdrake.dexrep.occupancy import OCCUPANCY_LEVELS, occupancy_in_frame
 from dexdrake.dexrep.geometry import FAR, ClosestPoints
 from dexdrake.errors import DexdrakeError
 

@@ -1,0 +1,145 @@
+"""Occupancy f_o: which voxels of the hand-attached grid intersect the solid object.
+
+Voxel i = r*r*ix + r*iy + iz (x-major in the grid frame G; centres at (i + 0.5) * size/r -
+size/2 along each axis) is 1 when the voxel cube intersects the solid, else 0.
+
+Rule, from the signed distance sd (negative inside, 1-Lipschitz) at the centre of a cube
+of edge e: sd <= e/2 -> occupied (the nearest surface point lies in the inscribed ball, so
+in the cube); sd > e*sqrt(3)/2 -> empty (the circumscribed ball misses the surface); in
+between, the cube is split into 8 children and the rule repeats (`levels` times). At the
+last level a child is occupied iff sd <= (e/2) * |n_G|_1 with n_G the unit sd gradient in
+the grid frame: the cube meets the tangent half-space, exact for a planar surface and never
+missing a convex one (its error on curved surfaces is about w^2 / (2 * radius of
+curvature), w <= e*sqrt(3)/2: below 1 mm for 1 cm children on a 2 cm radius).
+
+`occupancy_in_frame` applies the rule with any signed-distance function (the SceneGraph
+path). `FastOccupancy` applies it to an object's cached SDF grid with few, large numpy
+calls: a bounding-sphere cull, one matmul for all centres (in grid-index coordinates), a
+nearest-node classification with its proven error bound as slack, a trilinear evaluation
+of the undecided (boundary) voxels, and per level one batched trilinear evaluation of
+their children (the gradient only for the children the exact tests leave undecided).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import cache
+
+import numpy as np
+
+from dexdrake.dexrep.geometry import ObjectGeometry
+from dexdrake.errors import DexdrakeError
+
+OCCUPANCY_LEVELS = 1  # refinement levels before the planar rule
+
+# sd_fn(points (m, 3) in frame F, with_gradient) -> sd (m,) or (sd, grad_F (m, 3))
+SignedDistanceFn = Callable[..., object]
+
+_CHILD_SIGNS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=float) - 0.5
+_SQRT3_2 = np.sqrt(3) / 2
+
+
+def voxel_centres(size: float = 0.2, resolution: int = 10) -> np.ndarray:
+    """(resolution^3, 3) voxel centres in the grid frame, x-major (i = r*r*ix + r*iy + iz)."""
+    if not size > 0 or resolution < 1:
+        raise DexdrakeError(f"bad occupancy grid: size {size}, resolution {resolution}")
+    h = size / resolution
+    axis = (np.arange(resolution) + 0.5) * h - size / 2
+    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _planar_hit(sd: np.ndarray, grad_G: np.ndarray, half_edge: float) -> np.ndarray:
+    """Cube (half-edge `half_edge`, axes of G) meets the tangent half-space of the surface."""
+    l1 = np.abs(grad_G).sum(axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", grad_G, grad_G))
+    return sd * norm <= half_edge * l1  # a degenerate (zero) gradient counts as occupied
+
+
+def _refine(occ: np.ndarray, owner: np.ndarray, centres: np.ndarray, sd_fn: SignedDistanceFn,
+            M: np.ndarray, R: np.ndarray, edge: float, levels: int) -> None:
+    """Decides the undecided voxels `owner` (cube centres `centres`, edge `edge`) by
+    splitting them `levels` times; sets occ[owner] where occupied.
+
+    Points are in the frame of sd_fn: p = M^T p_G + offset (rows: p_G @ M); R = R_FG turns
+    sd_fn's gradients into the grid frame."""
+    for level in range(1, levels + 1):
+        if len(owner) == 0:
+            return
+        edge /= 2
+        centres = (centres[:, None, :] + (_CHILD_SIGNS * edge) @ M).reshape(-1, 3)
+        owner = np.repeat(owner, 8)
+        sd = sd_fn(centres, False)
+        occ[owner[sd <= edge / 2]] = True
+        open_ = (sd > edge / 2) & (sd <= edge * _SQRT3_2)
+        open_ &= ~occ[owner]
+        centres, owner = centres[open_], owner[open_]
+        if level == levels and len(owner):
+            sd, grad = sd_fn(centres, True)
+            occ[owner[_planar_hit(sd, grad @ R, edge / 2)]] = True
+
+
+def _check_levels(levels: int) -> None:
+    if levels < 1:
+        raise DexdrakeError(f"occupancy needs at least one refinement level, got {levels}")
+
+
+def occupancy_in_frame(sd_fn: SignedDistanceFn, X_FG: np.ndarray, size: float = 0.2,
+                       resolution: int = 10, levels: int = OCCUPANCY_LEVELS) -> np.ndarray:
+    """Occupancy (resolution^3,) of the grid at X_FG (4x4) given a signed-distance
+    function in frame F (one batched sd_fn call per level, plus one with gradients)."""
+    _check_levels(levels)
+    R, t = X_FG[:3, :3], X_FG[:3, 3]
+    edge = size / resolution
+    centres = voxel_centres(size, resolution) @ R.T + t
+    sd = sd_fn(centres, False)
+    occ = sd <= edge / 2
+    owner = np.flatnonzero(~occ & (sd <= edge * _SQRT3_2))
+    _refine(occ, owner, centres[owner], sd_fn, R.T, R, edge, levels)
+    return occ.astype(np.float64)
+
+
+class FastOccupancy:
+    """Occupancy of one grid spec (size, resolution, levels) against cached SDF grids.
+
+    Works in the SDF grid's index coordinates u = (p_O - origin) / spacing, so one matmul
+    maps all voxel centres there; distances stay in metres.
+    """
+
+    def __init__(self, size: float = 0.2, resolution: int = 10, levels: int = OCCUPANCY_LEVELS):
+        _check_levels(levels)
+        self.size, self.resolution, self.levels = float(size), int(resolution), int(levels)
+        self._centres = voxel_centres(size, resolution)
+        self._edge = self.size / self.resolution
+
+    def __call__(self, X_OG: np.ndarray, geometry: ObjectGeometry) -> np.ndarray:
+        """f_o (resolution^3,) for the grid at X_OG (4x4, grid frame in the object frame)."""
+        R, t = X_OG[:3, :3], X_OG[:3, 3]
+        # Cull: the object's bounding sphere misses the grid cube -> all empty.
+        centre, radius = geometry.bounding_sphere
+        q = (np.abs((centre - t) @ R) - self.size / 2).clip(0.0)
+        if np.dot(q, q) > radius * radius:
+            return np.zeros(len(self._centres))
+        grid = geometry.sdf
+        M = R.T * (1.0 / grid.spacing)
+        U = self._centres @ M
+        U += (t - grid.origin) * (1.0 / grid.spacing)
+        # Nearest node: |sd(centre) - sd(node)| <= spacing * sqrt(3) / 2 (1-Lipschitz);
+        # centres outside the grid clamp to border nodes, which are >= SDF_PAD away.
+        sd = grid.nearest_node_index_value(U)
+        slack = grid.spacing * _SQRT3_2 + 1e-6
+        edge = self._edge
+        occ = sd <= edge / 2 - slack
+        owner = np.flatnonzero((sd > edge / 2 - slack) & (sd <= edge * _SQRT3_2 + slack))
+        # the undecided ones again, with the interpolated distance (no slack)
+        pts = U[owner]
+        sd = grid.trilinear_index(pts)
+        occ[owner[sd <= edge / 2]] = True
+        keep = (sd > edge / 2) & (sd <= edge * _SQRT3_2)
+        _refine(occ, owner[keep], pts[keep], grid.trilinear_index, M, R, edge, self.levels)
+        return occ.astype(np.float64)
+
+
+@cache
+def fast_occupancy(size: float = 0.2, resolution: int = 10, levels: int = OCCUPANCY_LEVELS) -> FastOccupancy:
+    """The shared FastOccupancy of a grid spec."""
+    return FastOccupancy(size, resolution, levels)

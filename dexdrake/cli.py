@@ -20,6 +20,7 @@ COMMAND_MODULES = [
     "dexdrake.demos.commands",
     "dexdrake.dexrep.commands",
     "dexdrake.station_commands",
+    "dexdrake.learn.commands", "dexdrake.demo_command",
 ]
 
 

@@ -450,6 +450,10 @@ ARM_JOINT_NAMES = tuple(j.name for j in ARM_JOINTS)
 OCCUPANCY_NORMAL_OFFSET = -0.08  # along the proximal link's y, i.e. along the palm normal -y
 PREGRASP_FINGER = (0.0, 0.2, 0.2, 0.1)  # J3 (abduction), J2, J1, J0: slightly flexed
 PREGRASP_THUMB = {"THJ4": 0.5, "THJ3": 0.6}  # THJ4 > 0 swings the thumb toward the fingers
+# Arm start (the paper starts the hand at the mean first pose of the demos, near the object):
+# palm down, grasp centre S_grasp at (0, -0.10, 0.28) in the world, 10 cm behind the object
+# region and above the tallest library object (25 cm), so no object is touched at reset.
+PREGRASP_ARM = {"ARTx": -0.0071, "ARTy": 0.1295, "ARTz": 0.1001}
 
 
 def dexrep_points(fingers: tuple[str, ...]) -> list[tuple[str, str, Vec3, str]]:
@@ -506,7 +510,7 @@ def build_hand_yaml(name: str, fingers: tuple[str, ...]) -> str:
     tips = [p for p in dexrep_points(fingers) if p[0].endswith("tip")]
     points = dexrep_points(fingers)
     occ_body, occ_offset = occupancy_anchor(fingers)
-    pregrasp = {}
+    pregrasp = dict(PREGRASP_ARM)
     for f in fingers:
         if f != "th":
             pregrasp.update({f"{f.upper()}J{3 - i}": v for i, v in enumerate(PREGRASP_FINGER)})

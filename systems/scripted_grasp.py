@@ -94,7 +94,8 @@ class ScriptedGrasp:
             p, R = self._palm_pose(q_arm)
             return np.concatenate([p - target, self.script.orientation_weight * (R - R_target)[:, 1:].ravel()])
 
-        return least_squares(residual, np.clip(q_seed, lo, hi), bounds=(lo, hi), xtol=1e-8).x
+        margin = 1e-3 * (hi - lo)  # start strictly inside the bounds: trf stalls on them
+        return least_squares(residual, np.clip(q_seed, lo + margin, hi - margin), bounds=(lo, hi), xtol=1e-8).x
 
     def _plan(self, env) -> None:
         q_now = env.scene.hand_positions(env.plant_context)

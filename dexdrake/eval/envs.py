@@ -1,0 +1,72 @@
+"""GraspEnv factories and object selections shared by training, evaluation and the demo.
+
+`GraspEnvFactory` is a picklable callable (a frozen dataclass), so worker processes of the
+rollout samplers and of the evaluator can rebuild the same env.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dexdrake.errors import DexdrakeError
+
+SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
+
+
+def resolve_objects(spec: str) -> tuple[str, list[str]]:
+    """(label, object names) for 'seen' / 'train', 'unseen' or a comma-separated name list.
+
+    Names are checked against the object library (UnknownNameError lists the valid ones).
+    """
+    from dexdrake.objects.library import get_object, list_objects
+
+    spec = spec.strip()
+    if not spec:
+        raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
+    if spec in SPLIT_ALIASES:
+        names = [o.name for o in list_objects(SPLIT_ALIASES[spec])]
+        if not names:
+            raise DexdrakeError(f"the object library has no {SPLIT_ALIASES[spec]!r} objects")
+        return ("seen" if SPLIT_ALIASES[spec] == "train" else "unseen"), names
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    if len(set(names)) != len(names):
+        raise DexdrakeError(f"object list {spec!r} repeats a name")
+    for n in names:
+        get_object(n)
+    return "selected", names
+
+
+@dataclass(frozen=True)
+class GraspEnvFactory:
+    """Builds `GraspEnv` for `hand` with `feature_set` observations over `objects`."""
+
+    hand: str
+    feature_set: str | None
+    objects: tuple[str, ...]
+    horizon: int = 200
+
+    def __post_init__(self) -> None:
+        if not self.objects:
+            raise DexdrakeError("GraspEnvFactory needs at least one object")
+        if self.horizon < 1:
+            raise DexdrakeError(f"horizon must be >= 1, got {self.horizon}")
+
+    def __call__(self):
+        from dexdrake.systems.grasp_env import GraspEnv
+        from dexdrake.systems.scene import SceneConfig
+
+        config = SceneConfig(hand=self.hand, object=self.objects[0])
+        return GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, objects=list(self.objects))
+
+
+def env_factory_for_policy(policy_config, objects: list[str], horizon: int) -> GraspEnvFactory:
+    """The factory matching a policy's hand and feature set (both must be recorded)."""
+    from dexdrake.dexrep.feature_sets import FEATURE_SETS
+    from dexdrake.hands.description import hand_names
+
+    hand, feature_set = policy_config.hand, policy_config.feature_set
+    if hand not in hand_names():
+        raise DexdrakeError(f"policy records hand {hand!r}, not one of {hand_names()}")
+    if feature_set not in FEATURE_SETS:
+        raise DexdrakeError(f"policy records feature set {feature_set!r}, not one of {list(FEATURE_SETS)}")
+    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon)

@@ -1,0 +1,186 @@
+"""Per-object success of a policy checkpoint, in the layout of the paper's Table I.
+
+Each object is run for N episodes with seeds S..S+N-1 (the seed drives the paper's
+placement randomisation through `GraspEnv.reset`), deterministic mean actions and the
+paper's evaluation length of 100 control steps. Episodes run in worker processes
+(spawn/forkserver: a script calling `evaluate_policy` with workers > 1 needs a
+`if __name__ == "__main__":` guard).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.eval.envs import GraspEnvFactory, env_factory_for_policy
+from dexdrake.eval.tables import PAPER_AVERAGE
+
+EVAL_HORIZON = 100  # control steps per evaluation episode (paper)
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    object: str
+    seed: int
+    success: bool
+    max_lift: float  # m
+    steps: int
+    total_reward: float
+
+
+@dataclass
+class EvalReport:
+    """All episodes of one evaluation and what made them."""
+
+    policy: str
+    label: str  # "seen" | "unseen" | "selected"
+    objects: list[str]
+    episodes_per_object: int
+    seed: int
+    horizon: int
+    command: str = ""
+    wall_s: float = 0.0
+    workers: int = 1
+    episodes: list[EpisodeResult] = field(default_factory=list)
+
+    def per_object(self) -> dict[str, dict[str, float]]:
+        """{object: {"successes", "episodes", "success_pct", "mean_max_lift"}} in object order."""
+        out: dict[str, dict[str, float]] = {}
+        for name in self.objects:
+            eps = [e for e in self.episodes if e.object == name]
+            if not eps:
+                raise DexdrakeError(f"evaluation has no episode of object {name!r}")
+            wins = sum(e.success for e in eps)
+            out[name] = {
+                "successes": wins,
+                "episodes": len(eps),
+                "success_pct": 100.0 * wins / len(eps),
+                "mean_max_lift": float(np.mean([e.max_lift for e in eps])),
+            }
+        return out
+
+    def average_pct(self) -> float:
+        """Mean over objects of the per-object success rate (%), as in the paper's tables."""
+        return float(np.mean([row["success_pct"] for row in self.per_object().values()]))
+
+    def seeds_text(self) -> str:
+        return f"{self.seed}..{self.seed + self.episodes_per_object - 1}"
+
+    def paper_average(self) -> float | None:
+        return PAPER_AVERAGE.get(self.label)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["per_object"] = self.per_object()
+        d["average_pct"] = self.average_pct()
+        return d
+
+
+def run_episode(env, policy, seed: int, horizon: int) -> tuple[bool, float, int, float]:
+    """One deterministic (mean-action) episode; returns (success, max lift, steps, reward)."""
+    obs = env.reset(int(seed))
+    success, max_lift, total, steps = False, 0.0, 0.0, 0
+    for steps in range(1, horizon + 1):
+        action, _ = policy.act(np.asarray(obs, dtype=np.float32))
+        obs, reward, done, info = env.step(action)
+        total += float(reward)
+        success = success or bool(info["success"])
+        max_lift = max(max_lift, float(info["lift"]))
+        if done:
+            break
+    return success, max_lift, steps, total
+
+
+class _EpisodeRunner:
+    """Holds the policy and one single-object env per object name (built on first use)."""
+
+    def __init__(self, policy_path: str, horizon: int):
+        import torch
+
+        from dexdrake.learn.policy import load_policy
+
+        torch.set_num_threads(1)
+        self.policy, _ = load_policy(policy_path)
+        self.horizon = horizon
+        self._envs: dict[str, Any] = {}
+
+    def __call__(self, name: str, seed: int) -> EpisodeResult:
+        if name not in self._envs:
+            from dexdrake.learn.samplers import check_env_matches
+
+            factory: GraspEnvFactory = env_factory_for_policy(self.policy.config, [name], self.horizon)
+            env = factory()
+            check_env_matches(env, self.policy)
+            self._envs[name] = env
+        success, lift, steps, reward = run_episode(self._envs[name], self.policy, seed, self.horizon)
+        return EpisodeResult(name, int(seed), success, lift, steps, reward)
+
+
+_RUNNER: _EpisodeRunner | None = None
+
+
+def _init_worker(policy_path: str, horizon: int) -> None:
+    global _RUNNER
+    _RUNNER = _EpisodeRunner(policy_path, horizon)
+
+
+def _run_in_worker(name: str, seed: int) -> EpisodeResult:
+    if _RUNNER is None:
+        raise DexdrakeError("evaluation worker was not initialised")
+    return _RUNNER(name, seed)
+
+
+def evaluate_policy(
+    policy_path: str | Path,
+    objects: list[str],
+    episodes: int,
+    seed: int = 0,
+    workers: int = 1,
+    horizon: int = EVAL_HORIZON,
+    label: str = "selected",
+    command: str = "",
+    progress: bool = True,
+) -> EvalReport:
+    """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint."""
+    from dexdrake.learn.policy import load_policy
+
+    if episodes < 1 or workers < 1 or horizon < 1:
+        raise DexdrakeError(f"episodes, workers and horizon must be >= 1 (got {episodes}, {workers}, {horizon})")
+    if not objects:
+        raise DexdrakeError("no objects to evaluate")
+    policy, _ = load_policy(policy_path)  # fail early, in this process, on a bad checkpoint
+    env_factory_for_policy(policy.config, objects, horizon)
+    jobs = [(name, seed + i) for name in objects for i in range(episodes)]
+    report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers)
+    bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
+    start = time.perf_counter()
+    if workers == 1:
+        runner = _EpisodeRunner(str(policy_path), horizon)
+        for name, s in jobs:
+            report.episodes.append(runner(name, s))
+            bar.update()
+    else:
+        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        with ProcessPoolExecutor(workers, mp.get_context(method), initializer=_init_worker,
+                                 initargs=(str(policy_path), horizon)) as pool:
+            futures = [pool.submit(_run_in_worker, name, s) for name, s in jobs]
+            try:
+                for fut in as_completed(futures):
+                    report.episodes.append(fut.result())
+                    bar.update()
+            except BrokenProcessPool as exc:
+                raise DexdrakeError("an evaluation worker died; rerun with --workers 1 to see the error") from exc
+    bar.close()
+    report.wall_s = time.perf_counter() - start
+    order = {job: k for k, job in enumerate(jobs)}
+    report.episodes.sort(key=lambda e: order[(e.object, e.seed)])
+    return report

@@ -1,0 +1,177 @@
+"""A behaviour-cloning dataset from successful scripted grasps, re-featurisable per feature set.
+
+`record_object` runs `systems.scripted_grasp.ScriptedGrasp` (with a faster phase timing,
+`FAST_SCRIPT`, so the grasp succeeds within the paper's 100-step evaluation episodes) in
+`GraspEnv` and keeps every step's raw simulator positions (hand joints and object pose)
+with the normalised action applied. `featurise` turns raw states into the observations of
+any feature set by setting the plant positions and calling the env's feature extractor, so
+one recording serves every ablation.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dexdrake.errors import DexdrakeError
+
+RAW_FORMAT = "dexdrake.scripted_raw/1"
+DATASET_FORMAT = "dexdrake.scripted/1"
+
+
+@dataclass(frozen=True)
+class ScriptTiming:
+    """Phase end times (s) of the scripted grasp used for data (see GraspScript)."""
+
+    approach_end: float = 0.3
+    descend_end: float = 0.55
+    close_end: float = 0.8
+    lift_end: float = 1.05
+
+
+FAST_SCRIPT = ScriptTiming()
+
+
+@dataclass
+class RawEpisodes:
+    """Raw per-step states of recorded episodes (all objects share the plant layout)."""
+
+    hand: str
+    objects: list[str]  # object of each episode
+    seeds: np.ndarray  # int (E,)
+    success: np.ndarray  # bool (E,)
+    episode_starts: np.ndarray  # bool (N,)
+    positions: np.ndarray  # float64 (N, nq): full plant positions before each action
+    actions: np.ndarray  # float32 (N, A): normalised actions in [-1, 1]
+
+    def episode_ids(self) -> np.ndarray:
+        return np.cumsum(self.episode_starts) - 1
+
+    def select_successful(self) -> RawEpisodes:
+        """Only the successful episodes."""
+        keep_ep = np.nonzero(self.success)[0]
+        keep = np.isin(self.episode_ids(), keep_ep)
+        return RawEpisodes(self.hand, [self.objects[i] for i in keep_ep], self.seeds[keep_ep], self.success[keep_ep],
+                           self.episode_starts[keep], self.positions[keep], self.actions[keep])
+
+
+def normalised_action(q_command: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Joint set-points -> the [-1, 1] action that `GraspEnv.step` maps back to them."""
+    mid, half = (hi + lo) / 2, (hi - lo) / 2
+    return np.clip((np.asarray(q_command, float) - mid) / half, -1.0, 1.0)
+
+
+def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
+                  timing: ScriptTiming = FAST_SCRIPT) -> RawEpisodes:
+    """Run the scripted grasp on object `name` for each seed; record raw states and actions."""
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
+
+    env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=None, horizon=horizon)
+    lo, hi = env.scene.hand.joint_limits()
+    script = GraspScript(**asdict(timing))
+    positions, actions, starts, success = [], [], [], []
+    for seed in seeds:
+        env.reset(int(seed))
+        controller = ScriptedGrasp(env, script)
+        ok = False
+        for t in range(horizon):
+            positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
+            a = normalised_action(controller(env), lo, hi)
+            actions.append(a.astype(np.float32))
+            starts.append(t == 0)
+            _, _, done, info = env.step(a)
+            ok = ok or bool(info["success"])
+            if done:
+                break
+        success.append(ok)
+    return RawEpisodes(hand, [name] * len(seeds), np.asarray(seeds, dtype=np.int64), np.asarray(success, bool),
+                       np.asarray(starts, bool), np.asarray(positions), np.asarray(actions, np.float32))
+
+
+def concat(parts: list[RawEpisodes]) -> RawEpisodes:
+    """Join recordings of the same hand."""
+    if not parts:
+        raise DexdrakeError("nothing to concatenate")
+    if len({p.hand for p in parts}) != 1:
+        raise DexdrakeError(f"recordings of different hands: {sorted({p.hand for p in parts})}")
+    return RawEpisodes(parts[0].hand, [o for p in parts for o in p.objects],
+                       np.concatenate([p.seeds for p in parts]), np.concatenate([p.success for p in parts]),
+                       np.concatenate([p.episode_starts for p in parts]), np.concatenate([p.positions for p in parts]),
+                       np.concatenate([p.actions for p in parts]))
+
+
+def save_raw(path: str | Path, raw: RawEpisodes, metadata: dict[str, Any] | None = None) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": RAW_FORMAT, "hand": raw.hand, "objects": raw.objects, **(metadata or {})}
+    with open(path, "wb") as f:
+        np.savez_compressed(f, seeds=raw.seeds, success=raw.success, episode_starts=raw.episode_starts,
+                            positions=raw.positions, actions=raw.actions, metadata=np.array(json.dumps(meta)))
+    return path
+
+
+def load_raw(path: str | Path) -> tuple[RawEpisodes, dict[str, Any]]:
+    path = Path(path)
+    if not path.is_file():
+        raise DexdrakeError(f"raw recording {path} does not exist")
+    with np.load(path, allow_pickle=False) as d:
+        meta = json.loads(str(d["metadata"]))
+        if meta.get("format") != RAW_FORMAT:
+            raise DexdrakeError(f"{path} is not a {RAW_FORMAT} file")
+        raw = RawEpisodes(meta["hand"], list(meta["objects"]), d["seeds"], d["success"].astype(bool),
+                          d["episode_starts"].astype(bool), d["positions"], d["actions"])
+    return raw, meta
+
+
+def featurise(raw: RawEpisodes, feature_set: str, progress: bool = False) -> tuple[np.ndarray, dict[str, int]]:
+    """Observations (N, D) of `feature_set` for every recorded state, and the block sizes."""
+    from tqdm.auto import tqdm
+
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.scene import SceneConfig
+
+    episode_object = np.asarray(raw.objects)[raw.episode_ids()]
+    obs: np.ndarray | None = None
+    blocks: dict[str, int] = {}
+    for name in tqdm(sorted(set(raw.objects)), desc=f"featurise {feature_set}", disable=not progress):
+        env = GraspEnv(SceneConfig(hand=raw.hand, object=name), feature_set=feature_set, horizon=1)
+        blocks = dict(env.observation_blocks)
+        if obs is None:
+            obs = np.empty((len(raw.actions), sum(blocks.values())), dtype=np.float32)
+        for i in np.nonzero(episode_object == name)[0]:
+            env.scene.plant.SetPositions(env.plant_context, raw.positions[i])
+            obs[i] = env.observation()
+    assert obs is not None
+    return obs, blocks
+
+
+def dataset_metadata(recorded: RawEpisodes, kept: RawEpisodes, raw_meta: dict[str, Any], feature_set: str,
+                     blocks: dict[str, int]) -> dict[str, Any]:
+    """Metadata of a featurised dataset (of the `kept` episodes) in the shape `dexdrake train bc` reads."""
+    per_object: dict[str, list[int]] = {}
+    for name, ok in zip(recorded.objects, recorded.success):
+        s = per_object.setdefault(name, [0, 0])
+        s[0] += int(ok)
+        s[1] += 1
+    return {
+        "format": DATASET_FORMAT,
+        "source": "scripted_grasp",
+        "hand": kept.hand,
+        "feature_set": feature_set,
+        "observation_blocks": blocks,
+        "objects": sorted(set(kept.objects)),
+        "counts": {"recorded_episodes": len(recorded.objects), "episodes": len(kept.objects),
+                   "samples": int(len(kept.actions))},
+        "script": raw_meta.get("script"),
+        "seeds": raw_meta.get("seeds"),
+        "command": raw_meta.get("command"),
+        "merged_from": raw_meta.get("merged_from"),
+        "success_rates": {"overall": float(np.mean(recorded.success)),
+                          "per_object_successes_of_episodes": per_object},
+    }

@@ -1,0 +1,126 @@
+"""Result tables in the layout of the paper's Table I (markdown and CSV) and the paper's numbers."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from dexdrake.eval.evaluate import EvalReport
+
+# DexRepNet Table I, success % of DexRep on unseen GRAB objects (library names).
+PAPER_UNSEEN: dict[str, float] = {
+    "mug": 100.0,
+    "camera": 99.0,
+    "binoculars": 97.3,
+    "apple": 100.0,
+    "toothpaste": 94.0,
+    "frying_pan": 81.3,
+    "toothbrush": 64.0,
+    "elephant": 100.0,
+    "hand": 100.0,
+    "pyramid_small": 3.3,
+}
+PAPER_AVERAGE: dict[str, float] = {"seen": 93.0, "unseen": 83.9}
+# Ablations on the 10 unseen GRAB objects (average success %).
+PAPER_ABLATIONS: dict[str, float] = {
+    "Hand2obj": 23.8,
+    "pGlo": 32.1,
+    "Loc-Geo": 68.0,
+    "Surf": 53.3,
+    "Occ+Surf": 63.2,
+    "Occ+Surf+pGlo": 64.2,
+    "DexRep+pGlo": 76.2,
+    "DexRep": 83.9,
+}
+
+
+def _fmt(value: float | None) -> str:
+    return "" if value is None else f"{value:.1f}"
+
+
+def table_rows(report: EvalReport) -> list[dict[str, str]]:
+    """One row per object plus an 'average' row: object, successes, ours %, paper %, lift."""
+    rows = []
+    for name, r in report.per_object().items():
+        paper = PAPER_UNSEEN.get(name) if report.label != "seen" else None
+        rows.append({
+            "object": name,
+            "successes": f"{int(r['successes'])}/{int(r['episodes'])}",
+            "ours_pct": _fmt(r["success_pct"]),
+            "paper_pct": _fmt(paper),
+            "mean_max_lift_m": f"{r['mean_max_lift']:.3f}",
+        })
+    total = sum(int(r["successes"]) for r in report.per_object().values())
+    rows.append({
+        "object": "average",
+        "successes": f"{total}/{len(report.episodes)}",
+        "ours_pct": _fmt(report.average_pct()),
+        "paper_pct": _fmt(report.paper_average()),
+        "mean_max_lift_m": f"{sum(e.max_lift for e in report.episodes) / len(report.episodes):.3f}",
+    })
+    return rows
+
+
+def paper_subset_average(report: EvalReport) -> tuple[float, float, int] | None:
+    """(ours, paper, count) averaged over the objects that have a paper number, if any."""
+    ours = report.per_object()
+    common = [n for n in ours if n in PAPER_UNSEEN]
+    if report.label == "seen" or not common:
+        return None
+    return (
+        sum(ours[n]["success_pct"] for n in common) / len(common),
+        sum(PAPER_UNSEEN[n] for n in common) / len(common),
+        len(common),
+    )
+
+
+def markdown_table(report: EvalReport) -> str:
+    """The report as markdown: a header naming command, policy and seeds, then the table."""
+    lines = [
+        f"# Evaluation on {report.label} objects",
+        "",
+        f"- command: `{report.command}`" if report.command else "- command: (API call)",
+        f"- policy: `{report.policy}`",
+        f"- seeds {report.seeds_text()} per object ({report.episodes_per_object} episodes), "
+        f"{report.horizon} control steps (50 Hz), deterministic mean actions",
+        f"- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
+        f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s)",
+        "",
+        "| object | successes | ours (%) | paper DexRep (%) | mean max lift (m) |",
+        "|---|---|---|---|---|",
+    ]
+    for row in table_rows(report):
+        name = f"**{row['object']}**" if row["object"] == "average" else row["object"]
+        lines.append(f"| {name} | {row['successes']} | {row['ours_pct']} | {row['paper_pct']} | {row['mean_max_lift_m']} |")
+    sub = paper_subset_average(report)
+    if sub is not None:
+        lines += ["", f"Average over the {sub[2]} objects with a paper number: ours {sub[0]:.1f} %, paper {sub[1]:.1f} %."]
+    if report.label == "seen":
+        lines += ["", f"Paper: {PAPER_AVERAGE['seen']:.0f} % average on seen GRAB objects (no per-object numbers)."]
+    return "\n".join(lines) + "\n"
+
+
+def csv_table(report: EvalReport) -> str:
+    """The table rows as CSV text (columns of `table_rows`)."""
+    buf = io.StringIO()
+    rows = table_rows(report)
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def write_report(report: EvalReport, out_dir: str | Path, stem: str | None = None) -> dict[str, Path]:
+    """Write eval_<label>.md, .csv and .json (every episode) into out_dir; returns the paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = stem or f"eval_{report.label}"
+    paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv", "json": out_dir / f"{stem}.json"}
+    paths["md"].write_text(markdown_table(report))
+    paths["csv"].write_text(csv_table(report))
+    paths["json"].write_text(json.dumps(report.to_dict(), indent=1))
+    return paths

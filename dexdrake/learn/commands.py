@@ -1,0 +1,184 @@
+"""CLI: `dexdrake train bc`, `dexdrake train dapg` and `dexdrake eval`.
+
+Heavy imports (torch, pydrake) happen inside the commands so `--help` stays quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+from pathlib import Path
+from typing import Any
+
+from dexdrake.errors import DexdrakeError
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def command_line(words: list[str], args: argparse.Namespace, options: list[str]) -> str:
+    """The command with every option's effective value (for result tables and manifests)."""
+    parts = ["dexdrake", *words]
+    for opt in options:
+        value = getattr(args, opt.replace("-", "_"))
+        if isinstance(value, bool):
+            parts += [f"--{opt}"] if value else []
+        elif value is not None:
+            parts += [f"--{opt}", str(value)]
+    return shlex.join(parts)
+
+
+def add_parser(subparsers) -> None:
+    train = subparsers.add_parser("train", help="train a DexRepNet policy (behaviour cloning, DAPG)")
+    train_sub = train.add_subparsers(dest="train_command", required=True)
+
+    bc = train_sub.add_parser("bc", help="behaviour cloning from a demo dataset (.npz)")
+    bc.add_argument("--data", required=True, type=Path, help="demo dataset .npz (metadata: hand, feature_set, observation_blocks)")
+    bc.add_argument("--out", required=True, type=Path, help="output folder (checkpoints, bc_log.csv/png)")
+    bc.add_argument("--epochs", type=_positive_int, default=150)
+    bc.add_argument("--batch", type=_positive_int, default=64)
+    bc.add_argument("--lr", type=_positive_float, default=1e-5)
+    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads")
+    bc.set_defaults(func=cmd_train_bc)
+
+    dapg = train_sub.add_parser("dapg", help="DAPG fine-tuning of a BC checkpoint in the Drake grasp env")
+    dapg.add_argument("--init", required=True, type=Path, help="policy checkpoint to start from (e.g. bc_best.pt)")
+    dapg.add_argument("--demos", required=True, type=Path, help="demo dataset .npz for the augmented gradient")
+    dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
+    dapg.add_argument("--iterations", type=_positive_int, default=500)
+    dapg.add_argument("--per-object", type=_positive_int, default=10, help="trajectories per object per iteration (K x objects in all; "
+                      "each trajectory's object is drawn from its seed)")
+    dapg.add_argument("--objects", default="train", help="'train' or comma-separated object names")
+    dapg.add_argument("--horizon", type=_positive_int, default=200, help="control steps per trajectory")
+    dapg.add_argument("--workers", type=_positive_int, default=2)
+    dapg.add_argument("--backend", choices=("process", "ray", "sequential"), default="process")
+    dapg.add_argument("--resume", action="store_true", help="continue from OUT/dapg_state.pt")
+    dapg.add_argument("--seed", type=int, default=0)
+    dapg.set_defaults(func=cmd_train_dapg)
+
+    ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
+    ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
+    ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
+    ev.add_argument("--episodes", type=_positive_int, default=10, help="episodes per object (seeds S..S+N-1)")
+    ev.add_argument("--seed", type=int, default=0, help="first episode seed S")
+    ev.add_argument("--workers", type=_positive_int, default=1, help="worker processes")
+    ev.add_argument("--horizon", type=_positive_int, default=100, help="control steps per episode (paper: 100)")
+    ev.add_argument("--out", type=Path, help="folder for eval_<label>.md/.csv/.json")
+    ev.set_defaults(func=cmd_eval)
+
+
+def policy_config_from_metadata(metadata: dict[str, Any], action_dim: int, obs_dim: int):
+    """A PolicyConfig from a dataset's metadata (observation_blocks, hand, feature_set)."""
+    from dexdrake.learn.policy import PolicyConfig
+
+    missing = [k for k in ("observation_blocks", "hand", "feature_set") if not metadata.get(k)]
+    if missing:
+        raise DexdrakeError(f"dataset metadata lacks {missing} (a replay dataset needs `--feature-set`, "
+                            f"e.g. DexRep); it has {sorted(metadata)}")
+    blocks = metadata["observation_blocks"]
+    blocks = dict(blocks) if not isinstance(blocks, dict) else blocks
+    config = PolicyConfig.from_blocks(blocks, action_dim, feature_set=str(metadata["feature_set"]), hand=str(metadata["hand"]))
+    if config.obs_dim != obs_dim:
+        raise DexdrakeError(f"dataset observation_blocks {blocks} sum to {config.obs_dim}, observations have {obs_dim} columns")
+    return config
+
+
+def dataset_summary(metadata: dict[str, Any]) -> dict[str, Any]:
+    """The small, JSON-friendly part of a dataset's metadata (drops per-demo records)."""
+    keep = ("format", "source", "hand", "feature_set", "observation_blocks", "objects", "counts", "seed",
+            "command", "success_rates", "script")
+    out = {k: metadata[k] for k in keep if k in metadata}
+    if isinstance(out.get("success_rates"), dict) and "overall" in out["success_rates"]:
+        out["success_rates"] = {"overall": out["success_rates"]["overall"]}
+    return out
+
+
+def cmd_train_bc(args: argparse.Namespace) -> int:
+    import torch
+
+    from dexdrake.learn.bc import BCConfig, train_bc
+    from dexdrake.learn.demo_dataset import load_demo_dataset
+    from dexdrake.learn.policy import DexRepNetPolicy
+
+    torch.set_num_threads(args.threads)
+    data = load_demo_dataset(args.data)
+    config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])
+    policy = DexRepNetPolicy(config)
+    bc_config = BCConfig(epochs=args.epochs, batch_size=args.batch, lr=args.lr, seed=args.seed)
+    command = command_line(["train", "bc"], args, ["data", "out", "epochs", "batch", "lr", "seed", "threads"])
+    meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata)}
+    print(f"BC: {len(data)} samples, {config.obs_dim}-d observations {dict(config.blocks)}, {config.action_dim} actions")
+    result = train_bc(policy, data, args.out, bc_config, meta)
+    print(f"best epoch {result.best_epoch} (val loss {result.best_val_loss:.4g}); "
+          f"checkpoints {result.best_checkpoint} and {result.last_checkpoint}; curves {result.log_csv.with_suffix('.png')}")
+    return 0
+
+
+def cmd_train_dapg(args: argparse.Namespace) -> int:
+    from dexdrake.eval.envs import env_factory_for_policy, resolve_objects
+    from dexdrake.learn.dapg import DAPGConfig, train_dapg
+    from dexdrake.learn.demo_dataset import load_demo_dataset
+    from dexdrake.learn.policy import load_policy
+    from dexdrake.learn.samplers import make_sampler
+
+    policy, init_meta = load_policy(args.init)
+    policy.train()
+    demos = load_demo_dataset(args.demos, policy.config.obs_dim, policy.config.action_dim)
+    if args.objects in ("unseen", "seen"):
+        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    _, objects = resolve_objects(args.objects)
+    factory = env_factory_for_policy(policy.config, objects, args.horizon)
+    config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
+                        time_scale=args.horizon, seed=args.seed)
+    command = command_line(["train", "dapg"], args, ["init", "demos", "out", "iterations", "per-object", "objects",
+                                                      "horizon", "workers", "backend", "resume", "seed"])
+    meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
+            "dataset_metadata": dataset_summary(demos.metadata), "objects": objects,
+            "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch")}}
+    print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
+          f"{args.iterations} iterations, backend {args.backend} with {args.workers} worker(s)")
+    sampler = make_sampler(factory, args.backend, args.workers)
+    try:
+        result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
+    finally:
+        sampler.close()
+    last = result.rows[-1] if result.rows else None
+    summary = f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}" if last else ""
+    print(f"DAPG done at iteration {result.iterations_done}{summary}; artefacts in {args.out}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from dexdrake.eval.envs import resolve_objects
+    from dexdrake.eval.evaluate import evaluate_policy
+    from dexdrake.eval.tables import markdown_table, write_report
+
+    label, objects = resolve_objects(args.objects)
+    report = evaluate_policy(args.policy, objects, args.episodes, args.seed, args.workers, args.horizon,
+                             label=label, command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
+                                                                                 "workers", "horizon", "out"]))
+    print(markdown_table(report))
+    if args.out:
+        paths = write_report(report, args.out)
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
+    print(json.dumps({"average_pct": round(report.average_pct(), 2), "episodes": len(report.episodes)}))
+    return 0

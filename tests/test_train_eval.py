@@ -1,0 +1,233 @@
+"""Training/evaluation workflows: `dexdrake train bc|dapg`, `dexdrake eval`, `dexdrake demo`, tables."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dexdrake.cli import main
+from dexdrake.eval.envs import GraspEnvFactory, resolve_objects
+from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy
+from dexdrake.eval.tables import PAPER_UNSEEN, csv_table, markdown_table, table_rows, write_report
+from dexdrake.learn.demo_dataset import save_demo_dataset
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+
+OBJECT = "sphere_small"
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def env_blocks() -> tuple[dict[str, int], int]:
+    """Observation blocks and action size of the real Hand2obj Adroit grasp env."""
+    env = GraspEnvFactory("adroit", "Hand2obj", (OBJECT,), horizon=3)()
+    return dict(env.observation_blocks), env.action_dim
+
+
+def _dataset(path, blocks, action_dim, n=96, metadata=None, seed=0):
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n, sum(blocks.values()))).astype(np.float32)
+    w = rng.normal(size=(obs.shape[1], action_dim)) * 0.05
+    act = np.tanh(obs @ w).astype(np.float32)
+    starts = np.zeros(n, bool)
+    starts[:: n // 4] = True
+    meta = {"hand": "adroit", "feature_set": "Hand2obj", "observation_blocks": blocks} if metadata is None else metadata
+    return save_demo_dataset(path, obs, act, starts, meta)
+
+
+def _random_policy(path, blocks, action_dim, seed=0):
+    torch.manual_seed(seed)
+    config = PolicyConfig.from_blocks(blocks, action_dim, feature_set="Hand2obj", hand="adroit", init_log_std=-1.0)
+    return save_policy(path, DexRepNetPolicy(config))
+
+
+# -- behaviour cloning ---------------------------------------------------------------------
+def test_train_bc_cli_writes_checkpoints_and_curves(tmp_path, env_blocks):
+    blocks, a = env_blocks
+    data = _dataset(tmp_path / "d.npz", blocks, a)
+    rc = main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "2", "--batch", "16",
+               "--lr", "1e-3"])
+    assert rc == 0
+    for name in ("bc_best.pt", "bc_last.pt", "bc_log.csv", "bc_log.png"):
+        assert (tmp_path / "bc" / name).is_file(), name
+    policy, meta = load_policy(tmp_path / "bc" / "bc_last.pt")
+    assert dict(policy.config.blocks) == blocks
+    assert (policy.config.hand, policy.config.feature_set) == ("adroit", "Hand2obj")
+    assert meta["dataset"] == str(data) and meta["command"].startswith("dexdrake train bc")
+    assert len((tmp_path / "bc" / "bc_log.csv").read_text().strip().splitlines()) == 3  # header + 2 epochs
+
+
+def test_train_bc_rejects_dataset_without_metadata(tmp_path, capsys):
+    data = _dataset(tmp_path / "d.npz", {"hand": 3}, 2, metadata={})
+    assert main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "1"]) == 2
+    assert "observation_blocks" in capsys.readouterr().err
+
+
+def test_train_bc_rejects_blocks_that_do_not_match_observations(tmp_path, capsys):
+    meta = {"hand": "adroit", "feature_set": "Hand2obj", "observation_blocks": {"hand": 5}}
+    data = _dataset(tmp_path / "d.npz", {"hand": 3}, 2, metadata=meta)
+    assert main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "1"]) == 2
+    assert "sum to 5" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["train", "bc", "--data", "x.npz", "--out", "o", "--epochs", "0"],
+    ["train", "bc", "--data", "x.npz", "--out", "o", "--lr", "-1"],
+    ["train", "bc", "--out", "o"],
+    ["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o", "--backend", "gpu"],
+    ["eval", "--policy", "p.pt", "--episodes", "zero"],
+    ["demo", "--seed", "one"],
+])
+def test_cli_argument_errors_exit_with_usage(argv):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+
+
+def test_cli_reports_missing_files_and_bad_objects(tmp_path, capsys):
+    assert main(["train", "bc", "--data", str(tmp_path / "none.npz"), "--out", str(tmp_path / "o")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["eval", "--policy", str(tmp_path / "none.pt"), "--objects", "no_such_object"]) == 2
+    assert "unknown object 'no_such_object'" in capsys.readouterr().err
+
+
+# -- DAPG on the real grasp env ---------------------------------------------------------------
+def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
+    blocks, a = env_blocks
+    init = _random_policy(tmp_path / "init.pt", blocks, a)
+    demos = _dataset(tmp_path / "d.npz", blocks, a, n=32)
+    out = tmp_path / "dapg"
+    argv = ["train", "dapg", "--init", str(init), "--demos", str(demos), "--out", str(out), "--iterations", "2",
+            "--per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3"]
+    assert main(argv) == 0
+    rows = (out / "dapg_log.csv").read_text().strip().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("iteration,mean_return")
+    for name in ("dapg_state.pt", "dapg_policy_last.pt", "dapg_policy_best.pt", "dapg_log.png"):
+        assert (out / name).is_file(), name
+    trained, meta = load_policy(out / "dapg_policy_last.pt")
+    start, _ = load_policy(init)
+    moved = [not torch.equal(trained.state_dict()[k], start.state_dict()[k]) for k in start.state_dict()]
+    assert any(moved), "two NPG steps left every parameter unchanged"
+    assert meta["objects"] == [OBJECT] and meta["updates"] == 2
+    assert main([*argv[:argv.index("--iterations") + 1], "3", *argv[argv.index("--iterations") + 2:], "--resume"]) == 0
+    assert len((out / "dapg_log.csv").read_text().strip().splitlines()) == 4
+
+
+def test_train_dapg_refuses_evaluation_splits(tmp_path, env_blocks, capsys):
+    blocks, a = env_blocks
+    init = _random_policy(tmp_path / "init.pt", blocks, a)
+    demos = _dataset(tmp_path / "d.npz", blocks, a, n=32)
+    argv = ["train", "dapg", "--init", str(init), "--demos", str(demos), "--out", str(tmp_path / "o"),
+            "--objects", "unseen"]
+    assert main(argv) == 2
+    assert "evaluation splits" in capsys.readouterr().err
+
+
+# -- evaluation --------------------------------------------------------------------------------
+def _report(label: str, objects: list[str], wins: dict[str, int], n: int = 3) -> EvalReport:
+    report = EvalReport("p.pt", label, objects, n, 10, 100, command="dexdrake eval --policy p.pt")
+    for name in objects:
+        report.episodes += [EpisodeResult(name, 10 + i, i < wins[name], 0.1 * (i < wins[name]), 100, 1.0)
+                            for i in range(n)]
+    return report
+
+
+def test_table_has_paper_column_and_average():
+    report = _report("unseen", ["mug", "pear", "pyramid_small"], {"mug": 3, "pear": 1, "pyramid_small": 0})
+    rows = {r["object"]: r for r in table_rows(report)}
+    assert rows["mug"]["ours_pct"] == "100.0" and rows["mug"]["paper_pct"] == "100.0"
+    assert rows["pear"]["paper_pct"] == "" and rows["pear"]["ours_pct"] == "33.3"
+    assert rows["pyramid_small"]["paper_pct"] == "3.3"
+    assert rows["average"]["ours_pct"] == "44.4" and rows["average"]["paper_pct"] == "83.9"
+    assert rows["average"]["successes"] == "4/9"
+    md = markdown_table(report)
+    assert "dexdrake eval --policy p.pt" in md and "seeds 10..12" in md and "`p.pt`" in md
+    assert "| mug | 3/3 | 100.0 | 100.0 |" in md
+    assert "ours 50.0 %, paper 51.6 %" in md  # mug + pyramid_small, the objects with a paper number
+    lines = csv_table(report).strip().splitlines()
+    assert lines[0] == "object,successes,ours_pct,paper_pct,mean_max_lift_m" and lines[-1].startswith("average,4/9,44.4,83.9")
+
+
+def test_seen_table_uses_the_seen_average_only(tmp_path):
+    report = _report("seen", ["mug", "banana"], {"mug": 1, "banana": 2}, n=2)
+    rows = {r["object"]: r for r in table_rows(report)}
+    assert rows["mug"]["paper_pct"] == "" and rows["average"]["paper_pct"] == "93.0"
+    paths = write_report(report, tmp_path)
+    assert paths["md"].name == "eval_seen.md" and paths["csv"].is_file()
+    assert json.loads(paths["json"].read_text())["average_pct"] == 75.0
+
+
+def test_paper_numbers_cover_the_ten_unseen_grab_objects():
+    _, unseen = resolve_objects("unseen")
+    assert set(PAPER_UNSEEN) <= set(unseen) and len(PAPER_UNSEEN) == 10
+    assert abs(sum(PAPER_UNSEEN.values()) / 10 - 83.9) < 0.05
+
+
+def test_resolve_objects():
+    label, names = resolve_objects("seen")
+    assert label == "seen" and len(names) == 53
+    assert resolve_objects("mug, apple") == ("selected", ["mug", "apple"])
+    with pytest.raises(Exception, match="repeats"):
+        resolve_objects("mug,mug")
+
+
+def test_evaluate_policy_runs_seeded_episodes(tmp_path, env_blocks):
+    blocks, a = env_blocks
+    path = _random_policy(tmp_path / "p.pt", blocks, a)
+    report = evaluate_policy(path, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
+    assert [(e.object, e.seed, e.steps) for e in report.episodes] == [(OBJECT, 5, 3), (OBJECT, 6, 3)]
+    assert report.average_pct() == 0.0  # 3 steps cannot hold the object for 50
+    again = evaluate_policy(path, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
+    assert [e.total_reward for e in again.episodes] == [e.total_reward for e in report.episodes]
+
+
+@pytest.mark.slow
+def test_evaluate_policy_workers_match_in_process(tmp_path, env_blocks):
+    blocks, a = env_blocks
+    path = _random_policy(tmp_path / "p.pt", blocks, a)
+    one = evaluate_policy(path, [OBJECT], episodes=2, seed=0, horizon=3, progress=False)
+    two = evaluate_policy(path, [OBJECT], episodes=2, seed=0, horizon=3, workers=2, progress=False)
+    assert [e.total_reward for e in one.episodes] == pytest.approx([e.total_reward for e in two.episodes])
+
+
+# -- demo -------------------------------------------------------------------------------------
+def test_demo_says_clearly_when_the_policy_file_is_missing(tmp_path, capsys):
+    assert main(["demo", "--policy", str(tmp_path / "missing.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "missing.pt not found" in err and "policy" in err
+
+
+def test_demo_runs_a_policy_and_writes_a_recording(tmp_path, env_blocks, capsys):
+    blocks, a = env_blocks
+    path = _random_policy(tmp_path / "p.pt", blocks, a)
+    rrd = tmp_path / "demo.rrd"
+    assert main(["demo", "--policy", str(path), "--object", OBJECT, "--steps", "3", "--rrd", str(rrd)]) == 0
+    out = capsys.readouterr().out
+    assert f"object={OBJECT}" in out and "steps=3" in out and "success=False" in out
+    assert rrd.is_file() and rrd.stat().st_size > 0
+
+
+# -- scripted demos, re-featurised -------------------------------------------------------------
+def test_refeaturised_scripted_states_match_online_observations(tmp_path):
+    from dexdrake.eval.scripted_data import featurise, load_raw, record_object, save_raw
+
+    raw = record_object("adroit", OBJECT, [7], horizon=4)
+    assert raw.positions.shape[0] == 4 and raw.episode_starts.tolist() == [True, False, False, False]
+    assert np.all(np.abs(raw.actions) <= 1.0) and not raw.success[0]
+    raw, _ = load_raw(save_raw(tmp_path / "raw.npz", raw, {"seeds": [7]}))
+    obs, blocks = featurise(raw, "Hand2obj")
+    env = GraspEnvFactory("adroit", "Hand2obj", (OBJECT,), horizon=4)()
+    online = [env.reset(7)]
+    for a in raw.actions[:-1]:
+        online.append(env.step(a)[0])
+    assert blocks == env.observation_blocks
+    np.testing.assert_allclose(obs, np.asarray(online, dtype=np.float32), atol=1e-5)

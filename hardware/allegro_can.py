@@ -26,12 +26,12 @@ import numpy as np
 from dexdrake.hands import allegro_units as units
 from dexdrake.hardware.safety import (
     FaultLatch,
+    SafeStopContext,
     HardwareError,
     JointLimits,
     RateLimiter,
     Watchdog,
     period_stats,
-    safe_stop_on_exit,
 )
 
 NUM_FINGERS = 4
@@ -377,7 +377,7 @@ class _Stats:
         self.ignored = 0
 
 
-class AllegroHand:
+class AllegroHand(SafeStopContext):
     """Allegro v4 driver on any python-can bus: start sequence, host PD loop, safety.
 
     Use as a context manager (`with AllegroHand(bus) as hand:`), which starts the hand and
@@ -420,7 +420,6 @@ class AllegroHand:
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
         self._reset_request = threading.Event()
-        self._exit_stack: contextlib.ExitStack | None = None
         self.info: AllegroInfo | None = None
 
     # --------------------------------------------------------------- bus helpers
@@ -494,22 +493,6 @@ class AllegroHand:
     def running(self) -> bool:
         """True while the PD loop thread is alive."""
         return self._thread is not None and self._thread.is_alive()
-
-    def __enter__(self) -> AllegroHand:
-        stack = contextlib.ExitStack()
-        stack.enter_context(safe_stop_on_exit(self.stop))
-        try:
-            self.start()
-        except BaseException:
-            stack.close()
-            raise
-        self._exit_stack = stack
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._exit_stack is not None:
-            stack, self._exit_stack = self._exit_stack, None
-            stack.close()
 
     # --------------------------------------------------------------- commands and state
     def command_positions(self, q_rad: Sequence[float] | np.ndarray) -> np.ndarray:

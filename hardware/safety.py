@@ -9,6 +9,7 @@ every time-dependent piece takes an injectable monotonic clock so tests can driv
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import threading
@@ -223,6 +224,29 @@ def safe_stop_on_exit(stop: Callable[[], None],
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+
+
+class SafeStopContext:
+    """Mixin for drivers with `start()` and `stop()`: `with driver:` starts it and, on any
+    exit (normal, exception, Ctrl-C, SIGTERM), runs its safe stop (`safe_stop_on_exit`)."""
+
+    _exit_stack: contextlib.ExitStack | None = None
+
+    def __enter__(self):
+        stack = contextlib.ExitStack()
+        stack.enter_context(safe_stop_on_exit(self.stop))
+        try:
+            self.start()
+        except BaseException:
+            stack.close()
+            raise
+        self._exit_stack = stack
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._exit_stack is not None:
+            stack, self._exit_stack = self._exit_stack, None
+            stack.close()
 
 
 def period_stats(times: Sequence[float]) -> dict[str, float]:

@@ -29,12 +29,12 @@ import numpy as np
 
 from dexdrake.hardware.safety import (
     FaultLatch,
+    SafeStopContext,
     HardwareError,
     JointLimits,
     RateLimiter,
     Watchdog,
     period_stats,
-    safe_stop_on_exit,
 )
 
 NUM_ARM_JOINTS = 6
@@ -266,7 +266,7 @@ class Z1State:
     q_target: np.ndarray = field(default_factory=lambda: np.zeros(NUM_ARM_JOINTS))
 
 
-class Z1Arm:
+class Z1Arm(SafeStopContext):
     """Z1 client over UDP: 500 Hz send/receive thread, limits, watchdog, safe stop.
 
     Use as a context manager (`with Z1Arm(cfg) as arm:`): start() waits until the
@@ -305,7 +305,6 @@ class Z1Arm:
         self._tick_times: collections.deque[float] = collections.deque(maxlen=20000)
         self.packet_errors: collections.Counter[str] = collections.Counter()
         self.packets_received = 0
-        self._exit_stack: contextlib.ExitStack | None = None
 
     # --------------------------------------------------------------- session
     @property
@@ -364,22 +363,6 @@ class Z1Arm:
                     self._send(SendCmd(ArmFSMState.PASSIVE))
             self._sock.close()
             self._sock = None
-
-    def __enter__(self) -> Z1Arm:
-        stack = contextlib.ExitStack()
-        stack.enter_context(safe_stop_on_exit(self.stop))
-        try:
-            self.start()
-        except BaseException:
-            stack.close()
-            raise
-        self._exit_stack = stack
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._exit_stack is not None:
-            stack, self._exit_stack = self._exit_stack, None
-            stack.close()
 
     # --------------------------------------------------------------- commands and state
     def command_positions(self, q: Sequence[float] | np.ndarray, dq: Sequence[float] | None = None,

@@ -5,8 +5,8 @@ Every mode exposes the same ports (policy joint order of the hand description):
   output "hand_state"   measured [q; v] (2n)
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
 sim:  the Drake grasp scene (systems/scene.py).
-hil:  AllegroDriverSystem (the CAN driver on a python-can `virtual` bus, talking to the
-      firmware emulator), Z1DriverSystem (the UDP client, talking to the controller emulator
+hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
+      the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
       every device and the control loop run on its simulated clock, in lockstep with the
       hand's PD loop and never faster than real time: see hardware/hil_world.py); object
@@ -95,14 +95,15 @@ class _Timer:
 
 
 # ----------------------------------------------------------------------------- drivers
-class AllegroDriverSystem(LeafSystem):
-    """Wraps a started `AllegroHand`: input "q_command" (16, bus order), output "state"
-    ([q; dq], 32, bus order) sampled every `period`. Raises StationFault on a latched fault."""
+class DriverSystem(LeafSystem):
+    """Wraps a started joint driver (`AllegroHand`, bus order, or `Z1Arm`): input
+    "q_command" (n), output "state" ([q; dq], 2n) sampled every `period`. Raises
+    StationFault when the driver has latched a fault (the driver is then in its safe stop)."""
 
-    def __init__(self, driver, period: float):
+    def __init__(self, driver, num_joints: int, period: float, label: str):
         super().__init__()
-        self.driver = driver
-        self._cmd = self.DeclareVectorInputPort("q_command", 16)
+        self.driver, self.label = driver, label
+        self._cmd = self.DeclareVectorInputPort("q_command", num_joints)
         st = driver.state()  # the default state is the measured one, so initial commands hold
         state = self.DeclareDiscreteState(np.nan_to_num(np.concatenate([st.q, st.dq])))
         self.DeclareStateOutputPort("state", state)
@@ -112,32 +113,7 @@ class AllegroDriverSystem(LeafSystem):
     def _read(self, context: Context, state: DiscreteValues) -> None:
         st = self.driver.state()
         if st.fault is not None:
-            raise StationFault(f"Allegro hand fault: {st.fault} (hand is in safe stop)")
-        state.set_value(0, np.concatenate([st.q, st.dq]))
-
-    def _update(self, context: Context, state: DiscreteValues) -> None:
-        self._read(context, state)
-        if self._cmd.HasValue(context):
-            self.driver.command_positions(self._cmd.Eval(context))
-
-
-class Z1DriverSystem(LeafSystem):
-    """Wraps a started `Z1Arm`: input "q_command" (6), output "state" ([q; dq], 12)."""
-
-    def __init__(self, driver, period: float):
-        super().__init__()
-        self.driver = driver
-        self._cmd = self.DeclareVectorInputPort("q_command", 6)
-        st = driver.state()  # the default state is the measured one, so initial commands hold
-        state = self.DeclareDiscreteState(np.nan_to_num(np.concatenate([st.q, st.dq])))
-        self.DeclareStateOutputPort("state", state)
-        self.DeclareInitializationDiscreteUpdateEvent(self._read)
-        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
-
-    def _read(self, context: Context, state: DiscreteValues) -> None:
-        st = self.driver.state()
-        if st.fault is not None:
-            raise StationFault(f"Z1 arm fault: {st.fault} (arm commanded PASSIVE)")
+            raise StationFault(f"{self.label} fault: {st.fault} (driver is in its safe stop)")
         state.set_value(0, np.concatenate([st.q, st.dq]))
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
@@ -502,8 +478,8 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     S, A = _bus_maps(hand)
     builder = DiagramBuilder()
     select = builder.AddNamedSystem("command_to_devices", MatrixGain(S))
-    arm_sys = builder.AddNamedSystem("z1_driver", Z1DriverSystem(z1, period))
-    hand_sys = builder.AddNamedSystem("allegro_driver", AllegroDriverSystem(allegro, period))
+    arm_sys = builder.AddNamedSystem("z1_driver", DriverSystem(z1, 6, period, "Z1 arm"))
+    hand_sys = builder.AddNamedSystem("allegro_driver", DriverSystem(allegro, 16, period, "Allegro hand"))
     n_arm = len(hand.arm_joints)
     split = builder.AddSystem(Demultiplexer([n_arm, n - n_arm]))
     builder.Connect(select.get_output_port(), split.get_input_port())

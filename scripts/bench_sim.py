@@ -2,7 +2,9 @@
 
 Prints, per plant time step, control steps per second (50 Hz control) and plant steps per
 second, with the ratio to the named baseline: MuJoCo stepping the paper's Adroit relocate
-scene at about 13,000 plant steps/s on this machine (specs/drake.md).
+scene at about 13,000 plant steps/s on this machine (specs/drake.md). Rates are per second
+of this process's CPU time (wall time is printed too: on a shared machine it is inflated
+by other processes; the load average is printed).
 
     python scripts/bench_sim.py [--object sphere_medium] [--episodes 2] [--steps 150]
 """
@@ -35,17 +37,19 @@ def main() -> None:
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps (50 Hz)")
-    print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'vs MuJoCo':>11}{'success':>9}")
+    print(f"load average {os.getloadavg()[0]:.1f}")
+    print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'vs MuJoCo':>11}{'wall s':>8}"
+          f"{'success':>9}")
     for dt in TIME_STEPS:
         env = GraspEnv(SceneConfig(hand=args.hand, object=args.object, time_step=dt), horizon=args.steps)
         env.rollout(ScriptedGrasp, seed=0)  # warm-up (first-use allocations)
-        start, successes = time.perf_counter(), 0
+        start, cpu_start, successes = time.perf_counter(), time.process_time(), 0
         for seed in range(args.episodes):
             successes += env.rollout(ScriptedGrasp, seed=seed).success
-        wall = time.perf_counter() - start
-        control = args.episodes * args.steps / wall
+        wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+        control = args.episodes * args.steps / cpu
         plant = control * env.base_config.control_period / dt
-        print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{plant / MUJOCO_STEPS_PER_S:>10.2f}x"
+        print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{plant / MUJOCO_STEPS_PER_S:>10.2f}x{wall:>8.1f}"
               f"{successes:>6}/{args.episodes}")
 
 

@@ -1,0 +1,365 @@
+"""Object pose from one RGB-D frame: green-screen segmentation, back-projection and
+registration of the known CAD mesh to the partial cloud (specs/kinect.md recipe).
+
+    estimator = ObjectPoseEstimator(mesh_path)          # builds or loads the model features
+    result = estimator.estimate(frame)                  # never raises on perception failure
+    if result.success: X_WO = result.X_WO
+
+Registration runs scene -> model (source = segmented scene cloud, target = model cloud), so
+`fitness` is the fraction of observed points that lie on the posed model: about 1 for a
+correct pose whatever the view, unlike a model -> scene fitness that a partial view caps.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from pydrake.math import RigidTransform
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.hardware.kinect import CameraIntrinsics, FrameError, RgbdFrame, validate_frame
+from dexdrake.paths import cache_dir
+
+_reg = o3d.pipelines.registration
+
+
+# ---------------------------------------------------------------- segmentation
+
+@dataclass(frozen=True)
+class GreenScreenConfig:
+    """Object = NOT green (OpenCV HSV, H in 0-179), opened, within a depth range (mm)."""
+
+    hsv_low: tuple[int, int, int] = (35, 60, 40)
+    hsv_high: tuple[int, int, int] = (85, 255, 255)
+    opening_kernel_px: int = 5
+    min_depth_mm: int = 250
+    max_depth_mm: int = 1500
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.min_depth_mm < self.max_depth_mm:
+            raise DexdrakeError(f"depth range must satisfy 0 <= min < max, got "
+                                f"[{self.min_depth_mm}, {self.max_depth_mm}] mm")
+        if self.opening_kernel_px < 0:
+            raise DexdrakeError("opening_kernel_px must be >= 0")
+
+
+def segment_object(frame: RgbdFrame, config: GreenScreenConfig = GreenScreenConfig()
+                   ) -> np.ndarray:
+    """Boolean HxW mask of non-green pixels with valid depth inside the configured range."""
+    hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
+    green = cv2.inRange(hsv, np.array(config.hsv_low, np.uint8),
+                        np.array(config.hsv_high, np.uint8))
+    mask = cv2.bitwise_not(green)
+    if config.opening_kernel_px > 1:
+        kernel = cv2.getStructuringElement(
+            cv2.MORPH_RECT, (config.opening_kernel_px, config.opening_kernel_px))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
+    depth = frame.depth
+    in_range = (depth > 0) & (depth >= config.min_depth_mm) & (depth <= config.max_depth_mm)
+    return (mask > 0) & in_range
+
+
+# ---------------------------------------------------------------- back-projection
+
+def backproject(depth_mm: np.ndarray, intrinsics: CameraIntrinsics,
+                mask: np.ndarray | None = None) -> np.ndarray:
+    """N x 3 points (m) in the camera frame for pixels with depth > 0 (and in `mask`)."""
+    if depth_mm.shape != (intrinsics.height, intrinsics.width):
+        raise FrameError(
+            f"depth {depth_mm.shape} does not match intrinsics "
+            f"{intrinsics.width}x{intrinsics.height}")
+    valid = depth_mm > 0
+    if mask is not None:
+        if mask.shape != depth_mm.shape:
+            raise FrameError(f"mask {mask.shape} does not match depth {depth_mm.shape}")
+        valid &= mask.astype(bool)
+    v, u = np.nonzero(valid)
+    z = depth_mm[v, u].astype(np.float64) * 1e-3
+    x = (u - intrinsics.cx) * z / intrinsics.fx
+    y = (v - intrinsics.cy) * z / intrinsics.fy
+    return np.column_stack([x, y, z])
+
+
+def transform_points(X_AB: RigidTransform, p_B: np.ndarray) -> np.ndarray:
+    """Points (N x 3) expressed in B -> expressed in A."""
+    return (X_AB.rotation().matrix() @ p_B.T).T + X_AB.translation()
+
+
+# ---------------------------------------------------------------- model features (cached)
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Tuned recipe from specs/kinect.md; distances are multiples of `voxel` (m)."""
+
+    voxel: float = 0.005
+    normal_radius_factor: float = 2.0
+    fpfh_radius_factor: float = 5.0
+    ransac_distance_factor: float = 1.5
+    ransac_n: int = 3
+    edge_length_ratio: float = 0.9
+    ransac_max_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    ransac_runs: int = 5
+    good_fitness: float = 0.95    # below it after the runs: try half turns, then extra runs
+    try_flips: bool = True
+    extra_runs: int = 5
+    mutual_filter: bool = False
+    icp_distance_factors: tuple[float, ...] = (2.0, 0.4)
+    icp_max_iterations: int = 50
+    fitness_distance_factor: float = 1.5
+    min_points: int = 60
+    min_fitness: float = 0.7
+    model_samples_per_voxel_area: float = 4.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.voxel > 0:
+            raise DexdrakeError(f"voxel must be positive (m), got {self.voxel}")
+        if self.ransac_runs < 1 or self.extra_runs < 0 or self.ransac_n < 3:
+            raise DexdrakeError("need ransac_runs >= 1, extra_runs >= 0 and ransac_n >= 3")
+        if not 0 <= self.min_fitness <= 1:
+            raise DexdrakeError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+
+
+@dataclass(frozen=True)
+class ModelCloud:
+    """A mesh's surface sampled, voxel-downsampled, with outward normals and FPFH."""
+
+    points: np.ndarray      # N x 3, object frame (m)
+    normals: np.ndarray     # N x 3, unit, outward
+    fpfh: np.ndarray        # 33 x N
+    content_hash: str
+
+    def point_cloud(self) -> o3d.geometry.PointCloud:
+        """The cloud as Open3D geometry (with normals)."""
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        pcd.normals = o3d.utility.Vector3dVector(self.normals)
+        return pcd
+
+    def feature(self) -> _reg.Feature:
+        """The FPFH descriptors as an Open3D Feature."""
+        f = _reg.Feature()
+        f.data = self.fpfh
+        return f
+
+
+_MODEL_CACHE: dict[str, ModelCloud] = {}
+
+
+def model_cloud(mesh_path: str | Path, config: RegistrationConfig = RegistrationConfig(),
+                use_disk_cache: bool = True) -> ModelCloud:
+    """The cached ModelCloud of a mesh file (memory, then cache_dir()/perception, then built).
+
+    The key is the mesh content hash plus every parameter that shapes the cloud."""
+    mesh_path = Path(mesh_path)
+    if not mesh_path.is_file():
+        raise DexdrakeError(f"CAD mesh {mesh_path} does not exist")
+    digest = hashlib.sha256(mesh_path.read_bytes()).hexdigest()
+    params = (config.voxel, config.normal_radius_factor, config.fpfh_radius_factor,
+              config.model_samples_per_voxel_area, config.seed)
+    key = hashlib.sha256(f"{digest}{params}".encode()).hexdigest()[:24]
+    if key in _MODEL_CACHE:
+        return _MODEL_CACHE[key]
+    disk = cache_dir() / "perception" / f"model_{key}.npz"
+    if use_disk_cache and disk.is_file():
+        with np.load(disk) as d:
+            model = ModelCloud(d["points"], d["normals"], d["fpfh"], digest)
+    else:
+        model = _build_model_cloud(mesh_path, config, digest)
+        if use_disk_cache:
+            disk.parent.mkdir(parents=True, exist_ok=True)
+            tmp = disk.with_suffix(".tmp.npz")
+            np.savez(tmp, points=model.points, normals=model.normals, fpfh=model.fpfh)
+            tmp.replace(disk)
+    _MODEL_CACHE[key] = model
+    return model
+
+
+def _build_model_cloud(mesh_path: Path, config: RegistrationConfig, digest: str
+                       ) -> ModelCloud:
+    import trimesh
+
+    mesh = trimesh.load(mesh_path, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise DexdrakeError(f"{mesh_path} holds no triangle mesh")
+    v = config.voxel
+    count = int(np.clip(mesh.area / v**2 * config.model_samples_per_voxel_area, 2000, 200_000))
+    points, face_idx = trimesh.sample.sample_surface(mesh, count, seed=config.seed)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points)))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals[face_idx]))
+    pcd = pcd.voxel_down_sample(v)
+    normals = np.asarray(pcd.normals)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    fpfh = _reg.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=config.fpfh_radius_factor * v,
+                                                  max_nn=100))
+    return ModelCloud(np.asarray(pcd.points).copy(), normals.copy(),
+                      np.asarray(fpfh.data).copy(), digest)
+
+
+# ---------------------------------------------------------------- registration
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Outcome of one pose estimate; `success` False carries a human-readable `reason`."""
+
+    success: bool
+    reason: str
+    X_CO: RigidTransform | None = None     # object in the camera frame
+    X_WO: RigidTransform | None = None     # object in the world (when the frame has X_WC)
+    fitness: float = 0.0                   # fraction of scene points on the posed model
+    inlier_rmse: float = float("nan")      # m, over those inliers
+    num_mask_pixels: int = 0
+    num_points: int = 0                    # scene points after voxel downsampling
+    elapsed_s: float = 0.0
+    run_fitness: tuple[float, ...] = field(default_factory=tuple)  # per ICP-refined try
+
+
+def _cube_axes() -> np.ndarray:
+    """Unit directions of a cube's 3 face, 6 edge-diagonal and 4 body-diagonal axes."""
+    # One of each +-d pair: the first non-zero component positive.
+    dirs = [d for d in itertools.product((-1, 0, 1), repeat=3)
+            if any(d) and next(x for x in d if x) > 0]
+    return np.array(dirs, float) / np.linalg.norm(dirs, axis=1, keepdims=True)
+
+
+_HALF_TURN_AXES = _cube_axes()
+
+
+def _refine(scene: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray,
+            config: RegistrationConfig) -> tuple[float, float, np.ndarray]:
+    """Coarse-to-fine point-to-plane ICP from T; returns (fitness, inlier_rmse, T)."""
+    v = config.voxel
+    for factor in config.icp_distance_factors:
+        T = _reg.registration_icp(
+            scene, target, factor * v, T, _reg.TransformationEstimationPointToPlane(),
+            _reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations),
+        ).transformation
+    ev = _reg.evaluate_registration(scene, target, config.fitness_distance_factor * v, T)
+    return float(ev.fitness), float(ev.inlier_rmse), np.array(T)
+
+
+def _better(best: tuple[float, float, np.ndarray] | None,
+            candidate: tuple[float, float, np.ndarray]) -> tuple[float, float, np.ndarray]:
+    """The higher-fitness result (lower RMSE on ties)."""
+    if best is None or (candidate[0], -candidate[1]) > (best[0], -best[1]):
+        return candidate
+    return best
+
+
+def register_model(points_C: np.ndarray, model: ModelCloud,
+                   config: RegistrationConfig = RegistrationConfig()
+                   ) -> tuple[np.ndarray, float, float, int, tuple[float, ...]]:
+    """Register `model` to a partial cloud seen from the camera at the origin.
+
+    Best of `ransac_runs` RANSAC + ICP tries by fitness; below `good_fitness`, half-turn
+    variants of the best and up to `extra_runs` more RANSAC runs are tried.
+    Returns (X_CO 4x4, fitness, inlier_rmse, scene points used, fitness of each try)."""
+    v = config.voxel
+    scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_C)).voxel_down_sample(v)
+    n = len(scene.points)
+    if n < config.min_points:
+        return np.eye(4), 0.0, float("nan"), n, ()
+    scene.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
+        radius=config.normal_radius_factor * v, max_nn=30))
+    scene.orient_normals_towards_camera_location(np.zeros(3))
+    scene_fpfh = _reg.compute_fpfh_feature(scene, o3d.geometry.KDTreeSearchParamHybrid(
+        radius=config.fpfh_radius_factor * v, max_nn=100))
+    target, target_fpfh = model.point_cloud(), model.feature()
+    ransac_d = config.ransac_distance_factor * v
+    checkers = [_reg.CorrespondenceCheckerBasedOnEdgeLength(config.edge_length_ratio),
+                _reg.CorrespondenceCheckerBasedOnDistance(ransac_d)]
+    criteria = _reg.RANSACConvergenceCriteria(config.ransac_max_iterations,
+                                              config.ransac_confidence)
+    best: tuple[float, float, np.ndarray] | None = None
+    run_fitness: list[float] = []
+
+    def ransac_run(run: int) -> None:
+        nonlocal best
+        o3d.utility.random.seed(config.seed + run)
+        coarse = _reg.registration_ransac_based_on_feature_matching(
+            scene, target, scene_fpfh, target_fpfh, config.mutual_filter, ransac_d,
+            _reg.TransformationEstimationPointToPoint(False), config.ransac_n,
+            checkers, criteria)
+        candidate = _refine(scene, target, coarse.transformation, config)
+        run_fitness.append(candidate[0])
+        best = _better(best, candidate)
+
+    def half_turns() -> None:
+        # Man-made shapes often lock onto a near-symmetric twin (a flipped plate, an L turned
+        # about its diagonal): try half turns of the best pose about the 13 symmetry axes
+        # of a cube in the model frame, through the observed centre (cheap: ICP only).
+        nonlocal best
+        start = best[2]
+        c = (start @ np.append(np.asarray(scene.points).mean(axis=0), 1.0))[:3]
+        for axis in _HALF_TURN_AXES:
+            F = np.eye(4)
+            F[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)   # rotation by pi
+            F[:3, 3] = c - F[:3, :3] @ c
+            candidate = _refine(scene, target, F @ start, config)
+            run_fitness.append(candidate[0])
+            best = _better(best, candidate)
+
+    for run in range(config.ransac_runs):
+        ransac_run(run)
+    if config.try_flips and best[0] < config.good_fitness:
+        half_turns()
+    for run in range(config.ransac_runs, config.ransac_runs + config.extra_runs):
+        if best[0] >= config.good_fitness:
+            break
+        previous = best
+        ransac_run(run)
+        if config.try_flips and best is not previous and best[0] < config.good_fitness:
+            half_turns()
+    fitness, rmse, T_OC = best
+    return np.linalg.inv(T_OC), fitness, rmse, n, tuple(run_fitness)
+
+
+class ObjectPoseEstimator:
+    """Segment -> back-project -> register one known CAD mesh; failures become results."""
+
+    def __init__(self, mesh_path: str | Path,
+                 segmentation: GreenScreenConfig = GreenScreenConfig(),
+                 registration: RegistrationConfig = RegistrationConfig()):
+        self.mesh_path = Path(mesh_path)
+        self.segmentation = segmentation
+        self.registration = registration
+        self.model = model_cloud(self.mesh_path, registration)
+
+    def estimate(self, frame: RgbdFrame) -> PoseEstimate:
+        """The object pose in `frame`; invalid input or a poor fit gives success=False."""
+        t0 = time.perf_counter()
+        try:
+            validate_frame(frame)
+            mask = segment_object(frame, self.segmentation)
+            n_mask = int(mask.sum())
+            points_C = backproject(frame.depth, frame.intrinsics, mask)
+            if len(points_C) < self.registration.min_points:
+                return PoseEstimate(False, f"too few object pixels ({n_mask}) after "
+                                    "segmentation", num_mask_pixels=n_mask,
+                                    elapsed_s=time.perf_counter() - t0)
+            T_CO, fitness, rmse, n, runs = register_model(points_C, self.model,
+                                                          self.registration)
+        except Exception as e:  # noqa: BLE001 - the contract: failures are results
+            return PoseEstimate(False, f"perception error: {type(e).__name__}: {e}",
+                                elapsed_s=time.perf_counter() - t0)
+        elapsed = time.perf_counter() - t0
+        if n < self.registration.min_points:
+            return PoseEstimate(False, f"too few points after downsampling ({n} < "
+                                f"{self.registration.min_points})", num_mask_pixels=n_mask,
+                                num_points=n, elapsed_s=elapsed)
+        X_CO = RigidTransform(T_CO)
+        X_WO = frame.X_WC @ X_CO if frame.X_WC is not None else None
+        ok = fitness >= self.registration.min_fitness
+        reason = "" if ok else (f"low fitness {fitness:.2f} < "
+                                f"{self.registration.min_fitness:.2f}")
+        return PoseEstimate(ok, reason, X_CO, X_WO, fitness, rmse, n_mask, n, elapsed,
+                            runs)

@@ -1,0 +1,296 @@
+"""Kinect camera sources and CAD-registration perception (hardware/kinect.py, perception.py)."""
+
+import sys
+import types
+
+import numpy as np
+import pytest
+import trimesh
+from pydrake.math import RigidTransform, RollPitchYaw
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.hardware.kinect import (
+    KINECT_COLOR_720P, CameraIntrinsics, DepthNoiseModel, DrakeRenderedCamera, EndOfSequence,
+    FrameError, K4ADevice, RecordedSequence, RgbdFrame, load_frame, look_at, save_frame,
+    save_sequence,
+)
+from dexdrake.hardware.perception import (
+    GreenScreenConfig, ObjectPoseEstimator, RegistrationConfig, backproject, segment_object,
+    transform_points,
+)
+
+K_SMALL = KINECT_COLOR_720P.scaled(160, 90)
+GREEN = (40, 170, 50)
+RED = (200, 60, 40)
+
+
+def _frame(color=None, depth=None, k=K_SMALL, t=0.0, X_WC=None) -> RgbdFrame:
+    if color is None:
+        color = np.zeros((k.height, k.width, 3), np.uint8)
+        color[:] = GREEN
+    if depth is None:
+        depth = np.full((k.height, k.width), 700, np.uint16)
+    return RgbdFrame(color, depth, k, t, X_WC)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("DEXDRAKE_CACHE", str(tmp_path_factory.mktemp("cache")))
+    yield
+    mp.undo()
+
+
+@pytest.fixture(scope="module")
+def l_shape(tmp_path_factory):
+    """A non-symmetric watertight object (bar + side block + peg), origin at the COM."""
+    a = trimesh.creation.box((0.10, 0.04, 0.03))
+    b = trimesh.creation.box((0.03, 0.06, 0.03))
+    b.apply_translation((0.035, 0.05, 0.0))
+    c = trimesh.creation.cylinder(0.012, 0.05)
+    c.apply_translation((-0.03, 0.0, 0.035))
+    mesh = trimesh.boolean.union([a, b, c])
+    mesh.apply_translation(-mesh.center_mass)
+    path = tmp_path_factory.mktemp("mesh") / "l_shape.obj"
+    mesh.export(path)
+    return path, float(-mesh.bounds[0, 2])
+
+
+# ---------------------------------------------------------------- frames and sources
+
+def test_intrinsics_scaling_round_trips_and_keeps_pixel_centres():
+    k = KINECT_COLOR_720P.scaled(640, 360)
+    assert k.fx == pytest.approx(305.9) and k.cx == pytest.approx(319.4)
+    back = k.scaled(1280, 720)
+    assert (back.fx, back.fy, back.cx, back.cy) == pytest.approx((611.8, 611.9, 639.3, 365.9))
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: _frame(color=np.zeros((90, 160, 3), np.float32)), "color"),
+    (lambda: _frame(color=np.zeros((90, 160), np.uint8)), "color"),
+    (lambda: _frame(depth=np.zeros((90, 160), np.float32)), "depth"),
+    (lambda: _frame(depth=np.zeros((80, 160), np.uint16)), "not aligned"),
+    (lambda: _frame(np.zeros((90, 160, 3), np.uint8), np.zeros((90, 160), np.uint16),
+                    k=KINECT_COLOR_720P.scaled(320, 180)), "intrinsics are for"),
+    (lambda: _frame(t=float("nan")), "timestamp"),
+    (lambda: _frame(X_WC=np.eye(4)), "X_WC"),
+    (lambda: CameraIntrinsics(160, 90, -1.0, 70.0, 80.0, 45.0), "focal"),
+    (lambda: CameraIntrinsics(160, 90, 70.0, 70.0, 200.0, 45.0), "principal point"),
+    (lambda: CameraIntrinsics(160, 90, float("inf"), 70.0, 80.0, 45.0), "finite"),
+])
+def test_frame_validation_refuses_bad_frames(make, match):
+    with pytest.raises(FrameError, match=match):
+        make()
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: RegistrationConfig(voxel=0.0), "voxel"),
+    (lambda: RegistrationConfig(min_fitness=1.5), "min_fitness"),
+    (lambda: GreenScreenConfig(min_depth_mm=900, max_depth_mm=500), "depth range"),
+    (lambda: DepthNoiseModel(dropout=-0.1), "dropout"),
+])
+def test_bad_configurations_are_refused(make, match):
+    with pytest.raises(DexdrakeError, match=match):
+        make()
+
+
+def test_recorded_sequence_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    X = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.1, 0.2, 0.3])
+    frames = [
+        _frame(color=rng.integers(0, 256, (90, 160, 3), dtype=np.uint8),
+               depth=rng.integers(0, 4000, (90, 160), dtype=np.uint16), t=0.1 * i,
+               X_WC=X if i == 0 else None)
+        for i in range(3)
+    ]
+    assert save_sequence(frames, tmp_path / "seq") == 3
+    seq = RecordedSequence(tmp_path / "seq")
+    played = list(seq)
+    assert len(played) == len(seq) == 3
+    for a, b in zip(frames, played):
+        np.testing.assert_array_equal(a.color, b.color)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        assert a.intrinsics == b.intrinsics and a.timestamp == b.timestamp
+    np.testing.assert_allclose(played[0].X_WC.GetAsMatrix4(), X.GetAsMatrix4())
+    assert played[1].X_WC is None
+    with pytest.raises(EndOfSequence):
+        seq.read()
+    looped = RecordedSequence(tmp_path / "seq", loop=True)
+    assert [looped.read().timestamp for _ in range(4)] == pytest.approx([0.0, 0.1, 0.2, 0.0])
+
+
+def test_recorded_frame_with_bad_content_is_refused(tmp_path):
+    np.savez(tmp_path / "frame_000000.npz", color=np.zeros((4, 4, 3), np.uint8),
+             depth=np.zeros((4, 4), np.float32), intrinsics=np.array([3.0, 3.0, 2.0, 2.0]),
+             timestamp=np.float64(0))
+    with pytest.raises(FrameError, match="depth"):
+        RecordedSequence(tmp_path).read()
+    np.savez(tmp_path / "partial.npz", color=np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(FrameError, match="missing"):
+        load_frame(tmp_path / "partial.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(FrameError, match="not a readable"):
+        load_frame(tmp_path / "junk.npz")
+    with pytest.raises(DexdrakeError, match="does not exist"):
+        RecordedSequence(tmp_path / "nowhere")
+
+
+def test_single_file_sequence(tmp_path):
+    path = save_frame(_frame(t=2.5), tmp_path / "one.npz")
+    assert [f.timestamp for f in RecordedSequence(path)] == [2.5]
+
+
+def _fake_pyk4a(width=64, height=36):
+    """A stand-in for pyk4a (its own tests mock the device the same way)."""
+    mod = types.ModuleType("pyk4a")
+    mod.ColorResolution = types.SimpleNamespace(RES_720P="720P")
+    mod.DepthMode = types.SimpleNamespace(NFOV_UNBINNED="NFOV")
+    mod.ImageFormat = types.SimpleNamespace(COLOR_BGRA32="BGRA32")
+    mod.CalibrationType = types.SimpleNamespace(COLOR="color", DEPTH="depth")
+    mod.Config = lambda **kw: kw
+
+    class Calibration:
+        def get_camera_matrix(self, which):
+            assert which == "color"
+            return np.array([[30.0, 0, 31.5], [0, 30.5, 17.5], [0, 0, 1]])
+
+    class PyK4A:
+        def __init__(self, config, device_id=0):
+            self.config, self.started, self.n = config, False, 0
+            self.calibration = Calibration()
+
+        def start(self):
+            self.started = True
+
+        def stop(self):
+            self.started = False
+
+        def get_capture(self, timeout=-1):
+            self.n += 1
+            bgra = np.zeros((height, width, 4), np.uint8)
+            bgra[..., 0], bgra[..., 1], bgra[..., 2] = 10, 20, 30
+            return types.SimpleNamespace(
+                color=bgra, transformed_depth=np.full((height, width), 800, np.uint16),
+                color_timestamp_usec=self.n * 33_333)
+
+    mod.PyK4A = PyK4A
+    return mod
+
+
+def test_k4a_device_converts_bgra_and_reads_calibration(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyk4a", _fake_pyk4a())
+    with K4ADevice(warmup_frames=2) as cam:
+        assert cam._k4a.config["color_format"] == "BGRA32"
+        frame = cam.read()
+        assert frame.color[0, 0].tolist() == [30, 20, 10]  # RGB
+        assert frame.depth.dtype == np.uint16 and frame.depth[0, 0] == 800
+        assert (frame.intrinsics.fx, frame.intrinsics.cy) == (30.0, 17.5)
+        assert frame.timestamp == pytest.approx(3 * 0.033333)
+    assert not cam._k4a.started
+
+
+def test_k4a_device_without_pyk4a_says_what_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyk4a", None)
+    with pytest.raises(DexdrakeError, match="pyk4a"):
+        K4ADevice()
+
+
+def test_depth_noise_model_is_seeded_and_kinect_like():
+    depth = np.full((200, 200), 1.0)
+    depth[:, :5] = np.inf
+    model = DepthNoiseModel(edge_jump_mm=0.0)
+    a = model.apply(depth, np.random.default_rng(3))
+    np.testing.assert_array_equal(a, model.apply(depth, np.random.default_rng(3)))
+    assert np.all(a[:, :5] == 0)
+    valid = a[:, 5:] > 0
+    assert 0.97 < valid.mean() < 1.0                 # 1 % dropout
+    err = a[:, 5:][valid].astype(float) - 1000.0
+    assert err.mean() == pytest.approx(3.0, abs=0.2)  # 2 mm + 0.1 % of 1 m
+    assert err.std() == pytest.approx(2.5, abs=0.2)   # 1 + 1.5 * 1**2 mm
+
+
+# ---------------------------------------------------------------- perception
+
+def test_segmentation_keeps_object_drops_specks_and_out_of_range():
+    frame_color = np.zeros((90, 160, 3), np.uint8)
+    frame_color[:] = GREEN
+    frame_color[30:60, 40:80] = RED     # the object
+    frame_color[5:7, 5:7] = RED         # a 2x2 speck: removed by the opening
+    frame_color[70:85, 120:150] = RED   # red but beyond the depth range
+    depth = np.full((90, 160), 700, np.uint16)
+    depth[70:85, 120:150] = 2500
+    depth[40, 50] = 0                   # a hole: no data
+    mask = segment_object(_frame(frame_color, depth), GreenScreenConfig(max_depth_mm=1500))
+    expected = np.zeros((90, 160), bool)
+    expected[30:60, 40:80] = True
+    expected[40, 50] = False
+    np.testing.assert_array_equal(mask, expected)
+
+
+def test_backprojection_is_exact_on_a_known_plane():
+    k = KINECT_COLOR_720P.scaled(320, 180)
+    n, d = np.array([0.2, -0.3, 1.0]), 0.9       # plane n . p = d in the camera frame
+    u, v = np.meshgrid(np.arange(k.width), np.arange(k.height))
+    rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, float)], -1)
+    z_m = d / (rays @ n)
+    depth = np.round(z_m * 1000).astype(np.uint16)
+    depth[:10] = 0
+    points = backproject(depth, k)
+    assert len(points) == (k.height - 10) * k.width
+    # On the plane up to the 0.5 mm depth quantisation along each ray.
+    residual = np.abs(points @ n - d) / np.linalg.norm(n)
+    bound = 0.5e-3 * np.abs(rays[10:] @ n).ravel() / np.linalg.norm(n)
+    assert np.all(residual <= bound + 1e-12)
+    np.testing.assert_allclose(points[:, 2], depth[10:].ravel() * 1e-3)
+    # Pixel (cx, cy) direction: the principal ray.
+    np.testing.assert_allclose(points[:, :2] / points[:, 2:], rays[10:, :, :2].reshape(-1, 2),
+                               atol=1e-12)
+
+
+def test_empty_mask_is_a_failure_result_not_an_exception(l_shape, cache):
+    estimator = ObjectPoseEstimator(l_shape[0], registration=RegistrationConfig(ransac_runs=1))
+    result = estimator.estimate(_frame())         # all green: nothing to register
+    assert not result.success and "too few object pixels" in result.reason
+    assert result.X_WO is None and result.num_mask_pixels == 0
+    result = estimator.estimate(None)             # not a frame at all
+    assert not result.success and "RgbdFrame" in result.reason
+
+
+def test_missing_mesh_is_a_clear_error(tmp_path, cache):
+    with pytest.raises(DexdrakeError, match="does not exist"):
+        ObjectPoseEstimator(tmp_path / "missing.obj")
+
+
+@pytest.fixture(scope="module")
+def rendered(l_shape, cache):
+    X_WC = look_at([-0.45, 0.0, 0.45], [0.0, 0.0, 0.02])
+    return DrakeRenderedCamera(X_WC, {"l_shape": l_shape[0]}, width=640, height=360,
+                               noise=None, seed=0)
+
+
+def test_rendered_table_backprojects_onto_z0(rendered):
+    rendered.hide_object("l_shape")
+    frame = rendered.read()
+    assert frame.color.shape == (360, 640, 3) and frame.depth.dtype == np.uint16
+    mask = segment_object(frame)
+    assert not mask.any()                         # green table and wall only
+    points_W = transform_points(frame.X_WC, backproject(frame.depth, frame.intrinsics))
+    on_table = (points_W[:, 0] < 0.55) & (np.abs(points_W[:, 1]) < 0.55)
+    assert on_table.sum() > 50_000
+    assert np.abs(points_W[on_table, 2]).max() < 2e-3   # within depth quantisation
+
+
+def test_registration_recovers_a_rendered_pose(rendered, l_shape, cache):
+    path, rest_height = l_shape
+    X_WO = RigidTransform(RollPitchYaw(0.0, 0.0, 2.1), [0.03, -0.02, rest_height])
+    rendered.set_object_pose("l_shape", X_WO)
+    frame = rendered.read()
+    estimator = ObjectPoseEstimator(path, registration=RegistrationConfig(ransac_runs=3))
+    result = estimator.estimate(frame)
+    assert result.success, result.reason
+    assert result.fitness > 0.9 and result.num_points >= 100
+    err = X_WO.inverse() @ result.X_WO
+    assert np.linalg.norm(err.translation()) < 3e-3
+    assert np.degrees(err.rotation().ToAngleAxis().angle()) < 2.0
+    np.testing.assert_allclose((frame.X_WC @ result.X_CO).GetAsMatrix4(),
+                               result.X_WO.GetAsMatrix4())

@@ -2,6 +2,7 @@
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--epochs 40] [--lr 1e-4]
         [--seeds 2] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
+        [--timing fast|early_lift] [--noise 0.05 --noise-seed 0]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work. The result: models/weights/adroit_dexrep_policy.pt (the best
@@ -26,8 +27,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
-DATA_SOURCE = ("successful scripted grasps (systems/scripted_grasp.py ScriptedGrasp, faster phase timing "
-               "dexdrake.eval.scripted_data.FAST_SCRIPT) on training objects; not the human-demo replay")
+DATA_SOURCE = ("successful scripted grasps (systems/scripted_grasp.py ScriptedGrasp, phase timing "
+               "dexdrake.eval.scripted_data.TIMINGS[{timing!r}]) on training objects{noise}; not the human-demo replay")
 
 
 def run(cmd: list[str], done: Path, log: list[dict]) -> None:
@@ -48,6 +49,8 @@ def sha256(path: Path) -> str:
 
 
 def main() -> None:
+    from dexdrake.eval.scripted_data import TIMINGS
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=Path("runs/default_policy"))
     parser.add_argument("--epochs", type=int, default=40)
@@ -57,6 +60,11 @@ def main() -> None:
     parser.add_argument("--seen-episodes", type=int, default=2)
     parser.add_argument("--unseen-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--timing", default="fast", choices=sorted(TIMINGS),
+                        help="script phase timing (dexdrake.eval.scripted_data.TIMINGS)")
+    parser.add_argument("--noise", type=float, default=0.0,
+                        help="DART-style OU noise std on executed demo actions (normalised units; 0: off)")
+    parser.add_argument("--noise-seed", type=int, default=0)
     args = parser.parse_args()
 
     py, dexdrake = sys.executable, str(Path(sys.executable).with_name("dexdrake"))
@@ -66,7 +74,8 @@ def main() -> None:
     log: list[dict] = []
     start = time.perf_counter()
     run([py, "scripts/build_scripted_dataset.py", "record", "--objects", "train", "--seeds", str(args.seeds),
-         "--first-seed", str(args.first_seed), "--workers", str(args.workers), "--out", str(raw)], raw, log)
+         "--first-seed", str(args.first_seed), "--workers", str(args.workers), "--timing", args.timing,
+         "--noise", str(args.noise), "--noise-seed", str(args.noise_seed), "--out", str(raw)], raw, log)
     run([py, "scripts/build_scripted_dataset.py", "featurise", "--raw", str(raw), "--feature-set", "DexRep",
          "--out", str(data)], data, log)
     run([dexdrake, "train", "bc", "--data", str(data), "--out", str(bc), "--epochs", str(args.epochs), "--lr",
@@ -97,6 +106,8 @@ def main() -> None:
     net, meta = load_policy(target)
     dataset_meta = load_demo_dataset(data).metadata
     encoder = default_encoder_path()
+    noise_text = (f", executed with OU action noise std {args.noise} (seed {args.noise_seed}) and labelled with the "
+                  "clean expert action (DART-style)") if args.noise > 0 else ""
     manifest = {
         "policy": "models/weights/adroit_dexrep_policy.pt",
         "sha256": sha256(target),
@@ -112,7 +123,8 @@ def main() -> None:
             "val_loss": meta.get("val_loss"),
             "paper_bc": "150 epochs, batch 64, lr 1e-5; then 500 DAPG iterations",
         },
-        "dataset": {"source": DATA_SOURCE, "path": str(data), "metadata": {k: v for k, v in dataset_meta.items()}},
+        "dataset": {"source": DATA_SOURCE.format(timing=args.timing, noise=noise_text), "path": str(data),
+                    "metadata": {k: v for k, v in dataset_meta.items()}},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],
         "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": 1, "platform": platform.platform(),
                     "load_average_at_end": round(os.getloadavg()[0], 1), "note": "2 CPU cores shared with other jobs",

@@ -231,3 +231,46 @@ def test_refeaturised_scripted_states_match_online_observations(tmp_path):
         online.append(env.step(a)[0])
     assert blocks == env.observation_blocks
     np.testing.assert_allclose(obs, np.asarray(online, dtype=np.float32), atol=1e-5)
+
+
+def test_ou_action_noise_is_stationary_correlated_and_seeded():
+    from dexdrake.eval.action_noise import OUActionNoise
+
+    noise = OUActionNoise(4, std=0.1, rho=0.9, seed=3)
+    x = np.array([noise.sample() for _ in range(20000)])
+    assert x.std(0) == pytest.approx([0.1] * 4, rel=0.1)
+    lag1 = np.mean([np.corrcoef(x[:-1, j], x[1:, j])[0, 1] for j in range(4)])
+    assert lag1 == pytest.approx(0.9, abs=0.03)
+    again = OUActionNoise(4, std=0.1, rho=0.9, seed=3)
+    np.testing.assert_array_equal(again.sample(), x[0])
+    for bad in ({"std": -0.1}, {"std": 0.1, "rho": 1.0}):
+        with pytest.raises(Exception, match="noise"):
+            OUActionNoise(4, **{"rho": 0.9, **bad})
+
+
+def test_noisy_recording_executes_noise_but_labels_clean_expert_actions():
+    from dexdrake.eval.scripted_data import record_object
+
+    clean = record_object("adroit", OBJECT, [7], horizon=5)
+    noisy = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=1)
+    # The script is planned at reset, so its set-points do not depend on the noisy states:
+    # the labels must be exactly the clean expert's while the visited states differ.
+    np.testing.assert_array_equal(noisy.actions, clean.actions)
+    np.testing.assert_array_equal(noisy.positions[0], clean.positions[0])
+    assert np.abs(noisy.positions[1:] - clean.positions[1:]).max() > 1e-3
+    same = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=1)
+    np.testing.assert_array_equal(same.positions, noisy.positions)
+    other = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=2)
+    assert not np.array_equal(other.positions, noisy.positions)
+    with pytest.raises(Exception, match="noise"):
+        record_object("adroit", OBJECT, [7], horizon=2, noise=-0.1)
+
+
+def test_early_lift_timing_grasps_within_the_evaluation_episode():
+    from dexdrake.eval.scripted_data import EARLY_LIFT, record_object, timing_named
+
+    assert timing_named("early_lift") == EARLY_LIFT
+    with pytest.raises(Exception, match="early_lift"):
+        timing_named("slow")
+    raw = record_object("adroit", OBJECT, [1000], horizon=100, timing=EARLY_LIFT)
+    assert raw.success.tolist() == [True] and len(raw.actions) == 100

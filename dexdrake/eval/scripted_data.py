@@ -1,11 +1,16 @@
 """A behaviour-cloning dataset from successful scripted grasps, re-featurisable per feature set.
 
-`record_object` runs `systems.scripted_grasp.ScriptedGrasp` (with a faster phase timing,
-`FAST_SCRIPT`, so the grasp succeeds within the paper's 100-step evaluation episodes) in
+`record_object` runs `systems.scripted_grasp.ScriptedGrasp` (with a faster phase timing from
+`TIMINGS`, so the grasp succeeds within the paper's 100-step evaluation episodes) in
 `GraspEnv` and keeps every step's raw simulator positions (hand joints and object pose)
 with the normalised action applied. `featurise` turns raw states into the observations of
 any feature set by setting the plant positions and calling the env's feature extractor, so
 one recording serves every ablation.
+
+With `noise > 0` the recording is DART-style: the env executes the expert's action plus
+temporally correlated noise (`dexdrake.eval.action_noise.OUActionNoise`) while the clean
+expert action is recorded as the label, so the data covers the states a slightly wrong
+policy drifts into together with the expert's correction from there.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.action_noise import DEFAULT_RHO, OUActionNoise
 
 RAW_FORMAT = "dexdrake.scripted_raw/1"
 DATASET_FORMAT = "dexdrake.scripted/1"
@@ -34,6 +40,18 @@ class ScriptTiming:
 
 
 FAST_SCRIPT = ScriptTiming()
+# Lift finished by 0.9 s (step 45) and a 0.35 s close: the 50-step hold ends by step ~95 of the
+# paper's 100-step episode, where FAST_SCRIPT's first success comes at step ~98 (no slack
+# for a policy that lags the expert by a few steps).
+EARLY_LIFT = ScriptTiming(approach_end=0.2, descend_end=0.35, close_end=0.7, lift_end=0.9)
+TIMINGS: dict[str, ScriptTiming] = {"fast": FAST_SCRIPT, "early_lift": EARLY_LIFT}
+
+
+def timing_named(name: str) -> ScriptTiming:
+    """The script timing called `name` (one of TIMINGS)."""
+    if name not in TIMINGS:
+        raise DexdrakeError(f"unknown script timing {name!r}; choose one of {sorted(TIMINGS)}")
+    return TIMINGS[name]
 
 
 @dataclass
@@ -59,33 +77,39 @@ class RawEpisodes:
                            self.episode_starts[keep], self.positions[keep], self.actions[keep])
 
 
-def normalised_action(q_command: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Joint set-points -> the [-1, 1] action that `GraspEnv.step` maps back to them."""
-    mid, half = (hi + lo) / 2, (hi - lo) / 2
-    return np.clip((np.asarray(q_command, float) - mid) / half, -1.0, 1.0)
-
-
 def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
-                  timing: ScriptTiming = FAST_SCRIPT) -> RawEpisodes:
-    """Run the scripted grasp on object `name` for each seed; record raw states and actions."""
+                  timing: ScriptTiming = FAST_SCRIPT, noise: float = 0.0, noise_seed: int = 0,
+                  noise_rho: float = DEFAULT_RHO) -> RawEpisodes:
+    """Run the scripted grasp on object `name` for each seed; record raw states and actions.
+
+    `noise` is the per-step standard deviation (normalised action units) of OU noise with
+    step correlation `noise_rho` added to the executed action on every joint; the recorded
+    action is always the clean expert action. Episode `seed`'s noise is seeded with
+    (noise_seed, seed), so a recording is reproducible.
+    """
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
 
+    if horizon < 1:
+        raise DexdrakeError(f"horizon must be >= 1, got {horizon}")
+    if not noise >= 0:
+        raise DexdrakeError(f"noise std must be >= 0, got {noise}")
     env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=None, horizon=horizon)
-    lo, hi = env.scene.hand.joint_limits()
     script = GraspScript(**asdict(timing))
     positions, actions, starts, success = [], [], [], []
     for seed in seeds:
         env.reset(int(seed))
         controller = ScriptedGrasp(env, script)
+        perturb = OUActionNoise(env.action_dim, noise, noise_rho, seed=[int(noise_seed), int(seed)]) if noise > 0 else None
         ok = False
         for t in range(horizon):
             positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
-            a = normalised_action(controller(env), lo, hi)
+            a = np.clip(env.normalise(controller(env)), -1.0, 1.0)
             actions.append(a.astype(np.float32))
             starts.append(t == 0)
-            _, _, done, info = env.step(a)
+            executed = a if perturb is None else np.clip(a + perturb.sample(), -1.0, 1.0)
+            _, _, done, info = env.step(executed)
             ok = ok or bool(info["success"])
             if done:
                 break

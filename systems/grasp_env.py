@@ -13,15 +13,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
-from dexdrake.task import RewardTerms, SuccessTracker, TaskSpec, reward_terms
+from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
-
-
-@dataclass
-class StepInfo:
-    success: bool
-    lift: float
-    terms: RewardTerms
 
 
 @dataclass

@@ -87,7 +87,7 @@ def markdown_table(report: EvalReport) -> str:
         f"- policy: `{report.policy}`",
         f"- seeds {report.seeds_text()} per object ({report.episodes_per_object} episodes), "
         f"{report.horizon} control steps (50 Hz), deterministic mean actions",
-        f"- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
+        "- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s)",
         "",
         "| object | successes | ours (%) | paper DexRep (%) | mean max lift (m) |",

@@ -23,6 +23,7 @@ from typing import Optional
 from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.allegro_units import PWM_SCALE_12V
 
 HAND_KINDS = ("sim", "emulated", "hardware")
 CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
@@ -106,7 +107,7 @@ class HilWorldConfig:
     treats the normalised torque pwm / 1200 as N*m, and the reflected inertia and damping
     match the firmware emulator's own model (ddq = 2 * pwm - 5 * dq)."""
 
-    torque_per_pwm: float = 1.0 / 1200.0  # N*m per PWM count
+    torque_per_pwm: float = 1.0 / PWM_SCALE_12V  # N*m per PWM count
     finger_reflected_inertia: float = 4.2e-4  # kg*m^2, per finger joint
     finger_damping: float = 2.1e-3  # N*m*s/rad
     max_lag_s: float = 0.05  # at most this much lag behind the wall clock is caught up

@@ -355,34 +355,16 @@ def test_position_counts_round_trip_and_spec_frame():
                                atol=au.RAD_PER_COUNT / 2)
     counts = np.array([-566, 0, 1, 32767], dtype=np.int16)
     np.testing.assert_array_equal(au.rad_to_counts(au.counts_to_rad(counts)), counts)
-    # `080 [8] CA FD ..`: index j0 = 0xFDCA = -566 counts, -0.05024 rad.
-    q = au.decode_position_payload(bytes([0xCA, 0xFD, 0, 0, 0x10, 0x27, 0, 0x80]))
-    np.testing.assert_allclose(q, np.array([-566, 0, 10000, -32768]) * au.RAD_PER_COUNT)
-    assert q[0] == pytest.approx(-0.05024, abs=5e-6)
+    # `080 [8] CA FD ..`: index j0 = 0xFDCA = -566 counts, -0.05024 rad (the frame itself
+    # is decoded by the CAN codec, tests/test_allegro_can.py).
+    assert au.counts_to_rad(np.array([-566]))[0] == pytest.approx(-0.05024, abs=5e-6)
     with pytest.raises(DexdrakeError):
         au.rad_to_counts([4.0])
-    with pytest.raises(DexdrakeError):
-        au.decode_position_payload(b"\xca\xfd")
 
 
-def test_torque_pwm_conversions_and_spec_frame():
-    # `18C [8] 58 02 ..`: 600 PWM on thumb j0 = 0x0258 little-endian.
-    assert au.encode_torque_payload([600, 0, -1, 270]) == bytes(
-        [0x58, 0x02, 0, 0, 0xFF, 0xFF, 0x0E, 0x01])
-    assert au.normalised_torque_to_pwm(0.5) == 600.0
-    np.testing.assert_allclose(au.pwm_to_normalised_torque(au.normalised_torque_to_pwm(
-        [0.1, -0.3])), [0.1, -0.3])
+def test_pwm_limits_in_bus_order():
     np.testing.assert_array_equal(au.PWM_LIMITS[:4], [375, 675, 450, 285])
     np.testing.assert_array_equal(au.PWM_LIMITS[12:], [525, 405, 270, 270])
-    np.testing.assert_array_equal(au.saturate_pwm(np.full(16, 1e4)), au.PWM_LIMITS)
-    np.testing.assert_array_equal(au.saturate_pwm(np.full(16, -1e4)), -au.PWM_LIMITS)
-    np.testing.assert_array_equal(au.saturate_pwm(np.full(16, 100.4)), np.full(16, 100))
-    with pytest.raises(DexdrakeError):
-        au.saturate_pwm(np.zeros(4))
-    with pytest.raises(DexdrakeError):
-        au.saturate_pwm(np.r_[np.zeros(15), np.nan])
-    with pytest.raises(DexdrakeError):
-        au.encode_torque_payload([40000, 0, 0, 0])
 
 
 def test_vendor_gains_in_bus_order():

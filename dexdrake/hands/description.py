@@ -81,10 +81,6 @@ class HandDescription:
     def num_actuators(self) -> int:
         return len(self.policy_joints)
 
-    @property
-    def finger_joints(self) -> tuple[str, ...]:
-        return self.policy_joints[len(self.arm_joints):]
-
     def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) position limits in policy order, read from the model file."""
         return _model_limits(str(self.model_path), self.policy_joints)

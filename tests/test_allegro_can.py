@@ -32,6 +32,7 @@ from dexdrake.hardware.allegro_can import (
 )
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.safety import HardwareError
+from waiting import wait_for
 
 # spec table (allegro_v4.md), bus order: index, middle, ring (same limits), thumb
 FINGER_LO, FINGER_HI = [-0.47, -0.196, -0.174, -0.227], [0.47, 1.61, 1.709, 1.618]
@@ -42,15 +43,6 @@ UPPER = np.array(FINGER_HI * 3 + [1.396, 1.163, 1.644, 1.719])
 def msg(arb: int, data: bytes = b"", rtr: bool = False, dlc: int | None = None) -> can.Message:
     return can.Message(arbitration_id=arb, is_extended_id=False, is_remote_frame=rtr, data=data,
                        dlc=len(data) if dlc is None else dlc)
-
-
-def wait_for(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
 
 
 @pytest.fixture

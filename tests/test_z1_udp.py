@@ -27,20 +27,12 @@ from dexdrake.hardware.z1_udp import (
     Z1Config,
     default_joint_limits,
 )
+from waiting import wait_for
 
 # z1.md, current limits
 LOWER = np.array([-2.6180, 0.0, -2.8798, -1.5184, -1.3439, -2.7925])
 UPPER = np.array([2.6180, 2.9671, 0.0, 1.5184, 1.3439, 2.7925])
 TARGET = np.array([0.5, 1.0, -1.0, 0.3, -0.3, 0.5])
-
-
-def wait_for(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
 
 
 @pytest.fixture

@@ -1,15 +1,15 @@
-"""Feature-set ablation: BC on the same demos for every feature set, evaluated on unseen objects.
+"""Feature-set ablation: DAgger with the same budget for every feature set, evaluated on unseen objects.
 
-    python scripts/ablations.py --raw runs/m/scripted_raw.npz --out runs/m/ablations \
-        [--sets all|Hand2obj,DexRep] [--epochs 30] [--lr 1e-4] [--episodes 2] [--objects paper] \
-        [--workers 2] [--seed 0]
+    python scripts/ablations.py --out runs/ablations [--sets all|Hand2obj,DexRep] [--iterations 3]
+        [--per-object 1] [--epochs 10] [--lr 1e-4] [--episodes 2] [--objects paper] [--workers 2] [--seed 0]
 
-The demos are one raw recording (scripts/build_scripted_dataset.py record: per-step plant
-positions and actions of successful scripted grasps) re-featurised with each set's
-observation, so every set sees exactly the same states and actions and gets the same BC
-budget (epochs, batch 64, lr, seed). `--objects paper` evaluates the 10 unseen GRAB objects
-of the paper's ablation; `unseen` all 13 unseen library objects. Writes ablations.md/.csv
-beside the paper's numbers, naming the command.
+Every set is trained by `dexdrake.learn.dagger.train_dagger` on the training objects with
+the same expert, iterations, episodes, BC epochs, lr and seeds; only the observation
+differs. Iteration 0 runs the (deterministic) expert on the same seeds, so every set starts
+from the same states and labels.
+`--objects paper` evaluates the 10 unseen GRAB objects of the paper's ablation; `unseen`
+all 13 unseen library objects. Writes ablations.md/.csv beside the paper's numbers,
+naming the command; partial tables survive an interrupted run.
 """
 
 from __future__ import annotations
@@ -21,35 +21,35 @@ import sys
 import time
 from pathlib import Path
 
+COLUMNS = ("feature_set", "obs_dim", "train_success_last_pct", "ours_paper_objects_pct", "ours_all_pct", "paper_pct",
+           "mean_max_lift_m", "minutes")
 
-def run_set(feature_set: str, raw, raw_meta, recorded, args, objects: list[str]) -> dict[str, object]:
-    """Featurise, train BC and evaluate one feature set; returns its table row."""
+
+def run_set(feature_set: str, args, objects: list[str]) -> dict[str, object]:
+    """Train one feature set by DAgger and evaluate it; returns its table row."""
     from dexdrake.eval.evaluate import evaluate_policy
-    from dexdrake.eval.scripted_data import dataset_metadata, featurise
     from dexdrake.eval.tables import PAPER_ABLATIONS, PAPER_UNSEEN
-    from dexdrake.learn.bc import BCConfig, train_bc
-    from dexdrake.learn.demo_dataset import load_demo_dataset, save_demo_dataset
-    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
+    from dexdrake.learn.curves import read_csv
+    from dexdrake.learn.dagger import DaggerConfig, train_dagger
+    from dexdrake.learn.policy import load_policy
+    from dexdrake.objects.library import list_objects
 
     slug = feature_set.replace("+", "_").replace("-", "_").lower()
     folder = args.out / slug
     t0 = time.perf_counter()
-    obs, blocks = featurise(raw, feature_set, progress=True)
-    data_path = save_demo_dataset(folder / "data.npz", obs, raw.actions, raw.episode_starts,
-                                  dataset_metadata(recorded, raw, raw_meta, feature_set, blocks))
-    data = load_demo_dataset(data_path)
-    config = PolicyConfig.from_blocks(blocks, data.actions.shape[1], feature_set=feature_set, hand=raw.hand)
-    bc = train_bc(DexRepNetPolicy(config), data, folder,
-                  BCConfig(epochs=args.epochs, lr=args.lr, seed=args.seed, checkpoint_every=0),
-                  {"command": shlex.join(["python", *sys.argv])})
-    report = evaluate_policy(bc.best_checkpoint, objects, args.episodes, args.eval_seed, args.workers,
+    config = DaggerConfig(feature_set=feature_set, iterations=args.iterations, episodes_per_object=args.per_object,
+                          epochs=args.epochs, lr=args.lr, workers=args.workers, seed=args.seed)
+    train = [o.name for o in list_objects("train")]
+    final = train_dagger(train, folder, config, {"command": shlex.join(["python", *sys.argv])})
+    log = read_csv(folder / "dagger_log.csv")
+    report = evaluate_policy(final, objects, args.episodes, args.eval_seed, args.workers,
                              label="unseen", command=shlex.join(["python", *sys.argv]))
     per = report.per_object()
     paper_objs = [n for n in per if n in PAPER_UNSEEN]
     return {
         "feature_set": feature_set,
-        "obs_dim": sum(blocks.values()),
-        "bc_val_loss": f"{bc.best_val_loss:.4f}",
+        "obs_dim": load_policy(final)[0].config.obs_dim,
+        "train_success_last_pct": f"{100 * float(log[-1]['success_rate']):.1f}",
         "ours_paper_objects_pct": f"{sum(per[n]['success_pct'] for n in paper_objs) / max(1, len(paper_objs)):.1f}",
         "ours_all_pct": f"{report.average_pct():.1f}",
         "paper_pct": f"{PAPER_ABLATIONS[feature_set]:.1f}",
@@ -58,38 +58,41 @@ def run_set(feature_set: str, raw, raw_meta, recorded, args, objects: list[str])
     }
 
 
-def write_table(rows: list[dict[str, object]], args, objects: list[str], n_samples: int, n_episodes: int) -> None:
+def write_table(rows: list[dict[str, object]], args, objects: list[str]) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "ablations.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "# Feature-set ablation (BC only, reduced budget)",
+        "# Feature-set ablation (DAgger, equal reduced budget)",
         "",
         f"- command: `{shlex.join(['python', *sys.argv])}`",
-        f"- demos: {n_samples} samples from {n_episodes} successful scripted-grasp episodes, the same for every set",
-        f"- BC: {args.epochs} epochs, batch 64, lr {args.lr}, seed {args.seed} (paper: 150 epochs, lr 1e-5, then DAPG)",
+        f"- training: DAgger with the state-driven expert (systems/reactive_grasp.py) on the 53 training objects, "
+        f"{args.iterations} iterations x {args.per_object} episode(s) per object, BC {args.epochs} epochs per "
+        f"iteration, batch 64, lr {args.lr}, seed {args.seed}; iteration 0 is the same expert episodes for every set",
+        "- train success: the executed success of the last DAgger iteration (the previous policy on training objects)",
         f"- evaluation: {len(objects)} unseen objects x {args.episodes} episodes (seeds {args.eval_seed}.."
         f"{args.eval_seed + args.episodes - 1}), 100 steps, mean actions",
         "- paper: DexRep ablations after BC + DAPG, 10 unseen GRAB objects, 3 seeds",
         "",
-        "| feature set | obs dim | BC val loss | ours, paper objects (%) | ours, all evaluated (%) | paper (%) | mean max lift (m) | minutes |",
+        "| feature set | obs dim | train success, last iteration (%) | ours, paper objects (%) | ours, all evaluated (%) "
+        "| paper (%) | mean max lift (m) | minutes |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append("| " + " | ".join(str(r[k]) for k in ("feature_set", "obs_dim", "bc_val_loss",
-                     "ours_paper_objects_pct", "ours_all_pct", "paper_pct", "mean_max_lift_m", "minutes")) + " |")
+        lines.append("| " + " | ".join(str(r[k]) for k in COLUMNS) + " |")
     (args.out / "ablations.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--raw", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--sets", default="all")
-    parser.add_argument("--epochs", type=int, default=30)
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--per-object", type=int, default=1)
+    parser.add_argument("--epochs", type=int, default=10)
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--objects", default="paper", help="'paper' (10 GRAB objects), 'unseen' or names")
@@ -102,21 +105,18 @@ def main() -> None:
 
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
     from dexdrake.eval.envs import resolve_objects
-    from dexdrake.eval.scripted_data import load_raw
     from dexdrake.eval.tables import PAPER_UNSEEN
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(2)
     sets = list(FEATURE_SETS) if args.sets == "all" else args.sets.split(",")
     unknown = [s for s in sets if s not in FEATURE_SETS]
     if unknown:
         raise SystemExit(f"unknown feature sets {unknown}; valid: {list(FEATURE_SETS)}")
     objects = list(PAPER_UNSEEN) if args.objects == "paper" else resolve_objects(args.objects)[1]
-    recorded, raw_meta = load_raw(args.raw)
-    raw = recorded.select_successful()
     rows = []
     for fs in sets:
-        rows.append(run_set(fs, raw, raw_meta, recorded, args, objects))
-        write_table(rows, args, objects, len(raw.actions), len(raw.objects))  # partial results survive
+        rows.append(run_set(fs, args, objects))
+        write_table(rows, args, objects)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,13 @@
-"""Build the shipped default policy: scripted demos -> DexRep dataset -> BC -> eval -> models/weights.
+"""Build the shipped default policy: DAgger with the state-driven expert -> eval -> models/weights.
 
-    python scripts/build_default_policy.py [--work runs/default_policy] [--epochs 40] [--lr 1e-4]
-        [--seeds 2] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
-        [--timing fast|early_lift] [--noise 0.05 --noise-seed 0]
+    python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
+        [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
-output already exists in --work. The result: models/weights/adroit_dexrep_policy.pt (the best
-BC checkpoint, fp32), adroit_dexrep_policy.json (commands, seeds, dataset metadata, feature
-set, compute, metrics) and eval_seen.md / eval_unseen.md. Model selection uses the BC
-validation split of the training demos only; the unseen objects are evaluated once.
+output already exists in --work (DAgger itself resumes per iteration). The result:
+models/weights/adroit_dexrep_policy.pt (the final DAgger policy), adroit_dexrep_policy.json
+(commands, seeds, data, feature set, compute, metrics) and eval_seen.md / eval_unseen.md.
+No model selection uses the evaluation objects: the last DAgger iteration is shipped.
 """
 
 from __future__ import annotations
@@ -27,8 +26,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
-DATA_SOURCE = ("successful scripted grasps (systems/scripted_grasp.py ScriptedGrasp, phase timing "
-               "dexdrake.eval.scripted_data.TIMINGS[{timing!r}]) on training objects{noise}; not the human-demo replay")
+EVAL_SEED = 900  # evaluation seeds 900.. are disjoint from DAgger's training seeds i * 10**4 + k
+DATA_SOURCE = ("DAgger on the 53 training objects: states visited by the state-driven expert (iteration 0) and by "
+               "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
+               "not the human-demo replay")
 
 
 def run(cmd: list[str], done: Path, log: list[dict]) -> None:
@@ -49,40 +50,29 @@ def sha256(path: Path) -> str:
 
 
 def main() -> None:
-    from dexdrake.eval.scripted_data import TIMINGS
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=Path("runs/default_policy"))
-    parser.add_argument("--epochs", type=int, default=40)
+    parser.add_argument("--iterations", type=int, default=6)
+    parser.add_argument("--per-object", type=int, default=2, help="episodes per training object per DAgger iteration")
+    parser.add_argument("--epochs", type=int, default=20, help="BC epochs after each DAgger iteration")
     parser.add_argument("--lr", type=float, default=1e-4)
-    parser.add_argument("--seeds", type=int, default=2, help="scripted episodes per training object")
-    parser.add_argument("--first-seed", type=int, default=1000, help="first demo seed (eval uses 0..)")
     parser.add_argument("--seen-episodes", type=int, default=2)
     parser.add_argument("--unseen-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--timing", default="fast", choices=sorted(TIMINGS),
-                        help="script phase timing (dexdrake.eval.scripted_data.TIMINGS)")
-    parser.add_argument("--noise", type=float, default=0.0,
-                        help="DART-style OU noise std on executed demo actions (normalised units; 0: off)")
-    parser.add_argument("--noise-seed", type=int, default=0)
     args = parser.parse_args()
 
-    py, dexdrake = sys.executable, str(Path(sys.executable).with_name("dexdrake"))
+    dexdrake = str(Path(sys.executable).with_name("dexdrake"))
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
-    raw, data, bc = work / "scripted_raw.npz", work / "scripted_dexrep.npz", work / "bc"
+    dagger = work / "dagger"
     log: list[dict] = []
     start = time.perf_counter()
-    run([py, "scripts/build_scripted_dataset.py", "record", "--objects", "train", "--seeds", str(args.seeds),
-         "--first-seed", str(args.first_seed), "--workers", str(args.workers), "--timing", args.timing,
-         "--noise", str(args.noise), "--noise-seed", str(args.noise_seed), "--out", str(raw)], raw, log)
-    run([py, "scripts/build_scripted_dataset.py", "featurise", "--raw", str(raw), "--feature-set", "DexRep",
-         "--out", str(data)], data, log)
-    run([dexdrake, "train", "bc", "--data", str(data), "--out", str(bc), "--epochs", str(args.epochs), "--lr",
-         str(args.lr), "--batch", "64", "--seed", "0"], bc / "bc_last.pt", log)
-    policy = bc / "bc_best.pt"
+    run([dexdrake, "train", "dagger", "--out", str(dagger), "--iterations", str(args.iterations), "--per-object",
+         str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
+         "--seed", "0"], dagger / "dagger_policy.pt", log)
+    policy = dagger / "dagger_policy.pt"
     for label, episodes in (("unseen", args.unseen_episodes), ("seen", args.seen_episodes)):
-        run([dexdrake, "eval", "--policy", str(policy), "--objects", label, "--episodes", str(episodes), "--seed", "0",
+        run([dexdrake, "eval", "--policy", str(policy), "--objects", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
              "--workers", str(args.workers), "--out", str(work / "eval")], work / "eval" / f"eval_{label}.json", log)
 
     weights = ROOT / "models" / "weights"
@@ -100,14 +90,11 @@ def main() -> None:
     import torch
 
     from dexdrake.dexrep.pointnet import default_encoder_path
-    from dexdrake.learn.demo_dataset import load_demo_dataset
+    from dexdrake.learn.curves import read_csv
     from dexdrake.learn.policy import load_policy
 
     net, meta = load_policy(target)
-    dataset_meta = load_demo_dataset(data).metadata
     encoder = default_encoder_path()
-    noise_text = (f", executed with OU action noise std {args.noise} (seed {args.noise_seed}) and labelled with the "
-                  "clean expert action (DART-style)") if args.noise > 0 else ""
     manifest = {
         "policy": "models/weights/adroit_dexrep_policy.pt",
         "sha256": sha256(target),
@@ -117,14 +104,13 @@ def main() -> None:
         "parameters": sum(p.numel() for p in net.parameters()),
         "pointnet_encoder": {"path": "models/weights/pointnet_encoder.pt", "sha256": sha256(encoder)},
         "training": {
-            "stages": "behaviour cloning only (no DAPG)",
-            "bc": meta.get("bc_config"),
-            "selected_epoch": meta.get("epoch"),
-            "val_loss": meta.get("val_loss"),
-            "paper_bc": "150 epochs, batch 64, lr 1e-5; then 500 DAPG iterations",
+            "stages": "DAgger (behaviour cloning on expert-labelled states, aggregated over iterations); no DAPG",
+            "dagger": meta.get("dagger_config"),
+            "iterations": read_csv(dagger / "dagger_log.csv"),
+            "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },
-        "dataset": {"source": DATA_SOURCE.format(timing=args.timing, noise=noise_text), "path": str(data),
-                    "metadata": {k: v for k, v in dataset_meta.items()}},
+        "dataset": {"source": DATA_SOURCE, "path": str(dagger), "seeds": "iteration i, episode k: i * 10**4 + k "
+                    "(seed 0), every training object"},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],
         "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": 1, "platform": platform.platform(),
                     "load_average_at_end": round(os.getloadavg()[0], 1), "note": "2 CPU cores shared with other jobs",

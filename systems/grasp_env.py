@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
+from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
 
@@ -71,9 +72,14 @@ class GraspEnv:
         return FeatureExtractor(scene.hand, scene.plant, scene.hand_instance, geometry, self.feature_set)
 
     # -- protocol -----------------------------------------------------------------------
-    def reset(self, seed: int, q_hand: np.ndarray | None = None) -> np.ndarray:
+    def reset(self, seed: int, q_hand: np.ndarray | None = None, object_name: str | None = None) -> np.ndarray:
+        """Start an episode: object `object_name` (default: drawn from `seed` among the env's
+        objects) placed with the seed's randomisation, the hand at `q_hand` (default pre-grasp)."""
         rng = np.random.default_rng(seed)
-        self._use(self.objects[rng.integers(len(self.objects))])
+        drawn = self.objects[rng.integers(len(self.objects))]
+        if object_name is not None and object_name not in self.objects:
+            raise DexdrakeError(f"object {object_name!r} is not one of this env's objects {self.objects}")
+        self._use(object_name or drawn)
         self.seed = seed
         self.context.SetTime(0.0)
         q0 = self.scene.hand.pregrasp_vector() if q_hand is None else np.asarray(q_hand, float)

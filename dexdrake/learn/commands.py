@@ -1,4 +1,4 @@
-"""CLI: `dexdrake train bc`, `dexdrake train dapg` and `dexdrake eval`.
+"""CLI: `dexdrake train bc|dagger|dapg` and `dexdrake eval`.
 
 Heavy imports (torch, pydrake) happen inside the commands so `--help` stays quick.
 """
@@ -74,6 +74,21 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--resume", action="store_true", help="continue from OUT/dapg_state.pt")
     dapg.add_argument("--seed", type=int, default=0)
     dapg.set_defaults(func=cmd_train_dapg)
+
+    dagger = train_sub.add_parser("dagger", help="DAgger with the state-driven grasp expert (no demo file needed)")
+    dagger.add_argument("--out", required=True, type=Path, help="output folder (per-iteration data and policies, dagger_log.csv)")
+    dagger.add_argument("--hand", default="adroit")
+    dagger.add_argument("--feature-set", default="DexRep")
+    dagger.add_argument("--objects", default="train", help="'train' or comma-separated object names")
+    dagger.add_argument("--iterations", type=_positive_int, default=6)
+    dagger.add_argument("--per-object", type=_positive_int, default=2, help="episodes per object per iteration")
+    dagger.add_argument("--horizon", type=_positive_int, default=100)
+    dagger.add_argument("--epochs", type=_positive_int, default=20, help="BC epochs after each iteration")
+    dagger.add_argument("--lr", type=_positive_float, default=1e-4)
+    dagger.add_argument("--workers", type=_positive_int, default=2)
+    dagger.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads for the BC fits")
+    dagger.add_argument("--seed", type=int, default=0)
+    dagger.set_defaults(func=cmd_train_dagger)
 
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
@@ -164,6 +179,26 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     last = result.rows[-1] if result.rows else None
     summary = f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}" if last else ""
     print(f"DAPG done at iteration {result.iterations_done}{summary}; artefacts in {args.out}")
+    return 0
+
+
+def cmd_train_dagger(args: argparse.Namespace) -> int:
+    import torch
+
+    from dexdrake.eval.envs import resolve_objects
+    from dexdrake.learn.dagger import DaggerConfig, train_dagger
+
+    if args.objects in ("unseen", "seen"):
+        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    _, objects = resolve_objects(args.objects)
+    torch.set_num_threads(args.threads)
+    config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
+                          episodes_per_object=args.per_object, horizon=args.horizon, epochs=args.epochs, lr=args.lr,
+                          workers=args.workers, seed=args.seed)
+    command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
+                                                        "horizon", "epochs", "lr", "workers", "threads", "seed"])
+    final = train_dagger(objects, args.out, config, {"command": command})
+    print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 
 

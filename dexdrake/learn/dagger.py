@@ -1,0 +1,216 @@
+"""DAgger with the state-driven grasp expert (`systems.reactive_grasp.ReactiveGrasp`).
+
+Iteration 0 runs the expert itself (with DART-style correlated action noise, so the data
+already covers small deviations); every later iteration runs the current policy, and the
+expert labels every state the policy visits. All data are aggregated and the policy is
+re-fit by behaviour cloning (warm-started) after each iteration. Because the labels come
+from states rather than from a clock, the policy learns to move from wherever it is, which
+plain cloning of the timed script did not teach (it stalled at the start pose).
+
+Each iteration's data (raw plant positions too, so any feature set can be re-derived) and
+the policy after it are written to the output folder; a re-run skips finished iterations.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import multiprocessing as mp
+import time
+import uuid
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.learn.bc import BCConfig, train_bc
+from dexdrake.learn.curves import CsvLog
+from dexdrake.learn.demo_dataset import DemoDataset
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, policy_from_payload, save_policy
+from dexdrake.learn.samplers import policy_to_bytes
+
+DATA_FORMAT = "dexdrake.dagger/1"
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    hand: str = "adroit"
+    feature_set: str = "DexRep"
+    iterations: int = 5
+    episodes_per_object: int = 2
+    horizon: int = 100
+    expert_noise: float = 0.0  # OU action-noise std on iteration 0 (normalised units; the expert is fragile to it)
+    epochs: int = 20  # BC epochs after each iteration
+    lr: float = 1e-4
+    batch_size: int = 64
+    workers: int = 2
+    seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k
+
+
+@dataclass
+class DaggerData:
+    """Visited states with expert labels, episode by episode."""
+
+    objects: list[str]  # object of each episode
+    seeds: np.ndarray  # int (E,)
+    success: np.ndarray  # bool (E,): the executed episode succeeded
+    episode_starts: np.ndarray  # bool (N,)
+    positions: np.ndarray  # float64 (N, nq): plant positions before each action
+    observations: np.ndarray  # float32 (N, D)
+    labels: np.ndarray  # float32 (N, A): the expert's normalised action at that state
+
+    @staticmethod
+    def concat(parts: list[DaggerData]) -> DaggerData:
+        if not parts:
+            raise DexdrakeError("no DAgger data to join")
+        return DaggerData([o for p in parts for o in p.objects], *(np.concatenate([getattr(p, k) for p in parts]) for k in
+                          ("seeds", "success", "episode_starts", "positions", "observations", "labels")))
+
+    def save(self, path: Path, metadata: dict[str, Any]) -> None:
+        meta = {"format": DATA_FORMAT, "objects": self.objects, **metadata}
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, seeds=self.seeds, success=self.success, episode_starts=self.episode_starts,
+                            positions=self.positions, observations=self.observations, labels=self.labels,
+                            metadata=np.array(json.dumps(meta)))
+        tmp.replace(path)
+
+    @staticmethod
+    def load(path: Path) -> DaggerData:
+        with np.load(path, allow_pickle=False) as d:
+            meta = json.loads(str(d["metadata"]))
+            if meta.get("format") != DATA_FORMAT:
+                raise DexdrakeError(f"{path} is not a {DATA_FORMAT} file")
+            return DaggerData(list(meta["objects"]), d["seeds"], d["success"].astype(bool), d["episode_starts"].astype(bool),
+                              d["positions"], d["observations"], d["labels"])
+
+
+def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise: float) -> DaggerData:
+    """One episode on object `name`: the policy acts (the expert if `policy` is None, with OU
+    noise of std `noise` seeded by `seed`), the expert labels every visited state."""
+    from dexdrake.eval.action_noise import OUActionNoise
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
+
+    obs = env.reset(seed, object_name=name)
+    expert = ReactiveGrasp(env)
+    perturb = OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
+    positions, observations, labels = [], [], []
+    success = False
+    for _ in range(env.horizon):
+        positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
+        observations.append(obs)
+        label = np.clip(env.normalise(expert(env)), -1.0, 1.0)
+        labels.append(label)
+        action = label if policy is None else policy.act(obs)[0]
+        if perturb is not None:
+            action = action + perturb.sample()
+        obs, _, done, info = env.step(action)
+        success = success or bool(info["success"])
+        if done:
+            break
+    starts = np.zeros(len(labels), dtype=bool)
+    starts[0] = True
+    return DaggerData([name], np.array([seed]), np.array([success]), starts, np.asarray(positions),
+                      np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
+
+
+_ENV = None
+_POLICY: tuple[str, DexRepNetPolicy | None] = ("", None)
+
+
+def _init_worker(hand: str, feature_set: str, objects: tuple[str, ...], horizon: int) -> None:
+    global _ENV
+    from dexdrake.eval.envs import GraspEnvFactory
+
+    torch.set_num_threads(1)
+    _ENV = GraspEnvFactory(hand, feature_set, objects, horizon)()
+
+
+def _worker_episode(key: str, blob: bytes | None, name: str, seed: int, noise: float) -> DaggerData:
+    global _POLICY
+    if _POLICY[0] != key:
+        policy = None if blob is None else policy_from_payload(torch.load(io.BytesIO(blob), weights_only=True)).eval()
+        _POLICY = (key, policy)
+    return run_episode(_ENV, name, seed, _POLICY[1], noise)
+
+
+def collect(pool: ProcessPoolExecutor, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,
+            desc: str) -> DaggerData:
+    """Run `jobs` (object, seed) on the pool's workers; results in job order."""
+    key, blob = uuid.uuid4().hex, None if policy is None else policy_to_bytes(policy)
+    futures = [pool.submit(_worker_episode, key, blob, name, seed, noise) for name, seed in jobs]
+    return DaggerData.concat([f.result() for f in tqdm(futures, desc=desc, unit="episode")])
+
+
+def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = DaggerConfig(),
+                 metadata: dict[str, Any] | None = None) -> Path:
+    """Run DAgger on `objects`; returns the final policy checkpoint (out_dir/dagger_policy.pt).
+
+    Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
+    success rate (iteration 0: the noisy expert; later: the previous iteration's policy).
+    """
+    if config.iterations < 1 or config.episodes_per_object < 1:
+        raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
+                    config.iterations)
+    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
+                                               "val_loss", "collect_s", "train_s"],
+                 resume=True, key="iteration", resume_from=finished)
+    meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
+    parts: list[DaggerData] = []
+    policy: DexRepNetPolicy | None = None
+    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
+    with ProcessPoolExecutor(config.workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(config.hand, config.feature_set, tuple(objects), config.horizon)) as pool:
+        for it in range(config.iterations):
+            data_path, policy_path = out_dir / f"data_{it:02d}.npz", out_dir / f"policy_{it:02d}.pt"
+            t0 = time.perf_counter()
+            if data_path.is_file():
+                data = DaggerData.load(data_path)
+            else:
+                seeds = [config.seed * 10**6 + it * 10**4 + k for k in range(config.episodes_per_object)]
+                jobs = [(name, s) for s in seeds for name in objects]
+                driver = "expert" if policy is None else "policy"
+                data = collect(pool, policy, jobs, config.expert_noise if policy is None else 0.0,
+                               f"DAgger {it} ({driver})")
+                data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
+            collect_s = time.perf_counter() - t0
+            parts.append(data)
+            if it < finished:
+                policy = load_policy(policy_path)[0]
+                continue
+            t1 = time.perf_counter()
+            everything = DaggerData.concat(parts)
+            if policy is None:
+                blocks = _observation_blocks(config)
+                policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, everything.labels.shape[1],
+                                                                  feature_set=config.feature_set, hand=config.hand))
+            dataset = DemoDataset(everything.observations, everything.labels, everything.episode_starts)
+            bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
+                          checkpoint_every=0)
+            result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
+            save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
+            log.append({"iteration": it, "driver": "expert" if it == 0 else "policy", "episodes": len(data.objects),
+                        "success_rate": float(np.mean(data.success)), "samples_total": len(dataset),
+                        "val_loss": result.val_loss[-1], "collect_s": round(collect_s, 1),
+                        "train_s": round(time.perf_counter() - t1, 1)})
+            print(f"DAgger iteration {it}: executed success {np.mean(data.success):.1%} over {len(data.objects)} "
+                  f"episodes; {len(dataset)} samples; val loss {result.val_loss[-1]:.4g}", flush=True)
+    assert policy is not None
+    final = out_dir / "dagger_policy.pt"
+    save_policy(final, policy, {**meta, "iteration": config.iterations - 1})
+    return final
+
+
+def _observation_blocks(config: DaggerConfig) -> dict[str, int]:
+    from dexdrake.eval.envs import GraspEnvFactory
+    from dexdrake.objects.library import list_objects
+
+    env = GraspEnvFactory(config.hand, config.feature_set, (list_objects("train")[0].name,), 1)()
+    return dict(env.observation_blocks)

@@ -1,0 +1,128 @@
+"""A state-driven grasp expert: the scripted grasp's way-points, chosen from the current state.
+
+`ScriptedGrasp` follows a clock, so its set-point at a given hand state depends on time the
+policy cannot observe; a policy cloned from it learns "stay where you are" at the start pose.
+`ReactiveGrasp` decides its phase from the state alone (hand joints, grasp-centre position,
+fingertip-to-surface distances, object height), so it can label any state a learning policy
+visits (DAgger) and re-tries when a grasp fails:
+
+- fingers closed on the object (enough fingertips touching, or the object already lifted):
+  lift, fingers squeezing;
+- grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
+  object or the table): close the fingers;
+- fingers closed but not on the object (missed or dropped): open them;
+- otherwise reach through a funnel: above the grasp point the target is the grasp point,
+  and the farther off horizontally, the closer the target is to the approach way-point
+  above it (continuous in the state, so a cloned policy can follow it).
+
+Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
+toward the phase's way-point, so the label always says which way to move. The way-points are
+re-planned when the object has been pushed before it is grasped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
+
+
+@dataclass(frozen=True)
+class ReactiveRules:
+    """Thresholds of the phase rules and the arm's set-point lead."""
+
+    max_lead: float = 0.3  # largest arm set-point lead per joint (normalised action units)
+    at_grasp: float = 0.015  # grasp centre within this of the grasp point: close (m)
+    blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
+    stopped_speed: float = 0.05  # arm joints slower than this (m/s or rad/s) have stopped
+    above_xy: float = 0.015  # horizontally within this of the grasp point: descend (m) ...
+    descend_cone: float = 0.0  # ... plus this much per metre above it (arms whose joint-space descent bows)
+    funnel: float = 0.02  # beyond that tolerance the target rises to the approach way-point over this (m)
+    touch: float = 0.008  # a fingertip this close to the surface touches it (m)
+    fingers_touching: int = 1  # the thumb and this many other fingertips touching hold the object
+    closed_hold: float = 0.5  # ... as do settled fingers closed this far
+    hold_reach: float = 0.05  # ... with the grasp centre within this of the grasp point (m)
+    lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units)
+    closed: float = 0.35  # closure fraction above which the fingers count as closed
+    missed: float = 0.9  # fingers this closed without holding have missed
+    settled_speed: float = 1.0  # fingers slower than this (rad/s, largest joint) have settled
+    lifted: float = 0.01  # object this far above its start is lifted (m)
+    replan_shift: float = 0.01  # re-plan when the object moved this far before the grasp (m)
+
+
+# Hands whose arm is not the Adroit's slides: a joint-space descent from the approach way-point
+# drifts sideways before it converges, so descending tolerates more offset higher up.
+RULES_BY_HAND: dict[str, ReactiveRules] = {
+    "allegro_z1": ReactiveRules(descend_cone=0.5, at_grasp=0.025),
+    "allegro": ReactiveRules(descend_cone=0.5, at_grasp=0.025),
+}
+
+
+class ReactiveGrasp(ScriptedGrasp):
+    """Callable controller for `GraspEnv` (like ScriptedGrasp) whose output depends on the state only."""
+
+    def __init__(self, env, script: GraspScript = GraspScript(), rules: ReactiveRules | None = None):
+        self.rules = rules or RULES_BY_HAND.get(env.scene.hand.name, ReactiveRules())
+        super().__init__(env, script)
+        self.p_start = env.object_position()
+        lo, hi = self.lo, self.hi
+        self._arm_half = (hi - lo)[: self.n_arm] / 2
+        self._span = self.q_closed - self.q_open
+        self._fingers = np.abs(self._span) > 1e-9
+        self.phase = "approach"
+        tips = [p.name for p in self.hand.fingertips]
+        self.thumb_tip = next((i for i, name in enumerate(tips) if name.startswith("th")), len(tips) - 1)
+
+    def _plan(self, env) -> None:
+        super()._plan(env)
+        self.p_planned = env.object_position()
+        self.grasp_point = self._palm_pose(self.q_grasp)[0]
+
+    def closure(self, q: np.ndarray) -> float:
+        """How far the fingers are from open (0) toward the closed pose (1), averaged over joints."""
+        f = self._fingers
+        return float(np.mean((q[f] - self.q_open[f]) / self._span[f]))
+
+    def __call__(self, env) -> np.ndarray:
+        r = self.rules
+        state = env.hand_state()
+        n = len(self.q_open)
+        q, v = state[:n], state[n:]
+        p_obj = env.object_position()
+        lifted = p_obj[2] - self.p_start[2] > r.lifted
+        closure = self.closure(q)
+        offset = self._palm_pose(q[: self.n_arm])[0] - self.grasp_point
+        touch = env.fingertip_distances() < r.touch
+        thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
+        settled = float(np.max(np.abs(v[self._fingers]))) < r.settled_speed
+        arm_stopped = float(np.max(np.abs(v[: self.n_arm]))) < r.stopped_speed
+        holding = (closure > 0.05 and settled and (thumb_and_fingers or closure > r.closed_hold)
+                   and float(np.linalg.norm(offset)) < r.hold_reach)
+        if not holding and not lifted and np.linalg.norm((p_obj - self.p_planned)[:2]) > r.replan_shift and closure < r.closed:
+            self._plan(env)
+        fingers = self.q_open
+        if holding or (lifted and closure > 0.05):
+            self.phase, arm, fingers = "lift", self.q_lift, self.q_closed
+        elif np.linalg.norm(offset) < r.at_grasp or (
+            np.linalg.norm(offset[:2]) < r.above_xy and offset[2] < r.blocked_height and (arm_stopped or closure > 0.05)
+        ):
+            self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
+        elif closure > r.missed or (closure > r.closed and not np.linalg.norm(offset[:2]) < r.above_xy):
+            self.phase, arm = "open", q[: self.n_arm]
+        else:  # a funnel: the farther off horizontally, the closer the target to the approach way-point
+            tolerance = r.above_xy + r.descend_cone * max(offset[2], 0.0)
+            s = float(np.clip((np.linalg.norm(offset[:2]) - tolerance) / r.funnel, 0.0, 1.0))
+            self.phase = "approach" if s >= 1.0 else "descend"
+            arm = self.q_grasp + s * (self.q_above - self.q_grasp)
+        out = np.array(fingers, dtype=float)
+        lead = r.lift_lead if self.phase == "lift" else r.max_lead
+        out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
+        return out
+
+    def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
+        """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""
+        step = (target - q_arm) / self._arm_half
+        scale = min(1.0, lead / max(float(np.max(np.abs(step))), 1e-12))
+        return q_arm + scale * step * self._arm_half

@@ -1,0 +1,108 @@
+"""The state-driven grasp expert and DAgger on it (`dexdrake train dagger`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dexdrake.cli import main
+from dexdrake.errors import DexdrakeError
+from dexdrake.eval.envs import GraspEnvFactory
+from dexdrake.learn.curves import read_csv
+from dexdrake.learn.dagger import DaggerConfig, DaggerData, run_episode, train_dagger
+from dexdrake.learn.policy import load_policy
+from dexdrake.systems.reactive_grasp import ReactiveGrasp
+
+OBJECT = "sphere_small"
+
+
+@pytest.fixture(scope="module")
+def env():
+    return GraspEnvFactory("adroit", None, (OBJECT, "can_soda"), horizon=100)()
+
+
+def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
+    env.reset(0, object_name=OBJECT)
+    expert = ReactiveGrasp(env)
+    phases, success = [], False
+    for _ in range(env.horizon):
+        q = expert(env)
+        if not phases or phases[-1] != expert.phase:
+            phases.append(expert.phase)
+        success = env.step_positions(q)[3]["success"] or success
+    assert success
+    assert phases[-3:] == ["descend", "close", "lift"]  # from the start pose, inside the funnel
+
+
+def test_expert_label_depends_on_state_not_time_and_leads_the_arm(env):
+    env.reset(3, object_name="can_soda")
+    expert = ReactiveGrasp(env)
+    first = expert(env)
+    env.context.SetTime(1.7)  # a clock-driven script would be closing the fingers by now
+    assert np.array_equal(expert(env), first)
+    n_arm = expert.n_arm
+    q_arm = env.hand_state()[:n_arm]
+    lead = np.abs(env.normalise(first)[:n_arm] - env.normalise(np.r_[q_arm, first[n_arm:]])[:n_arm])
+    assert lead.max() == pytest.approx(expert.rules.max_lead, rel=1e-6)  # moves at once, as fast as allowed
+    assert expert.phase in ("approach", "descend")
+
+
+def test_expert_opens_fingers_closed_away_from_the_object(env):
+    env.reset(1, object_name=OBJECT)
+    expert = ReactiveGrasp(env)
+    plant = env.scene.plant
+    q = plant.GetPositions(env.plant_context)
+    fingers = env.scene.q_index[expert.n_arm:]
+    q[fingers] = expert.q_closed[expert.n_arm:]  # fingers shut at the start pose, far above the object
+    plant.SetPositions(env.plant_context, q)
+    out = expert(env)
+    assert expert.phase == "open"
+    assert np.allclose(out[expert.n_arm:], expert.q_open[expert.n_arm:])
+
+
+def test_reset_refuses_an_object_outside_the_env(env):
+    with pytest.raises(DexdrakeError, match="not one of this env's objects"):
+        env.reset(0, object_name="apple")
+
+
+def test_run_episode_records_states_and_expert_labels(env):
+    data = run_episode(env, OBJECT, 0, None, noise=0.0)
+    assert data.objects == [OBJECT] and data.success.tolist() == [True]
+    n = env.horizon
+    assert data.labels.shape == (n, env.action_dim) and data.observations.shape == (n, 2 * env.action_dim)
+    assert data.positions.shape == (n, env.scene.plant.num_positions())
+    assert data.episode_starts.sum() == 1 and data.episode_starts[0]
+    assert np.all(np.abs(data.labels) <= 1.0)
+
+
+def test_dagger_data_round_trip_and_format_check(tmp_path, env):
+    data = run_episode(env, OBJECT, 1, None, noise=0.0)
+    data.save(tmp_path / "d.npz", {"iteration": 0})
+    back = DaggerData.load(tmp_path / "d.npz")
+    assert back.objects == data.objects and np.array_equal(back.labels, data.labels)
+    np.savez(tmp_path / "bad.npz", metadata=np.array('{"format": "other"}'))
+    with pytest.raises(DexdrakeError, match="not a dexdrake.dagger/1 file"):
+        DaggerData.load(tmp_path / "bad.npz")
+
+
+def test_dagger_trains_resumes_and_cli(tmp_path, capsys):
+    torch.set_num_threads(1)
+    config = DaggerConfig(feature_set="Hand2obj", iterations=2, episodes_per_object=1, epochs=1, workers=1)
+    final = train_dagger([OBJECT], tmp_path / "d", config)
+    rows = read_csv(tmp_path / "d" / "dagger_log.csv")
+    assert [r["driver"] for r in rows] == ["expert", "policy"]
+    assert [int(r["samples_total"]) for r in rows] == [100, 200]  # aggregated
+    assert float(rows[0]["success_rate"]) == 1.0  # the expert grasps the small sphere
+    policy, meta = load_policy(final)
+    assert policy.config.feature_set == "Hand2obj" and meta["iteration"] == 1
+    before = (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns
+    train_dagger([OBJECT], tmp_path / "d", config)  # finished iterations are not redone
+    assert (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns == before
+    assert len(read_csv(tmp_path / "d" / "dagger_log.csv")) == 2
+    assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--iterations", "1",
+                 "--per-object", "1", "--epochs", "1", "--workers", "1", "--feature-set", "Hand2obj",
+                 "--threads", "1"]) == 0
+    assert (tmp_path / "c" / "dagger_policy.pt").is_file()
+    assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
+    assert "evaluation splits" in capsys.readouterr().err

@@ -1,5 +1,7 @@
 """Where dexdrake finds its shipped models and keeps its on-disk cache."""
 
+from __future__ import annotations
+
 import os
 from importlib.resources import files
 from pathlib import Path
@@ -15,3 +17,12 @@ def cache_dir() -> Path:
     root = Path(os.environ.get("DEXDRAKE_CACHE", Path.home() / ".cache" / "dexdrake"))
     root.mkdir(parents=True, exist_ok=True)
     return root
+
+
+def resolve_model_path(path: str | Path) -> Path:
+    """`path` as given when it exists; a relative `models/...` path otherwise resolves inside
+    the installed `dexdrake.models` (so configs can name shipped weights from any folder)."""
+    p = Path(path)
+    if p.exists() or p.is_absolute() or not p.parts or p.parts[0] != "models":
+        return p
+    return models_dir().joinpath(*p.parts[1:])

@@ -68,7 +68,9 @@ class PolicyController:
         from dexdrake.learn.policy import load_policy
         from dexdrake.systems.scene import SceneConfig, build_grasp_scene
 
-        self.policy, self.metadata = load_policy(scenario.policy.checkpoint)
+        from dexdrake.paths import resolve_model_path
+
+        self.policy, self.metadata = load_policy(resolve_model_path(scenario.policy.checkpoint))
         self.policy.eval()
         self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
         self.plant_context = self.scene.plant.CreateDefaultContext()

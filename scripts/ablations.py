@@ -1,15 +1,20 @@
-"""Feature-set ablation: DAgger with the same budget for every feature set, evaluated on unseen objects.
+"""Feature-set ablation: the same expert-labelled states and BC budget for every feature set.
 
-    python scripts/ablations.py --out runs/ablations [--sets all|Hand2obj,DexRep] [--iterations 3]
-        [--per-object 1] [--epochs 10] [--lr 1e-4] [--episodes 2] [--objects paper] [--workers 2] [--seed 0]
+    python scripts/ablations.py --dagger runs/policy/dagger --out runs/ablations [--sets all|Hand2obj,DexRep]
+        [--stride 2] [--epochs 20] [--lr 1e-4] [--episodes 2] [--objects paper] [--workers 2] [--seed 0]
 
-Every set is trained by `dexdrake.learn.dagger.train_dagger` on the training objects with
-the same expert, iterations, episodes, BC epochs, lr and seeds; only the observation
-differs. Iteration 0 runs the (deterministic) expert on the same seeds, so every set starts
-from the same states and labels.
+The states are those of a finished DAgger run (`dexdrake train dagger`: the expert's and the
+DexRep policy's visited states, every `--stride`-th step, with the expert's labels); their
+raw plant positions are re-featurised with each set, so every set sees exactly the same
+states and labels and gets the same BC budget (epochs, batch 64, lr, seed). Each set is
+scored twice on unseen objects:
+- open loop: the mean squared error (summed over joints, normalised action units) of its
+  predictions against the expert's labels along the expert's own episodes on the unseen
+  objects (seeds 0..1) — how well the representation transfers to new shapes;
+- closed loop: success over `--episodes` evaluation episodes per object (100 steps).
 `--objects paper` evaluates the 10 unseen GRAB objects of the paper's ablation; `unseen`
-all 13 unseen library objects. Writes ablations.md/.csv beside the paper's numbers,
-naming the command; partial tables survive an interrupted run.
+all 13 unseen library objects. Writes ablations.md/.csv beside the paper's numbers, naming
+the command; partial tables survive an interrupted run.
 """
 
 from __future__ import annotations
@@ -21,35 +26,71 @@ import sys
 import time
 from pathlib import Path
 
-COLUMNS = ("feature_set", "obs_dim", "train_success_last_pct", "ours_paper_objects_pct", "ours_all_pct", "paper_pct",
-           "mean_max_lift_m", "minutes")
+import numpy as np
+
+COLUMNS = ("feature_set", "obs_dim", "train_mse", "unseen_open_loop_mse", "ours_paper_objects_pct", "ours_all_pct",
+           "paper_pct", "mean_max_lift_m", "minutes")
 
 
-def run_set(feature_set: str, args, objects: list[str]) -> dict[str, object]:
-    """Train one feature set by DAgger and evaluate it; returns its table row."""
+def as_raw(data, hand: str):
+    """DAgger data as the RawEpisodes that `featurise` re-featurises (labels as actions)."""
+    from dexdrake.eval.scripted_data import RawEpisodes
+
+    return RawEpisodes(hand, data.objects, data.seeds, data.success, data.episode_starts, data.positions, data.labels)
+
+
+def every_nth_step(data, stride: int):
+    """Every `stride`-th step of each episode (episode starts kept)."""
+    from dexdrake.learn.dagger import DaggerData
+
+    step = np.arange(len(data.labels)) - np.maximum.accumulate(np.where(data.episode_starts, np.arange(len(data.labels)), 0))
+    keep = step % stride == 0
+    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts[keep], data.positions[keep],
+                      data.observations[keep], data.labels[keep])
+
+
+def expert_episodes(hand: str, objects: list[str], seeds: list[int]):
+    """The expert's own episodes on `objects` (positions and labels)."""
+    from dexdrake.eval.envs import GraspEnvFactory
+    from dexdrake.learn.dagger import DaggerData, run_episode
+
+    env = GraspEnvFactory(hand, None, tuple(objects), 100)()
+    return DaggerData.concat([run_episode(env, name, s, None, 0.0) for name in objects for s in seeds])
+
+
+def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict[str, object]:
+    """Featurise, train BC, score open and closed loop for one feature set; returns its table row."""
+    import torch
+
     from dexdrake.eval.evaluate import evaluate_policy
+    from dexdrake.eval.scripted_data import featurise
     from dexdrake.eval.tables import PAPER_ABLATIONS, PAPER_UNSEEN
-    from dexdrake.learn.curves import read_csv
-    from dexdrake.learn.dagger import DaggerConfig, train_dagger
-    from dexdrake.learn.policy import load_policy
-    from dexdrake.objects.library import list_objects
+    from dexdrake.learn.bc import BCConfig, train_bc
+    from dexdrake.learn.demo_dataset import DemoDataset
+    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
 
     slug = feature_set.replace("+", "_").replace("-", "_").lower()
     folder = args.out / slug
     t0 = time.perf_counter()
-    config = DaggerConfig(feature_set=feature_set, iterations=args.iterations, episodes_per_object=args.per_object,
-                          epochs=args.epochs, lr=args.lr, workers=args.workers, seed=args.seed)
-    train = [o.name for o in list_objects("train")]
-    final = train_dagger(train, folder, config, {"command": shlex.join(["python", *sys.argv])})
-    log = read_csv(folder / "dagger_log.csv")
-    report = evaluate_policy(final, objects, args.episodes, args.eval_seed, args.workers,
+    obs, blocks = featurise(train, feature_set, progress=True)
+    held_obs, _ = featurise(held_out, feature_set, progress=True)
+    config = PolicyConfig.from_blocks(blocks, train.actions.shape[1], feature_set=feature_set, hand=train.hand)
+    policy = DexRepNetPolicy(config)
+    bc = train_bc(policy, DemoDataset(obs, train.actions, train.episode_starts), folder,
+                  BCConfig(epochs=args.epochs, lr=args.lr, seed=args.seed, checkpoint_every=0, val_fraction=0.0),
+                  {"command": shlex.join(["python", *sys.argv])})
+    with torch.no_grad():
+        pred = policy(torch.as_tensor(held_obs)).numpy()
+    open_loop = float(np.mean(np.sum((pred - held_out.actions) ** 2, axis=1)))
+    report = evaluate_policy(bc.last_checkpoint, objects, args.episodes, args.eval_seed, args.workers,
                              label="unseen", command=shlex.join(["python", *sys.argv]))
     per = report.per_object()
     paper_objs = [n for n in per if n in PAPER_UNSEEN]
     return {
         "feature_set": feature_set,
-        "obs_dim": load_policy(final)[0].config.obs_dim,
-        "train_success_last_pct": f"{100 * float(log[-1]['success_rate']):.1f}",
+        "obs_dim": sum(blocks.values()),
+        "train_mse": f"{bc.train_loss[-1]:.3f}",
+        "unseen_open_loop_mse": f"{open_loop:.3f}",
         "ours_paper_objects_pct": f"{sum(per[n]['success_pct'] for n in paper_objs) / max(1, len(paper_objs)):.1f}",
         "ours_all_pct": f"{report.average_pct():.1f}",
         "paper_pct": f"{PAPER_ABLATIONS[feature_set]:.1f}",
@@ -58,27 +99,27 @@ def run_set(feature_set: str, args, objects: list[str]) -> dict[str, object]:
     }
 
 
-def write_table(rows: list[dict[str, object]], args, objects: list[str]) -> None:
+def write_table(rows: list[dict[str, object]], args, objects: list[str], n_train: int, n_held: int) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "ablations.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "# Feature-set ablation (DAgger, equal reduced budget)",
+        "# Feature-set ablation (same states, labels and BC budget for every set)",
         "",
         f"- command: `{shlex.join(['python', *sys.argv])}`",
-        f"- training: DAgger with the state-driven expert (systems/reactive_grasp.py) on the 53 training objects, "
-        f"{args.iterations} iterations x {args.per_object} episode(s) per object, BC {args.epochs} epochs per "
-        f"iteration, batch 64, lr {args.lr}, seed {args.seed}; iteration 0 is the same expert episodes for every set",
-        "- train success: the executed success of the last DAgger iteration (the previous policy on training objects)",
-        f"- evaluation: {len(objects)} unseen objects x {args.episodes} episodes (seeds {args.eval_seed}.."
+        f"- training data: {n_train} expert-labelled states of the DAgger run in `{args.dagger}` (one step in "
+        f"{args.stride}), re-featurised per set; BC {args.epochs} epochs, batch 64, lr {args.lr}, seed {args.seed}",
+        f"- open loop: MSE (summed over joints, normalised units) against the expert's labels on its own episodes on "
+        f"{len(objects)} unseen objects, seeds 0..1 ({n_held} states)",
+        f"- closed loop: {len(objects)} unseen objects x {args.episodes} episodes (seeds {args.eval_seed}.."
         f"{args.eval_seed + args.episodes - 1}), 100 steps, mean actions",
-        "- paper: DexRep ablations after BC + DAPG, 10 unseen GRAB objects, 3 seeds",
+        "- paper: after BC + DAPG, 10 unseen GRAB objects, 3 seeds",
         "",
-        "| feature set | obs dim | train success, last iteration (%) | ours, paper objects (%) | ours, all evaluated (%) "
+        "| feature set | obs dim | train MSE | unseen open-loop MSE | ours, paper objects (%) | ours, all evaluated (%) "
         "| paper (%) | mean max lift (m) | minutes |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append("| " + " | ".join(str(r[k]) for k in COLUMNS) + " |")
@@ -88,17 +129,17 @@ def write_table(rows: list[dict[str, object]], args, objects: list[str]) -> None
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dagger", type=Path, required=True, help="a `dexdrake train dagger` output folder")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--sets", default="all")
-    parser.add_argument("--iterations", type=int, default=3)
-    parser.add_argument("--per-object", type=int, default=1)
-    parser.add_argument("--epochs", type=int, default=10)
+    parser.add_argument("--stride", type=int, default=2, help="keep every n-th step of each episode")
+    parser.add_argument("--epochs", type=int, default=20)
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--objects", default="paper", help="'paper' (10 GRAB objects), 'unseen' or names")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--eval-seed", type=int, default=0)
+    parser.add_argument("--eval-seed", type=int, default=900)
     args = parser.parse_args()
 
     import torch
@@ -106,17 +147,25 @@ def main() -> None:
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
     from dexdrake.eval.envs import resolve_objects
     from dexdrake.eval.tables import PAPER_UNSEEN
+    from dexdrake.learn.dagger import DaggerData
+    from dexdrake.learn.policy import load_policy
 
     torch.set_num_threads(2)
     sets = list(FEATURE_SETS) if args.sets == "all" else args.sets.split(",")
     unknown = [s for s in sets if s not in FEATURE_SETS]
     if unknown:
         raise SystemExit(f"unknown feature sets {unknown}; valid: {list(FEATURE_SETS)}")
+    files = sorted(args.dagger.glob("data_*.npz"))
+    if not files:
+        raise SystemExit(f"no DAgger data (data_*.npz) in {args.dagger}")
     objects = list(PAPER_UNSEEN) if args.objects == "paper" else resolve_objects(args.objects)[1]
+    hand = load_policy(args.dagger / "dagger_policy.pt")[0].config.hand
+    train = as_raw(every_nth_step(DaggerData.concat([DaggerData.load(f) for f in files]), args.stride), hand)
+    held_out = as_raw(expert_episodes(hand, objects, [0, 1]), hand)
     rows = []
     for fs in sets:
-        rows.append(run_set(fs, args, objects))
-        write_table(rows, args, objects)
+        rows.append(run_set(fs, train, held_out, args, objects))
+        write_table(rows, args, objects, len(train.actions), len(held_out.actions))
 
 
 if __name__ == "__main__":

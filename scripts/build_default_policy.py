@@ -2,11 +2,14 @@
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
+        [--hand adroit] [--objects train]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration). The result:
-models/weights/adroit_dexrep_policy.pt (the final DAgger policy), adroit_dexrep_policy.json
-(commands, seeds, data, feature set, compute, metrics) and eval_seen.md / eval_unseen.md.
+models/weights/<hand>_dexrep_policy.pt (the final DAgger policy), <hand>_dexrep_policy.json
+(commands, seeds, data, feature set, compute, metrics) and the evaluation tables
+eval_seen.md / eval_unseen.md (eval_<hand>_seen.md ... for other hands than the Adroit);
+"seen" means the training objects used.
 No model selection uses the evaluation objects: the last DAgger iteration is shipped.
 """
 
@@ -27,7 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
 EVAL_SEED = 900  # evaluation seeds 900.. are disjoint from DAgger's training seeds i * 10**4 + k
-DATA_SOURCE = ("DAgger on the 53 training objects: states visited by the state-driven expert (iteration 0) and by "
+DATA_SOURCE = ("DAgger on the training objects: states visited by the state-driven expert (iteration 0) and by "
                "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
                "not the human-demo replay")
 
@@ -59,6 +62,8 @@ def main() -> None:
     parser.add_argument("--seen-episodes", type=int, default=2)
     parser.add_argument("--unseen-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--hand", default="adroit")
+    parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
     args = parser.parse_args()
 
     dexdrake = str(Path(sys.executable).with_name("dexdrake"))
@@ -67,25 +72,29 @@ def main() -> None:
     dagger = work / "dagger"
     log: list[dict] = []
     start = time.perf_counter()
-    run([dexdrake, "train", "dagger", "--out", str(dagger), "--iterations", str(args.iterations), "--per-object",
+    run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
+         "--iterations", str(args.iterations), "--per-object",
          str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
          "--seed", "0"], dagger / "dagger_policy.pt", log)
     policy = dagger / "dagger_policy.pt"
-    for label, episodes in (("unseen", args.unseen_episodes), ("seen", args.seen_episodes)):
-        run([dexdrake, "eval", "--policy", str(policy), "--objects", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
+    seen = "seen" if args.objects == "train" else args.objects
+    for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
+        run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
              "--workers", str(args.workers), "--out", str(work / "eval")], work / "eval" / f"eval_{label}.json", log)
 
     weights = ROOT / "models" / "weights"
-    target = weights / "adroit_dexrep_policy.pt"
+    name = f"{args.hand}_dexrep_policy"
+    tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
+    target = weights / f"{name}.pt"
     shutil.copyfile(policy, target)
     metrics = {}
     for label in ("seen", "unseen"):
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
         metrics[label] = {k: report[k] for k in ("average_pct", "per_object", "episodes_per_object", "seed", "horizon",
                                                   "command", "wall_s", "workers")}
-        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), "models/weights/adroit_dexrep_policy.pt"
+        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt"
                                                                          f" (copied from {policy})")
-        (weights / f"eval_{label}.md").write_text(text)
+        (weights / f"{tables}_{label}.md").write_text(text)
 
     import torch
 
@@ -96,7 +105,7 @@ def main() -> None:
     net, meta = load_policy(target)
     encoder = default_encoder_path()
     manifest = {
-        "policy": "models/weights/adroit_dexrep_policy.pt",
+        "policy": f"models/weights/{name}.pt",
         "sha256": sha256(target),
         "hand": net.config.hand,
         "feature_set": net.config.feature_set,
@@ -109,15 +118,15 @@ def main() -> None:
             "iterations": read_csv(dagger / "dagger_log.csv"),
             "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },
-        "dataset": {"source": DATA_SOURCE, "path": str(dagger), "seeds": "iteration i, episode k: i * 10**4 + k "
-                    "(seed 0), every training object"},
+        "dataset": {"source": DATA_SOURCE, "path": str(dagger), "objects": args.objects,
+                    "seeds": "iteration i, episode k: i * 10**4 + k (seed 0), every training object"},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],
-        "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": 1, "platform": platform.platform(),
+        "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": "2 for the BC fits, 1 per rollout worker", "platform": platform.platform(),
                     "load_average_at_end": round(os.getloadavg()[0], 1), "note": "2 CPU cores shared with other jobs",
                     "pipeline_wall_s_this_run": round(time.perf_counter() - start, 1), "torch": torch.__version__},
         "metrics": metrics,
     }
-    (weights / "adroit_dexrep_policy.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    (weights / f"{name}.json").write_text(json.dumps(manifest, indent=1) + "\n")
     print(f"wrote {target} ({target.stat().st_size / 1e6:.2f} MB), its manifest and eval tables; "
           f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
 

@@ -52,18 +52,17 @@ class ReactiveRules:
     replan_shift: float = 0.01  # re-plan when the object moved this far before the grasp (m)
 
 
-# Hands whose arm is not the Adroit's slides: a joint-space descent from the approach way-point
-# drifts sideways before it converges, so descending tolerates more offset higher up.
-RULES_BY_HAND: dict[str, ReactiveRules] = {
-    "allegro_z1": ReactiveRules(descend_cone=0.5, at_grasp=0.025),
-    "allegro": ReactiveRules(descend_cone=0.5, at_grasp=0.025),
-}
+# Hands on revolute arms: a joint-space descent from the approach way-point drifts sideways
+# before it converges (so descending tolerates more offset higher up), and a normalised lead
+# of a revolute joint moves the hand much farther than one of the Adroit's slides.
+_REVOLUTE_ARM = ReactiveRules(descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1)
+RULES_BY_HAND: dict[str, ReactiveRules] = {"allegro_z1": _REVOLUTE_ARM, "allegro": _REVOLUTE_ARM}
 
 
 class ReactiveGrasp(ScriptedGrasp):
     """Callable controller for `GraspEnv` (like ScriptedGrasp) whose output depends on the state only."""
 
-    def __init__(self, env, script: GraspScript = GraspScript(), rules: ReactiveRules | None = None):
+    def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
         self.rules = rules or RULES_BY_HAND.get(env.scene.hand.name, ReactiveRules())
         super().__init__(env, script)
         self.p_start = env.object_position()

@@ -35,6 +35,19 @@ class GraspScript:
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
 
 
+# The Allegro's grasp centre sits 4.4 cm in front of its palm face (the Adroit's 5 cm): at the
+# Adroit's depth its fingers meet the object's top and are pushed open.
+SCRIPT_BY_HAND: dict[str, GraspScript] = {
+    "allegro_z1": GraspScript(palm_depth=0.02),
+    "allegro": GraspScript(palm_depth=0.02),
+}
+
+
+def script_for(hand: str) -> GraspScript:
+    """The grasp geometry and timing used for `hand` (GraspScript defaults unless overridden)."""
+    return SCRIPT_BY_HAND.get(hand, GraspScript())
+
+
 def closed_pose(hand: HandDescription, closure: float = 1.0) -> np.ndarray:
     """Finger set-points of a power grasp: the pre-grasp pose moved toward each joint's
     limit in the flexion direction (`hand.closing` signs), arm joints untouched."""
@@ -62,8 +75,8 @@ def _smooth(s: float) -> float:
 class ScriptedGrasp:
     """Callable controller for `GraspEnv.rollout`: returns joint set-points each step."""
 
-    def __init__(self, env, script: GraspScript = GraspScript()):
-        self.script = script
+    def __init__(self, env, script: GraspScript | None = None):
+        self.script = script or script_for(env.scene.hand.name)
         scene = env.scene
         self.hand = scene.hand
         plant = scene.plant
@@ -74,7 +87,7 @@ class ScriptedGrasp:
         self.n_arm = len(self.hand.arm_joints)
         self.lo, self.hi = self.hand.joint_limits()
         self.q_open = self.hand.pregrasp_vector()
-        self.q_closed = closed_pose(self.hand, script.closure)
+        self.q_closed = closed_pose(self.hand, self.script.closure)
         self._plan(env)
 
     def _palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -260,3 +260,14 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
     assert result.fault is None
     assert np.linalg.norm(est - p0) < 0.03  # registration found the object
     assert rrd.stat().st_size > 10_000
+
+
+def test_policy_checkpoint_paths_resolve_to_the_shipped_models(tmp_path, monkeypatch):
+    from dexdrake.paths import resolve_model_path
+
+    monkeypatch.chdir(tmp_path)  # a folder without models/: configs still name shipped weights
+    assert resolve_model_path("models/weights/adroit_dexrep_policy.pt").is_file()
+    assert resolve_model_path("runs/x.pt") == Path("runs/x.pt")
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "mine.pt").write_bytes(b"")
+    assert resolve_model_path("models/mine.pt") == Path("models/mine.pt")  # an existing local file wins

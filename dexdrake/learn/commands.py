@@ -98,6 +98,7 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--workers", type=_positive_int, default=1, help="worker processes")
     ev.add_argument("--horizon", type=_positive_int, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=Path, help="folder for eval_<label>.md/.csv/.json")
+    ev.add_argument("--label", help="table label (default: seen, unseen or selected, from --objects)")
     ev.set_defaults(func=cmd_eval)
 
 
@@ -208,9 +209,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from dexdrake.eval.tables import markdown_table, write_report
 
     label, objects = resolve_objects(args.objects)
+    label = args.label or label
     report = evaluate_policy(args.policy, objects, args.episodes, args.seed, args.workers, args.horizon,
                              label=label, command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
-                                                                                 "workers", "horizon", "out"]))
+                                                                                 "workers", "horizon", "out", "label"]))
     print(markdown_table(report))
     if args.out:
         paths = write_report(report, args.out)

@@ -95,7 +95,7 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys):
     assert [int(r["samples_total"]) for r in rows] == [100, 200]  # aggregated
     assert float(rows[0]["success_rate"]) == 1.0  # the expert grasps the small sphere
     policy, meta = load_policy(final)
-    assert policy.config.feature_set == "Hand2obj" and meta["iteration"] == 1
+    assert policy.config.feature_set == "Hand2obj" and meta["iteration"] == 0  # the only measured policy
     before = (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns
     train_dagger([OBJECT], tmp_path / "d", config)  # finished iterations are not redone
     assert (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns == before
@@ -106,3 +106,13 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys):
     assert (tmp_path / "c" / "dagger_policy.pt").is_file()
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
+
+
+def test_best_measured_iteration(tmp_path):
+    from dexdrake.learn.dagger import best_measured_iteration
+
+    log = tmp_path / "log.csv"
+    log.write_text("iteration,driver,success_rate\n0,expert,0.5\n1,policy,0.1\n2,policy,0.3\n3,policy,0.3\n")
+    assert best_measured_iteration(log, 4) == 2  # policy_02 drove iteration 3 (ties: the later)
+    log.write_text("iteration,driver,success_rate\n0,expert,0.5\n")
+    assert best_measured_iteration(log, 1) == 0

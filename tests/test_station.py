@@ -149,6 +149,27 @@ def test_hil_outcome_does_not_depend_on_host_speed(monkeypatch):
     assert len(offsets) == 40 and np.ptp(offsets) < 1e-9
 
 
+def test_hil_episode_driven_by_the_shipped_policy():
+    """`dexdrake hil`'s controller: the shipped Allegro-on-Z1 policy commands the emulated
+    Allegro over CAN and the emulated Z1 over UDP (ground-truth pose here; the slow test
+    and `dexdrake hil` use perception on rendered images)."""
+    from dexdrake.station_commands import PolicyController, make_controller, run_episode
+    from dexdrake.systems.station import make_station
+
+    scenario = hil_scenario()
+    controller, description = make_controller(scenario)
+    assert isinstance(controller, PolicyController), description
+    with make_station(scenario) as station:
+        q0 = station.world.robot_positions()
+        result = run_episode(station, controller, steps=30)
+        q1 = station.world.robot_positions()
+    assert result.fault is None and result.steps == 30
+    assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
+    assert result.stats["z1"]["packets_received"] > 50 and result.stats["can"]["rate_hz"] > 300
+    n_arm = len(station.hand.arm_joints)
+    assert np.max(np.abs(q1[:n_arm] - q0[:n_arm])) > 0.02  # the policy moved the arm toward the object
+
+
 def test_nan_command_holds_and_is_never_sent():
     from dexdrake.station_commands import run_episode
     from dexdrake.systems.station import make_station
@@ -243,7 +264,7 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
-    """The whole `dexdrake hil` episode: perception on rendered images, scripted grasp."""
+    """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
     from dexdrake.station_commands import make_controller, run_episode
     from dexdrake.systems.station import StationRerunLogger, make_station
 

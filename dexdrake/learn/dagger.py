@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.bc import BCConfig, train_bc
-from dexdrake.learn.curves import CsvLog
+from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, policy_from_payload, save_policy
 from dexdrake.learn.samplers import policy_to_bytes
@@ -148,10 +148,11 @@ def collect(pool: ProcessPoolExecutor, policy: DexRepNetPolicy | None, jobs: lis
 
 def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = DaggerConfig(),
                  metadata: dict[str, Any] | None = None) -> Path:
-    """Run DAgger on `objects`; returns the final policy checkpoint (out_dir/dagger_policy.pt).
+    """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
+    see SELECTION).
 
     Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
-    success rate (iteration 0: the noisy expert; later: the previous iteration's policy).
+    success rate (iteration 0: the expert; later: the previous iteration's policy).
     """
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
@@ -203,9 +204,22 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
             print(f"DAgger iteration {it}: executed success {np.mean(data.success):.1%} over {len(data.objects)} "
                   f"episodes; {len(dataset)} samples; val loss {result.val_loss[-1]:.4g}", flush=True)
     assert policy is not None
+    best = best_measured_iteration(out_dir / "dagger_log.csv", config.iterations)
+    chosen = policy if best == config.iterations - 1 else load_policy(out_dir / f"policy_{best:02d}.pt")[0]
     final = out_dir / "dagger_policy.pt"
-    save_policy(final, policy, {**meta, "iteration": config.iterations - 1})
+    save_policy(final, chosen, {**meta, "iteration": best, "selection": SELECTION})
     return final
+
+
+SELECTION = ("the policy with the highest executed success on the training objects, as measured by the next "
+             "iteration's own rollouts (training seeds); the last policy when none was measured")
+
+
+def best_measured_iteration(log_csv: Path, iterations: int) -> int:
+    """The iteration whose policy succeeded most often when it drove the next iteration's
+    rollouts (ties: the later one); the last iteration when no policy was measured."""
+    measured = [(float(r["success_rate"]), int(r["iteration"]) - 1) for r in read_csv(log_csv) if r["driver"] == "policy"]
+    return max(measured)[1] if measured else iterations - 1
 
 
 def _observation_blocks(config: DaggerConfig) -> dict[str, int]:

@@ -1,4 +1,4 @@
-"""CLI `dexdrake demo`: the shipped policy grasps an unseen object in simulation, recorded to rerun.
+"""CLI `dexdrake demo`: the shipped policy tries to grasp an unseen object in simulation, recorded to rerun.
 
 Needs nothing but the repository: the policy file `models/weights/adroit_dexrep_policy.pt`
 and its manifest (`.json`, whose unseen evaluation picks the default object).
@@ -38,7 +38,7 @@ def best_unseen_object(manifest_path: Path) -> str:
 
 
 def add_parser(subparsers) -> None:
-    demo = subparsers.add_parser("demo", help="the shipped policy grasps an unseen object (writes a rerun recording)")
+    demo = subparsers.add_parser("demo", help="the shipped policy tries to grasp an unseen object (writes a rerun recording)")
     demo.add_argument("--object", help="object name (default: the unseen object the shipped policy grasps best)")
     demo.add_argument("--seed", type=int, default=0, help="placement seed")
     demo.add_argument("--rrd", type=Path, default=Path("demo.rrd"), help="rerun recording to write")

@@ -6,11 +6,12 @@
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration). The result:
-models/weights/<hand>_dexrep_policy.pt (the final DAgger policy), <hand>_dexrep_policy.json
+models/weights/<hand>_dexrep_policy.pt (DAgger's chosen iterate), <hand>_dexrep_policy.json
 (commands, seeds, data, feature set, compute, metrics) and the evaluation tables
 eval_seen.md / eval_unseen.md (eval_<hand>_seen.md ... for other hands than the Adroit);
 "seen" means the training objects used.
-No model selection uses the evaluation objects: the last DAgger iteration is shipped.
+No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
+on its own training rollouts.
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ policy cannot observe; a policy cloned from it learns "stay where you are" at th
 fingertip-to-surface distances, object height), so it can label any state a learning policy
 visits (DAgger) and re-tries when a grasp fails:
 
-- fingers closed on the object (enough fingertips touching, or the object already lifted):
-  lift, fingers squeezing;
+- fingers closed on the object near the grasp point (thumb and another fingertip touching,
+  or settled well closed), or the object already lifted: lift, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
   object or the table): close the fingers;
 - fingers closed but not on the object (missed or dropped): open them;
@@ -45,6 +45,7 @@ class ReactiveRules:
     closed_hold: float = 0.5  # ... as do settled fingers closed this far
     hold_reach: float = 0.05  # ... with the grasp centre within this of the grasp point (m)
     lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units)
+    started: float = 0.05  # closure fraction above which the fingers have started closing
     closed: float = 0.35  # closure fraction above which the fingers count as closed
     missed: float = 0.9  # fingers this closed without holding have missed
     settled_speed: float = 1.0  # fingers slower than this (rad/s, largest joint) have settled
@@ -66,8 +67,7 @@ class ReactiveGrasp(ScriptedGrasp):
         self.rules = rules or RULES_BY_HAND.get(env.scene.hand.name, ReactiveRules())
         super().__init__(env, script)
         self.p_start = env.object_position()
-        lo, hi = self.lo, self.hi
-        self._arm_half = (hi - lo)[: self.n_arm] / 2
+        self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2
         self._span = self.q_closed - self.q_open
         self._fingers = np.abs(self._span) > 1e-9
         self.phase = "approach"
@@ -97,15 +97,15 @@ class ReactiveGrasp(ScriptedGrasp):
         thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
         settled = float(np.max(np.abs(v[self._fingers]))) < r.settled_speed
         arm_stopped = float(np.max(np.abs(v[: self.n_arm]))) < r.stopped_speed
-        holding = (closure > 0.05 and settled and (thumb_and_fingers or closure > r.closed_hold)
+        holding = (closure > r.started and settled and (thumb_and_fingers or closure > r.closed_hold)
                    and float(np.linalg.norm(offset)) < r.hold_reach)
         if not holding and not lifted and np.linalg.norm((p_obj - self.p_planned)[:2]) > r.replan_shift and closure < r.closed:
             self._plan(env)
         fingers = self.q_open
-        if holding or (lifted and closure > 0.05):
+        if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self.q_lift, self.q_closed
         elif np.linalg.norm(offset) < r.at_grasp or (
-            np.linalg.norm(offset[:2]) < r.above_xy and offset[2] < r.blocked_height and (arm_stopped or closure > 0.05)
+            np.linalg.norm(offset[:2]) < r.above_xy and offset[2] < r.blocked_height and (arm_stopped or closure > r.started)
         ):
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
         elif closure > r.missed or (closure > r.closed and not np.linalg.norm(offset[:2]) < r.above_xy):

@@ -1,14 +1,15 @@
 """DAgger with the state-driven grasp expert (`systems.reactive_grasp.ReactiveGrasp`).
 
-Iteration 0 runs the expert itself (with DART-style correlated action noise, so the data
-already covers small deviations); every later iteration runs the current policy, and the
-expert labels every state the policy visits. All data are aggregated and the policy is
+Iteration 0 runs the expert itself (optionally with DART-style correlated action noise);
+every later iteration runs the current policy, and the expert labels every state the
+policy visits. All data are aggregated and the policy is
 re-fit by behaviour cloning (warm-started) after each iteration. Because the labels come
 from states rather than from a clock, the policy learns to move from wherever it is, which
 plain cloning of the timed script did not teach (it stalled at the start pose).
 
 Each iteration's data (raw plant positions too, so any feature set can be re-derived) and
 the policy after it are written to the output folder; a re-run skips finished iterations.
+The returned policy is the iterate that succeeded most often on its own training rollouts.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
+from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp, with_overrides
 
 
 @dataclass(frozen=True)
@@ -53,18 +53,12 @@ class ReactiveRules:
     replan_shift: float = 0.01  # re-plan when the object moved this far before the grasp (m)
 
 
-# Hands on revolute arms: a joint-space descent from the approach way-point drifts sideways
-# before it converges (so descending tolerates more offset higher up), and a normalised lead
-# of a revolute joint moves the hand much farther than one of the Adroit's slides.
-_REVOLUTE_ARM = ReactiveRules(descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1)
-RULES_BY_HAND: dict[str, ReactiveRules] = {"allegro_z1": _REVOLUTE_ARM, "allegro": _REVOLUTE_ARM}
-
-
 class ReactiveGrasp(ScriptedGrasp):
     """Callable controller for `GraspEnv` (like ScriptedGrasp) whose output depends on the state only."""
 
     def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
-        self.rules = rules or RULES_BY_HAND.get(env.scene.hand.name, ReactiveRules())
+        hand = env.scene.hand
+        self.rules = rules or with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert")
         super().__init__(env, script)
         self.p_start = env.object_position()
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2

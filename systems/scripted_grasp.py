@@ -9,11 +9,12 @@ pose.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
 
 
@@ -35,17 +36,18 @@ class GraspScript:
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
 
 
-# The Allegro's grasp centre sits 4.4 cm in front of its palm face (the Adroit's 5 cm): at the
-# Adroit's depth its fingers meet the object's top and are pushed open.
-SCRIPT_BY_HAND: dict[str, GraspScript] = {
-    "allegro_z1": GraspScript(palm_depth=0.02),
-    "allegro": GraspScript(palm_depth=0.02),
-}
+def with_overrides(cls, overrides: dict, hand: HandDescription, key: str):
+    """`cls()` with the fields a hand description overrides under `key` (unknown names refused)."""
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise DexdrakeError(f"hand {hand.name!r}: {key} has unknown fields {unknown}; known: {sorted(names)}")
+    return cls(**overrides)
 
 
-def script_for(hand: str) -> GraspScript:
-    """The grasp geometry and timing used for `hand` (GraspScript defaults unless overridden)."""
-    return SCRIPT_BY_HAND.get(hand, GraspScript())
+def script_for(hand: HandDescription) -> GraspScript:
+    """The grasp geometry and timing for `hand`: GraspScript with its description's `grasp_script`."""
+    return with_overrides(GraspScript, hand.grasp_script, hand, "grasp_script")
 
 
 def closed_pose(hand: HandDescription, closure: float = 1.0) -> np.ndarray:
@@ -76,7 +78,7 @@ class ScriptedGrasp:
     """Callable controller for `GraspEnv.rollout`: returns joint set-points each step."""
 
     def __init__(self, env, script: GraspScript | None = None):
-        self.script = script or script_for(env.scene.hand.name)
+        self.script = script or script_for(env.scene.hand)
         scene = env.scene
         self.hand = scene.hand
         plant = scene.plant

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
@@ -86,8 +85,7 @@ def test_dagger_data_round_trip_and_format_check(tmp_path, env):
         DaggerData.load(tmp_path / "bad.npz")
 
 
-def test_dagger_trains_resumes_and_cli(tmp_path, capsys):
-    torch.set_num_threads(1)
+def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     config = DaggerConfig(feature_set="Hand2obj", iterations=2, episodes_per_object=1, epochs=1, workers=1)
     final = train_dagger([OBJECT], tmp_path / "d", config)
     rows = read_csv(tmp_path / "d" / "dagger_log.csv")
@@ -116,3 +114,18 @@ def test_best_measured_iteration(tmp_path):
     assert best_measured_iteration(log, 4) == 2  # policy_02 drove iteration 3 (ties: the later)
     log.write_text("iteration,driver,success_rate\n0,expert,0.5\n")
     assert best_measured_iteration(log, 1) == 0
+
+
+def test_hand_descriptions_override_the_grasp_geometry_and_expert_rules():
+    from dataclasses import replace
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.reactive_grasp import ReactiveRules
+    from dexdrake.systems.scripted_grasp import GraspScript, script_for, with_overrides
+
+    allegro, adroit = load_hand("allegro_z1"), load_hand("adroit")
+    assert script_for(adroit) == GraspScript() and script_for(allegro) == GraspScript(palm_depth=0.02)
+    assert with_overrides(ReactiveRules, allegro.grasp_expert, allegro, "grasp_expert") == ReactiveRules(
+        descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1)
+    with pytest.raises(DexdrakeError, match=r"grasp_script has unknown fields \['palm_dept'\]"):
+        script_for(replace(allegro, grasp_script={"palm_dept": 0.02}))

@@ -21,13 +21,7 @@ from dexdrake.learn.samplers import ProcessSampler, SequentialSampler, make_samp
 TOY_BLOCKS = {"hand": 4, "occ_surf": 2, "local_geo": 3}
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks run fastest on one thread, and CI shares 2 cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class PointMassReach:

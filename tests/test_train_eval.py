@@ -18,12 +18,7 @@ from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, sa
 OBJECT = "sphere_small"
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,8 @@ Schema (YAML):
     occupancy: {body: mfproximal, offset: [0, -0.07, 0], size: 0.2, resolution: 10}
     pregrasp: {JOINT: value, ...}    # joints not named are 0 (clamped into their limits)
     closing: {JOINT: 1 | -1, ...}    # direction each finger joint moves to close the hand
+    grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
+    grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
 """
 
 from __future__ import annotations
@@ -72,6 +74,8 @@ class HandDescription:
     pregrasp: dict[str, float] = field(default_factory=dict)
     hardware_joints: tuple[str, ...] | None = None
     closing: dict[str, float] = field(default_factory=dict)
+    grasp_script: dict[str, float] = field(default_factory=dict)
+    grasp_expert: dict[str, float] = field(default_factory=dict)
 
     @property
     def model_path(self) -> Path:
@@ -125,6 +129,8 @@ def _from_dict(d: dict) -> HandDescription:
         pregrasp={k: float(v) for k, v in (d.get("pregrasp") or {}).items()},
         hardware_joints=tuple(d["hardware_joints"]) if d.get("hardware_joints") else None,
         closing={k: float(v) for k, v in (d.get("closing") or {}).items()},
+        grasp_script=dict(d.get("grasp_script") or {}),
+        grasp_expert=dict(d.get("grasp_expert") or {}),
     )
 
 

@@ -7,7 +7,8 @@ fingertip-to-surface distances, object height), so it can label any state a lear
 visits (DAgger) and re-tries when a grasp fails:
 
 - fingers closed on the object near the grasp point (thumb and another fingertip touching,
-  or settled well closed), or the object already lifted: lift, fingers squeezing;
+  or settled well closed), or the object already lifted: lift straight up from where the
+  hand is, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
   object or the table): close the fingers;
 - fingers closed but not on the object (missed or dropped): open them;
@@ -97,7 +98,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self._plan(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
-            self.phase, arm, fingers = "lift", self.q_lift, self.q_closed
+            self.phase, arm, fingers = "lift", self._straight_up(q[: self.n_arm]), self.q_closed
         elif np.linalg.norm(offset) < r.at_grasp or (
             np.linalg.norm(offset[:2]) < r.above_xy and offset[2] < r.blocked_height and (arm_stopped or closure > r.started)
         ):
@@ -113,6 +114,12 @@ class ReactiveGrasp(ScriptedGrasp):
         lead = r.lift_lead if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
+
+    def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
+        """Arm set-points that lift the grasp centre vertically from where it is now to the
+        lift height (the object's start position cannot be seen once it is in the hand)."""
+        p = self._palm_pose(q_arm)[0]
+        return self.solve_arm(np.array([p[0], p[1], self.grasp_point[2] + self.script.lift]), self.R_grasp, q_arm)
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

@@ -34,6 +34,7 @@ class GraspScript:
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
+    round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
 
 
 def with_overrides(cls, overrides: dict, hand: HandDescription, key: str):
@@ -117,7 +118,11 @@ class ScriptedGrasp:
         self.q_start_arm = q_now[: self.n_arm]
         _, R_start = self._palm_pose(self.q_start_arm)
         X_obj = env.scene.object_pose(env.plant_context)
-        R_grasp = _rot_z(self._grasp_yaw(R_start, X_obj.rotation().matrix(), env.scene.object_info.extents)) @ R_start
+        info = env.scene.object_info
+        widths = info.footprint_widths()
+        round_ = widths.max() - widths.min() < self.script.round_footprint * widths.max()
+        yaw = 0.0 if round_ else self._grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
+        self.R_grasp = R_grasp = _rot_z(yaw) @ R_start
         fingers_dir = R_grasp[:, 2].copy()
         fingers_dir[2] = 0.0
         fingers_dir /= np.linalg.norm(fingers_dir)
@@ -135,7 +140,8 @@ class ScriptedGrasp:
     @staticmethod
     def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
         """Yaw (about world z) that turns the fingers across the object's shorter horizontal
-        axis; square footprints have a quarter-turn symmetry, others a half turn."""
+        axis; square footprints have a quarter-turn symmetry, others a half turn. (Round
+        footprints, whose yaw a policy cannot see, are not turned; see `_plan`.)"""
         ex, ey = extents[0], extents[1]
         short_axis = R_obj[:, 1] if ex >= ey else R_obj[:, 0]
         period = np.pi / 2 if abs(ex - ey) < 0.15 * max(ex, ey) else np.pi

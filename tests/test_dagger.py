@@ -24,14 +24,18 @@ def env():
 def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
     env.reset(0, object_name=OBJECT)
     expert = ReactiveGrasp(env)
-    phases, success = [], False
+    phases, success, lifting = [], False, []
     for _ in range(env.horizon):
         q = expert(env)
         if not phases or phases[-1] != expert.phase:
             phases.append(expert.phase)
+        if expert.phase == "lift":
+            lifting.append(expert._palm_pose(env.hand_state()[: expert.n_arm])[0])
         success = env.step_positions(q)[3]["success"] or success
     assert success
     assert phases[-3:] == ["descend", "close", "lift"]  # from the start pose, inside the funnel
+    lifting = np.array(lifting)  # straight up from where the grasp closed
+    assert np.abs(lifting[:, :2] - lifting[0, :2]).max() < 0.01 and lifting[-1, 2] - lifting[0, 2] > 0.1
 
 
 def test_expert_label_depends_on_state_not_time_and_leads_the_arm(env):

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from pydrake.math import RigidTransform, RollPitchYaw
 
 from dexdrake.cli import main as cli_main
 from dexdrake.systems.grasp_env import GraspEnv
@@ -89,6 +90,23 @@ def test_scripted_grasp_lifts_the_sphere(sphere_env):
     summary = sphere_env.rollout(ScriptedGrasp, seed=0)
     assert summary.success, summary
     assert summary.max_lift > 0.1
+
+
+def _planned_grasp(env, seed: int, yaw: float) -> np.ndarray:
+    env.reset(seed)
+    pose = env.scene.plant.GetFreeBodyPose(env.plant_context, env.scene.object_body)
+    env.scene.plant.SetFreeBodyPose(env.plant_context, env.scene.object_body,
+                                    RigidTransform(RollPitchYaw(0, 0, yaw), pose.translation()))
+    return ScriptedGrasp(env).q_grasp
+
+
+def test_round_objects_are_grasped_at_the_start_yaw_whatever_their_own(sphere_env):
+    # A sphere's yaw cannot be seen, so the plan must not depend on it; a bar's plan turns with it.
+    np.testing.assert_allclose(_planned_grasp(sphere_env, 0, 0.0), _planned_grasp(sphere_env, 0, 0.6), atol=1e-6)
+    widths = sphere_env.scene.object_info.footprint_widths()
+    assert widths.max() - widths.min() < 0.01
+    bar = GraspEnv(SceneConfig(object="box_bar"), horizon=5)
+    assert np.abs(_planned_grasp(bar, 0, 0.0) - _planned_grasp(bar, 0, 0.6)).max() > 0.1
 
 
 def test_rerun_recording_is_written(tmp_path, sphere_env):

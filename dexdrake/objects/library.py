@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import shutil
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
+
+import numpy as np
 
 from dexdrake.errors import DexdrakeError, UnknownNameError
 from dexdrake.objects import importer, store
@@ -62,6 +65,10 @@ class ObjectInfo:
                 return files
         return cached_pieces(self.mesh_path, self.content_hash)
 
+    def footprint_widths(self) -> np.ndarray:
+        """Widths (m) of the horizontal footprint, resting pose, across 90 directions in [0, pi)."""
+        return _footprint_widths(self.mesh_path, self.content_hash)
+
     def sdf_path(self) -> Path:
         """A Drake SDF model of the object (written under cache_dir()/objects/, absolute paths)."""
         sub = "user" if self.split == "user" else "shipped"
@@ -75,6 +82,14 @@ class ObjectInfo:
         """The SDF text, with the model (and link) named `model_name` (default: the object name)."""
         inertia = inertia_about_com(load_obj(self.mesh_path), self.mass)
         return object_sdf(model_name or self.name, self.mesh_path, self.convex_pieces(), self.mass, inertia, self.friction)
+
+
+@cache
+def _footprint_widths(mesh_path: Path, content_hash: str) -> np.ndarray:
+    xy = np.asarray(load_obj(mesh_path).vertices)[:, :2]
+    angles = np.linspace(0.0, np.pi, 90, endpoint=False)
+    along = xy @ np.stack([np.cos(angles), np.sin(angles)])
+    return along.max(0) - along.min(0)
 
 
 def _info(folder: Path) -> ObjectInfo:

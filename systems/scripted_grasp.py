@@ -120,8 +120,8 @@ class ScriptedGrasp:
         X_obj = env.scene.object_pose(env.plant_context)
         info = env.scene.object_info
         widths = info.footprint_widths()
-        round_ = widths.max() - widths.min() < self.script.round_footprint * widths.max()
-        yaw = 0.0 if round_ else self._grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
+        is_round = widths.max() - widths.min() < self.script.round_footprint * widths.max()
+        yaw = 0.0 if is_round else self._grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
         self.R_grasp = R_grasp = _rot_z(yaw) @ R_start
         fingers_dir = R_grasp[:, 2].copy()
         fingers_dir[2] = 0.0

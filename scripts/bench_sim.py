@@ -1,10 +1,10 @@
 """Simulation speed of the Adroit grasp scene during a scripted grasp, on one core.
 
-Prints, per plant time step, control steps per second (50 Hz control) and plant steps per
-second, with the ratio to the named baseline: MuJoCo stepping the paper's Adroit relocate
-scene at about 13,000 plant steps/s on this machine (specs/drake.md). Rates are per second
-of this process's CPU time (wall time is printed too: on a shared machine it is inflated
-by other processes; the load average is printed).
+Prints, per plant time step, control steps per second (50 Hz control), plant steps per
+second and simulated seconds per second, with the ratio to MuJoCo stepping the paper's
+Adroit relocate scene measured in the same run (optional `bench` extra; see
+`mujoco_peer.py`). Rates are per second of this process's CPU time (wall time is printed
+too: on a shared machine it is inflated by other processes; the load average is printed).
 
     python scripts/bench_sim.py [--object sphere_medium] [--episodes 2] [--steps 150]
 """
@@ -17,8 +17,7 @@ import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-MUJOCO_STEPS_PER_S = 13000.0  # specs/drake.md, same 2-core machine
-TIME_STEPS = (0.001, 0.002, 0.004)
+TIME_STEPS = (0.002, 0.005, 0.01)
 
 
 def main() -> None:
@@ -29,6 +28,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=150)
     args = parser.parse_args()
 
+    import mujoco_peer
     import torch
 
     torch.set_num_threads(1)
@@ -38,8 +38,13 @@ def main() -> None:
 
     print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps (50 Hz)")
     print(f"load average {os.getloadavg()[0]:.1f}")
-    print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'vs MuJoCo':>11}{'wall s':>8}"
-          f"{'success':>9}")
+    peer = mujoco_peer.measure_relocate()
+    if peer is None:
+        print("MuJoCo peer: not measured (install the optional extra: pip install -e '.[bench]')")
+    else:
+        print(f"MuJoCo peer ({peer.version}, Adroit relocate, dt 2 ms): {peer.sim_s_per_cpu_s:.1f} simulated s per CPU-s")
+    print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'sim s/s':>9}{'vs MuJoCo':>11}"
+          f"{'wall s':>8}{'success':>9}")
     for dt in TIME_STEPS:
         env = GraspEnv(SceneConfig(hand=args.hand, object=args.object, time_step=dt), horizon=args.steps)
         env.rollout(ScriptedGrasp, seed=0)  # warm-up (first-use allocations)
@@ -49,7 +54,9 @@ def main() -> None:
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
         control = args.episodes * args.steps / cpu
         plant = control * env.base_config.control_period / dt
-        print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{plant / MUJOCO_STEPS_PER_S:>10.2f}x{wall:>8.1f}"
+        sim_rate = control * env.base_config.control_period
+        ratio = f"{sim_rate / peer.sim_s_per_cpu_s:>10.3f}x" if peer else f"{'-':>11}"
+        print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{sim_rate:>9.2f}{ratio}{wall:>8.1f}"
               f"{successes:>6}/{args.episodes}")
 
 

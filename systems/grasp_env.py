@@ -13,6 +13,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
+from dexdrake.dexrep.feature_sets import FeatureExtractor
+from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
@@ -42,7 +44,7 @@ class GraspEnv:
     ):
         self.base_config, self.feature_set, self.horizon, self.task = config, feature_set, horizon, task
         self.objects = objects or [config.object]
-        self._scenes: dict[str, tuple[GraspScene, Simulator, object]] = {}
+        self._scenes: dict[str, tuple[GraspScene, Simulator, ObjectGeometry, FeatureExtractor | None]] = {}
         self._use(self.objects[0])
         lo, hi = self.scene.hand.joint_limits()
         self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
@@ -53,23 +55,19 @@ class GraspEnv:
     def _use(self, name: str) -> None:
         if name not in self._scenes:
             scene = build_grasp_scene(replace(self.base_config, object=name))
-            sim = Simulator(scene.diagram)
-            features = self._make_features(scene)
-            self._scenes[name] = (scene, sim, features)
-        self.scene, self.simulator, self._features = self._scenes[name]
+            geometry = object_geometry(name)
+            features = None if self.feature_set is None else FeatureExtractor(
+                scene.hand, scene.plant, scene.hand_instance, geometry, self.feature_set)
+            self._scenes[name] = (scene, Simulator(scene.diagram), geometry, features)
+        self.scene, self.simulator, self.geometry, self._features = self._scenes[name]
         self.context = self.simulator.get_mutable_context()
         self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
         self.sg_context = self.scene.scene_graph.GetMyContextFromRoot(self.context)
         self._command_port = self.scene.diagram.get_input_port(0)
-
-    def _make_features(self, scene: GraspScene):
-        if self.feature_set is None:
-            return None
-        from dexdrake.dexrep.feature_sets import FeatureExtractor
-        from dexdrake.dexrep.geometry import object_geometry
-
-        geometry = object_geometry(scene.object_info.name)
-        return FeatureExtractor(scene.hand, scene.plant, scene.hand_instance, geometry, self.feature_set)
+        self._tip_bodies = [self.scene.plant.GetBodyByName(p.body, self.scene.hand_instance)
+                            for p in self.scene.hand.fingertips]
+        self._tip_offsets = np.array([[*p.offset, 1.0] for p in self.scene.hand.fingertips])
+        self._tips_at: np.ndarray | None = None  # the plant positions _tips belongs to
 
     # -- protocol -----------------------------------------------------------------------
     def reset(self, seed: int, q_hand: np.ndarray | None = None, object_name: str | None = None) -> np.ndarray:
@@ -142,14 +140,19 @@ class GraspEnv:
         )
 
     def fingertip_distances(self) -> np.ndarray:
-        """Distance (>= 0) of each fingertip to the object's surface, from SceneGraph."""
-        query = self.scene.diagram.GetOutputPort("query_object").Eval(self.context)
-        target = self.scene.distance_geometry_id
-        out = []
-        for p in self.points_in_world(self.scene.hand.fingertips):
-            d = [r.distance for r in query.ComputeSignedDistanceToPoint(p, 10.0) if r.id_G == target]
-            out.append(max(d[0], 0.0) if d else 10.0)
-        return np.array(out)
+        """Distance (>= 0) of each fingertip to the object's surface: one exact closest-point
+        query on the object's watertight mesh (the same mesh SceneGraph holds for distance
+        queries), computed once per configuration and shared by the reward and the expert."""
+        plant, ctx = self.scene.plant, self.plant_context
+        q = plant.GetPositions(ctx)
+        if self._tips_at is None or not np.array_equal(self._tips_at, q):
+            tips = np.array([plant.EvalBodyPoseInWorld(ctx, b).GetAsMatrix34() @ o
+                             for b, o in zip(self._tip_bodies, self._tip_offsets)])
+            X_WO = self.scene.object_pose(ctx)
+            p_O = (tips - X_WO.translation()) @ X_WO.rotation().matrix()
+            self._tips = np.maximum(self.geometry.closest_points(p_O).distance, 0.0)
+            self._tips_at = q
+        return self._tips.copy()
 
     def rollout(self, make_controller, seed: int, logger=None) -> EpisodeSummary:
         """Runs one episode from `reset(seed)`. `make_controller(env)` is called once after

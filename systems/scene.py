@@ -142,6 +142,7 @@ def build_grasp_scene(config: SceneConfig = SceneConfig()) -> GraspScene:
             time_step=config.time_step,
             discrete_contact_approximation="sap",
             contact_model="point",
+            use_sampled_output_ports=False,  # outputs on demand: nothing reads contact results per step
         ),
         builder,
     )

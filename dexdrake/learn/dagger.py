@@ -28,7 +28,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.description import load_hand
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
@@ -190,7 +192,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
             t1 = time.perf_counter()
             everything = DaggerData.concat(parts)
             if policy is None:
-                blocks = _observation_blocks(config)
+                blocks = observation_blocks(load_hand(config.hand), config.feature_set)
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, everything.labels.shape[1],
                                                                   feature_set=config.feature_set, hand=config.hand))
             dataset = DemoDataset(everything.observations, everything.labels, everything.episode_starts)
@@ -221,11 +223,3 @@ def best_measured_iteration(log_csv: Path, iterations: int) -> int:
     rollouts (ties: the later one); the last iteration when no policy was measured."""
     measured = [(float(r["success_rate"]), int(r["iteration"]) - 1) for r in read_csv(log_csv) if r["driver"] == "policy"]
     return max(measured)[1] if measured else iterations - 1
-
-
-def _observation_blocks(config: DaggerConfig) -> dict[str, int]:
-    from dexdrake.eval.envs import GraspEnvFactory
-    from dexdrake.objects.library import list_objects
-
-    env = GraspEnvFactory(config.hand, config.feature_set, (list_objects("train")[0].name,), 1)()
-    return dict(env.observation_blocks)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 CONTROLLERS = ("scripted",)
 
@@ -15,7 +16,7 @@ def add_parser(subparsers) -> None:
     sim.add_argument("--controller", default="scripted", help=f"one of {', '.join(CONTROLLERS)}")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--steps", type=int, default=150, help="control steps (50 Hz)")
-    sim.add_argument("--time-step", type=float, default=0.002, help="plant step (s)")
+    sim.add_argument("--time-step", type=float, help="plant step (s); default: the scene's (5 ms)")
     sim.add_argument("--rrd", help="write a rerun recording to this .rrd file")
     sim.set_defaults(func=run_sim)
 
@@ -42,7 +43,10 @@ def run_sim(args: argparse.Namespace) -> int:
     from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    env = GraspEnv(SceneConfig(hand=args.hand, object=args.object, time_step=args.time_step), horizon=args.steps)
+    config = SceneConfig(hand=args.hand, object=args.object)
+    if args.time_step is not None:
+        config = replace(config, time_step=args.time_step)
+    env = GraspEnv(config, horizon=args.steps)
     logger = None
     if args.rrd:
         from dexdrake.systems.rerun_logger import RerunEpisodeLogger

@@ -21,7 +21,7 @@ def test_scene_ports_and_sizes():
     assert d.GetInputPort("command").size() == 30
     assert d.GetOutputPort("hand_state").size() == 60
     assert d.GetOutputPort("object_pose").size() == 7
-    assert scene.plant.time_step() == pytest.approx(0.002)
+    assert scene.plant.time_step() == pytest.approx(0.005)
 
 
 def test_placement_follows_paper_ranges():

@@ -24,8 +24,16 @@ COMMAND_MODULES = [
 ]
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line on stderr, exit status 2 (as a
+    DexdrakeError raised by a command); its sub-parsers are of the same class."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dexdrake", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="dexdrake", description=__doc__.splitlines()[0])
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_parser(subparsers)
@@ -34,14 +42,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    name = " ".join([args.command] + [str(v) for k, v in vars(args).items()
+                                      if k.endswith("_command") and v])
     start = time.perf_counter()
     try:
         return int(args.func(args) or 0)
     except DexdrakeError as err:
-        print(f"dexdrake {args.command}: error: {err}", file=sys.stderr)
+        print(f"dexdrake {name}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"dexdrake {args.command}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
+        print(f"dexdrake {name}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
         return 130
 
 

@@ -271,3 +271,68 @@ def test_unknown_weight_is_refused(toy):
     hand, config = toy
     with pytest.raises(Exception, match="unknown weights"):
         Retargeter(hand, {**config, "weights": {"objekt": 1.0}})
+
+
+def _capture(T=40, seed=0):
+    """A MediaPipe-like right-hand trajectory in an arbitrary capture frame (rotated,
+    1.4 m away), as a demo without an object: the synthetic hand closes and turns."""
+    from scipy.spatial.transform import Rotation
+
+    from dexdrake.demos import human_hand as hh
+
+    closed = np.array([[-0.45, 0.95, 0.6, 0.7]] + [[0.0, 1.5, 1.7, 1.2]] * 4)
+    R0 = Rotation.random(random_state=seed).as_matrix()
+    kp = []
+    for a in np.linspace(0, 1, T):
+        R = R0 @ Rotation.from_rotvec([0.0, 0.3 * np.sin(3 * a), 0.2 * a]).as_matrix()
+        kp.append(hh.hand_keypoints(hh.OPEN_POSE + 0.8 * a * (closed - hh.OPEN_POSE)) @ R.T
+                  + [0.5, -1.2, 0.6] + [0.0, 0.06 * a, 0.0])
+    kp = np.array(kp)
+    return HumanDemo(kp, np.arange(T) / 30.0, "", np.zeros((T, 3)),
+                     np.tile([1.0, 0, 0, 0], (T, 1)), DemoMeta())
+
+
+def _twist_deg(r: Retargeter, q, kp) -> float:
+    """Twist (deg) of the robot's palm about the human's finger axis: the angle between the
+    palm normals, the robot's projected onto the human's palm-normal/thumb plane."""
+    from dexdrake.demos.hand_frame import hand_frames
+
+    Rr, _ = r.hand_frame(q)
+    Rh, _ = hand_frames(kp)
+    x = Rh.T @ Rr[:, 0]
+    return float(np.degrees(abs(np.arctan2(x[1], x[0]))))
+
+
+@pytest.mark.parametrize("hand", ["allegro", "adroit"])
+def test_any_capture_frame_starts_inside_reach(hand):
+    """Issue 15: a capture-frame trajectory left the arm at its limits in 92 % of frames
+    with the palm twisted ~47 deg; placed on the robot's home frame, neither happens."""
+    demo = _capture()
+    r = Retargeter(hand)
+    n = len(r.hand.arm_joints)
+    raw = r.retarget_sequence(demo, progress=False)  # the old behaviour: capture frame as is
+    assert np.mean([_twist_deg(r, q, k) for q, k in zip(raw, demo.keypoints)]) > 15
+    at_limit = lambda Q: np.mean(np.any(np.isclose(Q[:, :n], r.lower[:n], atol=1e-3)  # noqa: E731
+                                        | np.isclose(Q[:, :n], r.upper[:n], atol=1e-3), axis=1))
+    assert at_limit(raw) > 0.9
+    Q = r.retarget_sequence(demo, progress=False, place=True)
+    assert at_limit(Q) == 0.0
+    kp = r.place(demo.keypoints)
+    twist = [_twist_deg(r, Q[t], kp[t]) for t in range(len(Q))]
+    assert max(twist) < 10.0 and np.mean(twist) < 5.0, twist
+    res = np.mean([r.residuals(kp[t], Q[t])["all"].mean() for t in range(len(Q))])
+    assert res < 0.03
+
+
+def test_fixed_wrist_moves_fingers_only():
+    demo = _capture(T=15)
+    r = Retargeter("allegro", fixed_wrist=True)
+    n = len(r.hand.arm_joints)
+    Q = r.retarget_sequence(demo, progress=False)
+    np.testing.assert_allclose(Q[:, :n], np.broadcast_to(r.reference_q()[:n], (len(Q), n)))
+    assert np.ptp(Q[:, n:], axis=0).max() > 0.3  # the fingers close
+    kp = r.place(demo.keypoints)
+    np.testing.assert_allclose(kp[:, 0], np.broadcast_to(r.home()[1], (len(Q), 3)), atol=1e-12)
+    assert max(_twist_deg(r, Q[t], kp[t]) for t in range(len(Q))) < 1e-6
+    assert Retargeter("allegro").lower[0] < r.lower[0] or Retargeter("allegro").upper[0] > \
+        r.upper[0]  # the shared joint-limit arrays were not changed

@@ -8,33 +8,120 @@ from pathlib import Path
 
 import numpy as np
 
+from dexdrake import argtypes
+
 # MediaPipe skeleton: each finger's chain from the wrist
 _CHAINS = [[0, 1, 2, 3, 4], [0, 5, 6, 7, 8], [0, 9, 10, 11, 12], [0, 13, 14, 15, 16],
            [0, 17, 18, 19, 20]]
 
 
+def _keypoint_flags(p: argparse.ArgumentParser, *side: str) -> None:
+    """Flags that say how to read a raw keypoint file (demos import, retarget); `side`: the
+    flag names of the hand side (retarget's --hand names the robot hand)."""
+    from dexdrake.demos.loaders import HANDS, ORDERS, UNITS
+
+    p.add_argument("--order", choices=ORDERS, default="mediapipe",
+                   help="keypoint order in the file (default: mediapipe)")
+    p.add_argument("--fps", type=argtypes.positive, default=30.0,
+                   help="frame rate when the file has no times (default: 30)")
+    p.add_argument("--units", choices=UNITS, default="auto",
+                   help="units of the file (default: auto, from the hand's size)")
+    p.add_argument(*side, dest="side", choices=HANDS, default="right",
+                   help="which hand the keypoints are of; a left hand is mirrored")
+    p.add_argument("--key", help="the array's name inside a .npz/.pkl/.json mapping")
+    p.add_argument("--object", default="", help="library object held in the demo (the "
+                   "keypoints are then in its world frame: z up, table at z = 0)")
+    p.add_argument("--object-pose", help="object pose x,y,z[,qw,qx,qy,qz] or a .npy/.csv "
+                   "file of (T, 7) poses (default: identity)")
+
+
 def add_parser(subparsers) -> None:
-    """Add `demos synth ...`, `demos replay ...` and `retarget ...` to an argparse subparsers object."""
+    """Add `demos synth|import|replay ...` and `retarget ...` to an argparse subparsers object."""
     demos = subparsers.add_parser("demos", help="human grasp demonstrations")
     sub = demos.add_subparsers(dest="demos_command", required=True)
     synth = sub.add_parser("synth", help="generate synthetic human grasp demos")
     synth.add_argument("--objects", required=True,
                        help="'train', 'unseen' or comma-separated object names")
-    synth.add_argument("--out", required=True, type=Path, help="output folder")
-    synth.add_argument("--per-object", type=int, default=3, help="demos per object")
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder")
+    synth.add_argument("--per-object", type=argtypes.count, default=3, help="demos per object")
+    synth.add_argument("--seed", type=argtypes.seed, default=0)
     synth.set_defaults(func=cmd_synth)
+    imp = sub.add_parser("import", help="convert a keypoint file (.npy/.npz/.pkl/.json/.csv) "
+                         "to a demo file", description=IMPORT_HELP)
+    imp.add_argument("file", type=Path, help="keypoint file, (T, 21, 3) or (T, 63)")
+    imp.add_argument("--out", required=True, type=argtypes.output_file(".npz"),
+                     help="demo file to write (.npz)")
+    _keypoint_flags(imp, "--hand", "--side")
+    imp.set_defaults(func=cmd_import)
     from dexdrake.demos import replay_commands
 
     replay_commands.add_parser(sub)
 
-    rt = subparsers.add_parser("retarget", help="retarget a human demo to a robot hand")
-    rt.add_argument("demo", type=Path, help="demo .npz (dexdrake demo format)")
+    rt = subparsers.add_parser("retarget", help="retarget a human demo or keypoint file to a "
+                               "robot hand", description=RETARGET_HELP)
+    rt.add_argument("demo", type=Path, help="demo .npz (dexdrake demo format) or a keypoint "
+                    "file (.npy/.npz/.pkl/.json/.csv)")
     rt.add_argument("--hand", required=True, help="hand name, e.g. allegro or adroit")
-    rt.add_argument("--out", type=Path, help="joint trajectory .npz "
+    rt.add_argument("--out", type=argtypes.output_file(".npz"), help="joint trajectory .npz "
                     "(default: <demo>.<hand>.npz)")
-    rt.add_argument("--rrd", type=Path, help="write a rerun recording of human vs robot points")
+    rt.add_argument("--rrd", type=argtypes.output_file(".rrd"),
+                    help="write a rerun recording of human vs robot points")
+    rt.add_argument("--fixed-wrist", action="store_true", help="keep the arm at its reference "
+                    "pose and retarget the fingers only (a hand on a fixed mount)")
+    _keypoint_flags(rt, "--side")
     rt.set_defaults(func=cmd_retarget)
+
+
+IMPORT_HELP = """Convert hand keypoints to a dexdrake demo file. The file holds (T, 21, 3)
+keypoints (or (T, 63) rows; CSV: 63 values per row, or 64 with the time first). Units are
+detected from the hand's size (or given with --units); frames with no hand are dropped;
+NaN, a collapsed hand or impossible bone lengths are refused with the fix. Without
+--object the keypoints are stored in the canonical hand frame (wrist at the origin, see
+dexdrake/demos/hand_frame.py); with --object they stay in the object's world frame."""
+
+RETARGET_HELP = """Retarget a demo file, or a keypoint file read as `demos import` reads it,
+to a robot hand. Without an object the hand is put into the canonical hand frame and placed
+on the robot hand at its reference pose, so the arm starts inside its reach."""
+
+
+def _load_demo_or_keypoints(args: argparse.Namespace, notes: list[str]):
+    """The demo named on the command line: a dexdrake demo file, else a keypoint file."""
+    from dexdrake.demos.format import DemoFormatError, is_demo_file, load_demo
+    from dexdrake.demos.loaders import KEYPOINT_SUFFIXES, load_keypoint_array, parse_pose
+
+    path = args.demo if hasattr(args, "demo") else args.file
+    if not path.is_file():
+        raise DemoFormatError(f"{path}: no such file")
+    if path.suffix.lower() not in KEYPOINT_SUFFIXES:
+        raise DemoFormatError(f"{path}: not a demo or keypoint file (use a dexdrake demo .npz "
+                              f"or keypoints as {', '.join(KEYPOINT_SUFFIXES)})")
+    if hasattr(args, "demo") and is_demo_file(path):
+        return load_demo(path)
+    pos = quat = None
+    if args.object:
+        from dexdrake.objects.library import get_object
+
+        get_object(args.object)
+        if args.object_pose:
+            pose = parse_pose(args.object_pose)
+            pos, quat = pose[..., :3], pose[..., 3:]
+    elif args.object_pose:
+        raise DemoFormatError("--object-pose needs --object NAME")
+    return load_keypoint_array(path, order=args.order, fps=args.fps, object_name=args.object,
+                               object_pos=pos, object_quat=quat, key=args.key,
+                               units=args.units, hand=args.side, notes=notes)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from dexdrake.demos.format import save_demo
+
+    notes: list[str] = []
+    demo = _load_demo_or_keypoints(args, notes)
+    out = save_demo(demo, args.out)
+    for n in notes:
+        print(f"  {n}")
+    print(f"{demo.num_frames} frames ({demo.time[-1] - demo.time[0]:.2f} s) -> {out}")
+    return 0
 
 
 def _object_names(spec: str) -> list[str]:
@@ -51,8 +138,6 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from dexdrake.demos.format import save_demo
     from dexdrake.demos.synthetic import synthesize_object_demos
 
-    if args.per_object < 1:
-        raise SystemExit("--per-object must be at least 1")
     names = _object_names(args.objects)
     written = 0
     for i, name in enumerate(tqdm(names, desc="synthesize", unit="object")):
@@ -65,28 +150,52 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_retarget(args: argparse.Namespace) -> int:
-    from dexdrake.demos.format import load_demo
+    from dexdrake.hands.description import load_hand
     from dexdrake.retarget.retargeter import Retargeter
 
-    demo = load_demo(args.demo)
-    r = Retargeter(args.hand)
-    Q = r.retarget_sequence(demo)
-    res = [r.residuals(demo.keypoints[t], Q[t]) for t in range(demo.num_frames)]
+    hand = load_hand(args.hand)
+    out = args.out or argtypes.writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
+    notes: list[str] = []
+    demo = _load_demo_or_keypoints(args, notes)
+    r = Retargeter(hand, fixed_wrist=args.fixed_wrist)
+    place = args.fixed_wrist or not demo.object_name
+    if args.fixed_wrist and demo.object_name:
+        notes.append("--fixed-wrist: the object terms are left out")
+    Q = r.retarget_sequence(demo, place=place)
+    keypoints = r.place(demo.keypoints) if place else demo.keypoints
+    res = [r.residuals(keypoints[t], Q[t]) for t in range(demo.num_frames)]
     mean = 1000 * np.mean([x["all"].mean() for x in res])
     thumb = 1000 * np.mean([x["thumb"].mean() for x in res])
-    out = args.out or args.demo.with_suffix(f".{args.hand}.npz")
-    np.savez_compressed(out, q=Q, joint_names=np.array(r.joint_names), time=demo.time,
-                        hand=args.hand, demo=str(args.demo), residual_mm_mean=mean,
-                        residual_mm_thumb=thumb)
+    write_npz(out, q=Q, joint_names=np.array(r.joint_names), time=demo.time,
+              hand=args.hand, demo=str(args.demo), residual_mm_mean=mean,
+              residual_mm_thumb=thumb, fixed_wrist=args.fixed_wrist)
+    for n in notes:
+        print(f"  {n}")
     print(f"{demo.num_frames} frames -> {out}; key-vector residual {mean:.1f} mm mean, "
           f"{thumb:.1f} mm thumb")
     if args.rrd:
-        write_rrd(args.rrd, demo, r, Q)
+        write_rrd(args.rrd, demo, r, Q, keypoints)
         print(f"rerun recording: {args.rrd}")
     return 0
 
 
-def write_rrd(path: Path, demo, retargeter, Q: np.ndarray) -> None:
+def write_npz(path: Path, **arrays) -> None:
+    """np.savez_compressed to `path` atomically (a temporary sibling renamed into place)."""
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_rrd(path: Path, demo, retargeter, Q: np.ndarray, keypoints: np.ndarray) -> None:
     """A rerun recording: human keypoints + skeleton and the robot's matched points per frame."""
     import rerun as rr
 
@@ -95,7 +204,7 @@ def write_rrd(path: Path, demo, retargeter, Q: np.ndarray) -> None:
     for t in range(demo.num_frames):
         rec.set_time("frame", sequence=t)
         rec.set_time("time", duration=float(demo.time[t]))
-        kp = demo.keypoints[t]
+        kp = keypoints[t]
         rec.log("human/keypoints", rr.Points3D(kp, radii=0.004, colors=[230, 160, 60]))
         rec.log("human/skeleton", rr.LineStrips3D([kp[c] for c in _CHAINS],
                                                   colors=[230, 160, 60]))

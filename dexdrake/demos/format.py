@@ -143,6 +143,17 @@ def save_demo(demo: HumanDemo, path: str | Path) -> Path:
     return path
 
 
+def is_demo_file(path: str | Path) -> bool:
+    """True if `path` is an .npz archive with a `format_version` entry (a demo file)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return "format_version.npy" in z.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def load_demo(path: str | Path) -> HumanDemo:
     """Read and validate a demo file; raises DemoFormatError naming what is wrong."""
     path = Path(path)

@@ -123,14 +123,12 @@ def palm_samples(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def palm_centre(keypoints: np.ndarray, out: float = 0.051, along: float = 0.72) -> np.ndarray:
     """The grasp centre in front of the palm for 21 keypoints in any frame, (..., 21, 3) ->
     (..., 3): `along` of the way from the wrist to the middle MCP, moved `out` along the
-    palm normal (x of the hand frame: (index MCP - little MCP) x (middle MCP - wrist))."""
+    palm normal (x of `hand_frame.hand_frames`)."""
+    from dexdrake.demos.hand_frame import hand_frames
+
     kp = np.asarray(keypoints, float)
-    z = kp[..., 9, :] - kp[..., 0, :]
-    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
-    y = kp[..., 5, :] - kp[..., 17, :]
-    y = y - z * np.sum(y * z, axis=-1, keepdims=True)
-    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
-    return kp[..., 0, :] + along * (kp[..., 9, :] - kp[..., 0, :]) + out * np.cross(y, z)
+    R, wrist = hand_frames(kp)
+    return wrist + along * (kp[..., 9, :] - wrist) + out * R[..., :, 0]
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

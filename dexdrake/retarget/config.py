@@ -9,7 +9,7 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
       index: {tip: {body: link_3.0_tip, offset: [0, 0, 0]}, base: {body: link_1.0}}
     palm: {out: 0.051, along: 0.72}                     # optional palm grasp-centre term
     scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
-    weights: {wrist: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
+    weights: {wrist: 1.0, base: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
               object_contact: 0.012, object_depth: 0.0, palm: 1.0,
               wrist_position: 0.05, smooth: 4.0e-3}
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
@@ -92,7 +92,7 @@ class RetargetConfig:
         return self.scales.get(key, "auto" if key != "object" else 1.0)
 
 
-_DEFAULT_WEIGHTS = {"wrist": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
+_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
                     "object_contact": 0.012, "object_depth": 0.0, "palm": 1.0,
                     "wrist_position": 0.05, "smooth": 4e-3}
 

@@ -5,7 +5,8 @@ Objective per frame (DexRepNet, DexPilot-style), over all policy joints (the 6 v
 joints are the global hand pose M_g):
     sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth || q - q_prev ||^2,   lo <= q <= hi
 Key vectors v_i (robot) and their human counterparts v_i^H:
-    wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human)
+    wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
+            the base vectors (weight x `base`) hold the palm's orientation
     finger  thumb tip -> each tip, tip -> tip              t_i = k_f v_i^H, or DexPilot's pinch
             projection: thumb-finger with human length < eps: t = eta1 * unit, w = s1;
             finger-finger with both fingers pinching: t = eta2 * unit, w = s2
@@ -78,16 +79,24 @@ class Retargeter:
 
     Build once per hand (FK graph and solver functions are made here), then call
     `retarget_frame` per frame or `retarget_sequence` per demo.
+
+    fixed_wrist: the arm joints stay at the reference pose and only the fingers are solved
+    (a hand on a fixed mount); sequences are then put into the home frame frame by frame.
     """
 
     def __init__(self, hand_name: str | HandDescription,
-                 config: str | Path | dict | RetargetConfig | None = None):
+                 config: str | Path | dict | RetargetConfig | None = None,
+                 fixed_wrist: bool = False):
         self.hand = hand_name if isinstance(hand_name, HandDescription) else load_hand(hand_name)
         self.config = config if isinstance(config, RetargetConfig) else load_config(
             self.hand, config)
         cfg = self.config
         self.joint_names = self.hand.policy_joints
-        self.lower, self.upper = self.hand.joint_limits()
+        self.lower, self.upper = (a.copy() for a in self.hand.joint_limits())  # cached arrays
+        self.fixed_wrist = fixed_wrist
+        if fixed_wrist:
+            arm = [self.joint_names.index(j) for j in self.hand.arm_joints]
+            self.lower[arm] = self.upper[arm] = self.reference_q()[arm]
         self.points = [cfg.wrist, *cfg.tips, *cfg.bases]
         self.human_index = np.array([p.human for p in self.points])
         tree = extract_tree(self.hand.model_path)
@@ -114,6 +123,7 @@ class Retargeter:
         kinds = np.array(kv.kind)
         self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
                                                "object", "position", "palm")}
+        self._base = self._masks["wrist"] & (np.arange(len(kinds)) % 2 == 1)  # wrist -> base
         self._tf = np.flatnonzero(self._masks["thumb-finger"])
         self._tf_finger = np.array([kv.fingers[i][1] for i in self._tf], int)
         self._ff = np.flatnonzero(self._masks["finger-finger"])
@@ -128,6 +138,29 @@ class Retargeter:
     def reference_q(self) -> np.ndarray:
         """The hand's pre-grasp pose (cold-start guess)."""
         return self.hand.pregrasp_vector()
+
+    def hand_frame(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R, origin): the robot hand's own hand frame at joint angles q, built from its
+        wrist and finger-base points as `hand_frame.hand_frames` builds a human's."""
+        from dexdrake.demos.hand_frame import LITTLE_MCP, hand_frames
+
+        kp = np.zeros((21, 3))
+        kp[self.human_index] = self.robot_points(q)
+        little = max(int(i) for i in (13, LITTLE_MCP) if i in self.human_index)
+        return hand_frames(kp, little)
+
+    def home(self) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's hand frame at the reference pose: where `place` puts a human hand."""
+        return self.hand_frame(self.reference_q())
+
+    def place(self, keypoints: np.ndarray) -> np.ndarray:
+        """A (T, 21, 3) right-hand sequence in any frame, put into the canonical hand frame
+        (`hand_frame.canonical`; per frame when the wrist is fixed) and that frame placed on
+        the robot's `home` frame, so the solve starts inside the arm's reach."""
+        from dexdrake.demos.hand_frame import canonical
+
+        R, origin = self.home()
+        return canonical(keypoints, per_frame=self.fixed_wrist) @ R.T + origin
 
     def _scales(self) -> np.ndarray:
         from dexdrake.demos.human_hand import open_hand_keypoints
@@ -192,6 +225,7 @@ class Retargeter:
         w = (cfg.weight("wrist") * m["wrist"] + cfg.weight("wrist_position") * m["position"]
              + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"])
              + cfg.weight("palm") * m["palm"])
+        w[self._base] *= cfg.weight("base")
         if has_obj:
             obj = m["object"]
             w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
@@ -317,23 +351,26 @@ class Retargeter:
         """The human fingertip keypoints of the config's fingers, (n_fingers, 3)."""
         return np.asarray(keypoints)[[p.human for p in self.config.tips]]
 
-    def retarget_sequence(self, demo: HumanDemo, object_mesh=None, progress: bool = True
-                          ) -> np.ndarray:
+    def retarget_sequence(self, demo: HumanDemo, object_mesh=None, progress: bool = True,
+                          place: bool = False) -> np.ndarray:
         """(T, n_joints) joint trajectory for a demo, warm-started frame to frame.
 
         object_mesh: a trimesh.Trimesh in the object frame for finger-to-object vectors;
         None = look the demo's object up in the object library, and skip the object terms
-        if it is not there.
+        if it is not there. place: put the keypoints on the robot's home frame first
+        (`place`; for demos without an object). A fixed-wrist retargeter always places them
+        and has no object terms.
         """
         from tqdm import tqdm
 
-        closest = _closest_point_fn(demo, object_mesh)
+        closest = None if self.fixed_wrist else _closest_point_fn(demo, object_mesh)
+        keypoints = self.place(demo.keypoints) if place or self.fixed_wrist else demo.keypoints
         self.reset()
         out = np.zeros((demo.num_frames, self.num_joints))
         q = None
         for t in tqdm(range(demo.num_frames), desc=f"retarget {self.hand.name}",
                       disable=not progress, unit="frame"):
-            kp = demo.keypoints[t]
+            kp = keypoints[t]
             anchors = normals = None
             if closest is not None:
                 anchors, normals = closest(self.human_tips(kp), t)

@@ -10,8 +10,9 @@ import argparse
 import importlib
 import sys
 import time
+import warnings
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, DexdrakeWarning
 
 # Modules that contribute sub-commands with `add_parser(subparsers)`.
 COMMAND_MODULES = [
@@ -40,7 +41,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    if issubclass(category, DexdrakeWarning):
+        return f"dexdrake: warning: {message}\n"
+    return _default_format(message, category, filename, lineno, line)
+
+
+_default_format = warnings.formatwarning
+
+
 def main(argv: list[str] | None = None) -> int:
+    warnings.formatwarning = _format_warning
     args = build_parser().parse_args(argv)
     name = " ".join([args.command] + [str(v) for k, v in vars(args).items()
                                       if k.endswith("_command") and v])

@@ -16,3 +16,7 @@ class UnknownNameError(DexdrakeError, KeyError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return self.args[0]
+
+
+class DexdrakeWarning(UserWarning):
+    """Something a user should know that did not stop the work (the CLI prints one line)."""

@@ -1,4 +1,4 @@
-"""Where dexdrake finds its shipped models and keeps its on-disk cache."""
+"""Where dexdrake finds its shipped models, keeps the user's data and its on-disk cache."""
 
 from __future__ import annotations
 
@@ -15,6 +15,17 @@ def models_dir() -> Path:
 def cache_dir() -> Path:
     """The per-user cache (`$DEXDRAKE_CACHE`, else ~/.cache/dexdrake); created on demand."""
     root = Path(os.environ.get("DEXDRAKE_CACHE", Path.home() / ".cache" / "dexdrake"))
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def data_dir() -> Path:
+    """The user's dexdrake data (imported objects): `$DEXDRAKE_DATA`, else
+    `$XDG_DATA_HOME/dexdrake`, else ~/.local/share/dexdrake. Unlike the cache, clearing it
+    loses the user's work. Created on demand."""
+    env = os.environ.get("DEXDRAKE_DATA")
+    xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    root = Path(env) if env else Path(xdg) / "dexdrake"
     root.mkdir(parents=True, exist_ok=True)
     return root
 

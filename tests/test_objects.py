@@ -29,6 +29,7 @@ SHIPPED = shapes.recipe_names()  # test_counts_and_splits_match_recipes checks t
 def _cache(tmp_path, monkeypatch):
     """Every test gets an empty private cache (user objects, SDFs, CoACD pieces)."""
     monkeypatch.setenv("DEXDRAKE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("DEXDRAKE_DATA", str(tmp_path / "data"))
 
 
 @pytest.fixture
@@ -307,6 +308,7 @@ def test_cli_splits_match_library():
     from dexdrake.objects.library import SPLITS
 
     assert commands.SPLITS == SPLITS
+    assert commands.UP_AXES == importer.UP_AXES
 
 
 def test_cli_list_and_import(tmp_path, capsys):
@@ -318,8 +320,10 @@ def test_cli_list_and_import(tmp_path, capsys):
     _box_mesh(size=(50.0, 1.0, 1.0)).export(bad)
     assert _cli(["objects", "import", str(good), "--name", "cli_box"]) == 0
     assert "imported cli_box" in capsys.readouterr().out
-    assert _cli(["objects", "import", str(bad), "--name", "huge"]) == 1
-    assert "error: implausible size" in capsys.readouterr().out
+    from dexdrake.cli import main
+
+    assert main(["objects", "import", str(bad), "--name", "huge"]) == 2
+    assert "dexdrake objects import: error: implausible size" in capsys.readouterr().err
     assert _cli(["objects", "list", "--split", "user"]) == 0
     assert "cli_box" in capsys.readouterr().out
 
@@ -330,7 +334,9 @@ def test_imported_non_convex_mesh_gets_cached_coacd_pieces(tmp_path, monkeypatch
     info = import_mesh(path, "ell")
     pieces = info.convex_pieces()
     assert len(pieces) >= 2 and all(_is_convex(load_obj(p)) for p in pieces)
-    assert pieces[0].parent.parent == store.user_root().parent.parent / "convex"
+    from dexdrake.paths import cache_dir
+
+    assert pieces[0].parent.parent == cache_dir() / "convex"
     assert pieces[0].parent.name == convex.pieces_key(info.content_hash)
     monkeypatch.setattr(convex, "decompose", lambda mesh: pytest.fail("cache miss"))
     assert get_object("ell").convex_pieces() == pieces
@@ -365,3 +371,89 @@ def test_add_object_twice_under_another_name(no_coacd):
     assert plant.GetModelInstanceName(first) == "mug" and plant.GetModelInstanceName(second) == "mug_2"
     with pytest.raises(DexdrakeError, match="already has a model named 'mug'"):
         add_object(plant, mug)
+
+
+# ------------------------------------------------------------------ scans as users hold them
+def test_user_objects_live_in_the_data_folder_not_the_cache(tmp_path, monkeypatch):
+    path = tmp_path / "b.stl"
+    _box_mesh().export(path)
+    info = import_mesh(path, "kept")
+    assert info.mesh_path.is_relative_to(tmp_path / "data" / "objects")
+    import shutil
+
+    shutil.rmtree(tmp_path / "cache", ignore_errors=True)  # clearing the cache keeps the user's objects
+    assert get_object("kept").name == "kept"
+    monkeypatch.delenv("DEXDRAKE_DATA")
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    assert store.user_root() == tmp_path / "xdg" / "dexdrake" / "objects"
+
+
+def _cereal_box_yup() -> trimesh.Trimesh:
+    """A 7 x 21 x 16 cm box standing 21 cm tall in a y-up file (as glTF stores it)."""
+    return _box_mesh(size=(0.07, 0.21, 0.16), offset=(0, 0.105, 0))
+
+
+def test_gltf_is_turned_y_up_to_z_up_and_up_axis_overrides(tmp_path):
+    glb, stl = tmp_path / "cereal.glb", tmp_path / "cereal.stl"
+    _cereal_box_yup().export(glb)
+    _cereal_box_yup().export(stl)
+    info = import_mesh(glb, "cereal")
+    assert info.extents[2] == pytest.approx(0.21, abs=1e-6)  # standing, as scanned
+    report = json.loads((info.mesh_path.parent / "meta.json").read_text())["import"]
+    assert report["up_axis"] == "y" and "turned y up to z up (glTF convention)" in report["repairs"]
+    assert import_mesh(stl, "cereal_stl", up_axis="y").extents[2] == pytest.approx(0.21, abs=1e-6)
+    lying = import_mesh(glb, "cereal_z", up_axis="z")  # 21 cm along z no more: on its side
+    assert lying.extents[2] < 0.2
+    with pytest.raises(DexdrakeError, match="unknown up axis"):
+        import_mesh(glb, "bad_axis", up_axis="w")
+
+
+def test_zero_area_fragments_are_dropped_and_reported(tmp_path):
+    body = _box_mesh(offset=(0, 0, 0))
+    sliver = trimesh.Trimesh([[0.2, 0, 0], [0.21, 0, 0], [0.22, 0, 0]], [[0, 1, 2]],
+                             process=False)  # zero area, three distinct vertices
+    sheet = trimesh.Trimesh([[0.3, 0, 0], [0.31, 0, 0], [0.3, 0.01, 0]], [[0, 1, 2]],
+                            process=False)  # a lone triangle: encloses no volume
+    path = tmp_path / "scan.ply"
+    trimesh.util.concatenate([body, sliver, sheet]).export(path)
+    info = import_mesh(path, "scan")
+    assert sorted(info.extents) == pytest.approx([0.03, 0.04, 0.05], abs=1e-6)
+    repairs = json.loads((info.mesh_path.parent / "meta.json").read_text())["import"]["repairs"]
+    assert any("fragments" in r or "degenerate" in r for r in repairs), repairs
+
+
+def test_import_prints_every_repair_and_remove(tmp_path, capsys):
+    from dexdrake.cli import main
+
+    mesh = _box_mesh(size=(60.0, 50.0, 40.0))
+    holed = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)
+    holed.export(tmp_path / "h.stl")
+    assert main(["objects", "import", str(tmp_path / "h.stl"), "--name", "h", "--scale",
+                 "0.001"]) == 0
+    out = capsys.readouterr().out
+    assert "rescaled by 0.001" in out and "filled holes" in out
+    assert main(["objects", "import", str(tmp_path / "h.stl"), "--name", "h"]) == 2
+    assert "pass --overwrite" in capsys.readouterr().err
+    assert main(["objects", "remove", "h"]) == 0 and list_objects("user") == []
+    assert main(["objects", "remove", "h"]) == 2
+    assert "unknown user object 'h'" in capsys.readouterr().err
+
+
+def test_broken_user_object_is_skipped_with_a_warning(tmp_path, capsys):
+    from dexdrake.cli import main
+    from dexdrake.objects.library import BrokenObjectWarning
+
+    path = tmp_path / "b.stl"
+    _box_mesh().export(path)
+    import_mesh(path, "good")
+    broken = store.user_root() / "broken"
+    broken.mkdir()
+    (broken / "meta.json").write_text("{not json")
+    with pytest.warns(BrokenObjectWarning, match="broken"):
+        assert [i.name for i in list_objects("user")] == ["good"]
+    with pytest.warns(BrokenObjectWarning), pytest.raises(UnknownNameError, match="good"):
+        get_object("nothing")
+    assert main(["objects", "list", "--split", "user"]) == 0
+    captured = capsys.readouterr()
+    assert "good" in captured.out and "1 objects" in captured.out
+    assert main(["objects", "remove", "broken"]) == 0 and not broken.exists()

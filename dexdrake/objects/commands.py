@@ -9,12 +9,13 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dexdrake.errors import DexdrakeError
+from dexdrake import argtypes
 
 if TYPE_CHECKING:
     from dexdrake.objects.library import ObjectInfo
 
 SPLITS = ("train", "unseen", "user")  # as dexdrake.objects.library.SPLITS
+UP_AXES = ("x", "y", "z", "-x", "-y", "-z")  # as dexdrake.objects.importer.UP_AXES
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -29,10 +30,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p_imp = sub.add_parser("import", help="import a mesh file (OBJ/STL/PLY/GLB) as a user object")
     p_imp.add_argument("path", type=Path, help="mesh file")
     p_imp.add_argument("--name", required=True, help="object name (a-z, 0-9, _ and -)")
-    p_imp.add_argument("--scale", type=float, default=1.0, help="factor to metres, e.g. 0.001 for mm")
+    p_imp.add_argument("--scale", type=argtypes.positive, default=1.0, help="factor to metres, e.g. 0.001 for mm")
     p_imp.add_argument("--category", default="user", help="category label (default: user)")
     p_imp.add_argument("--overwrite", action="store_true", help="replace an existing user object")
+    p_imp.add_argument("--up-axis", choices=UP_AXES, help="the file's up direction (default: y "
+                       "for .glb/.gltf, whose convention is y up; z otherwise)")
     p_imp.set_defaults(func=cmd_import)
+
+    p_rm = sub.add_parser("remove", help="delete an imported (user) object")
+    p_rm.add_argument("name", help="user object name")
+    p_rm.set_defaults(func=cmd_remove)
     return parser
 
 
@@ -73,15 +80,24 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    """Import a mesh; print the result or why it was refused (exit status 1)."""
+    """Import a mesh; print the result and every repair made (refusals: DexdrakeError)."""
+    from dexdrake.objects import store
     from dexdrake.objects.library import import_mesh
 
-    try:
-        info = import_mesh(args.path, args.name, category=args.category, scale=args.scale, overwrite=args.overwrite)
-        pieces = info.convex_pieces()
-    except DexdrakeError as exc:
-        print(f"error: {exc}")
-        return 1
+    info = import_mesh(args.path, args.name, category=args.category, scale=args.scale,
+                       overwrite=args.overwrite, up_axis=args.up_axis)
+    pieces = info.convex_pieces()
+    for line in store.read_meta(info.mesh_path.parent)["import"]["repairs"]:
+        print(f"  {line}")
     print(format_table([info]))
     print(f"imported {info.name} -> {info.mesh_path} ({len(pieces)} convex pieces)")
+    return 0
+
+
+def cmd_remove(args: argparse.Namespace) -> int:
+    """Delete a user object."""
+    from dexdrake.objects.library import remove_user_object
+
+    remove_user_object(args.name)
+    print(f"removed user object {args.name}")
     return 0

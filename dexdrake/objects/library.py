@@ -14,13 +14,14 @@ added (before creating contexts).
 from __future__ import annotations
 
 import shutil
+import warnings
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
 import numpy as np
 
-from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.errors import DexdrakeError, DexdrakeWarning, UnknownNameError
 from dexdrake.objects import importer, store
 from dexdrake.objects.convex import cached_pieces, piece_files, pieces_key
 from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj, write_atomic
@@ -106,44 +107,70 @@ def _info(folder: Path) -> ObjectInfo:
     )
 
 
+class BrokenObjectWarning(DexdrakeWarning):
+    """A user object folder that cannot be read; it is skipped."""
+
+
 def _folders(split: str) -> list[Path]:
     root = store.user_root() if split == "user" else store.shipped_root()
     if not root.is_dir():
         return []
-    return sorted(p for p in root.iterdir() if not p.name.startswith(".") and (p / store.META_FILE).is_file())
+    return sorted(p for p in root.iterdir() if not p.name.startswith(".") and p.is_dir())
+
+
+def _user_info(folder: Path) -> ObjectInfo | None:
+    """The user object in `folder`, or None (with a BrokenObjectWarning) if it is broken."""
+    try:
+        info = _info(folder)
+        if info.split != "user" or info.name != folder.name:
+            raise ValueError(f"meta.json names {info.split} object {info.name!r}")
+        return info
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        warnings.warn(f"skipping the broken user object {folder.name!r} ({folder}: "
+                      f"{type(e).__name__}: {e}); remove it with `dexdrake objects remove "
+                      f"{folder.name}`", BrokenObjectWarning, stacklevel=3)
+        return None
 
 
 def list_objects(split: str | None = None) -> list[ObjectInfo]:
-    """All objects, or those of one split ("train" | "unseen" | "user"), sorted by name."""
+    """All objects, or those of one split ("train" | "unseen" | "user"), sorted by name.
+    Broken user objects are skipped with a BrokenObjectWarning."""
     if split is not None and split not in SPLITS:
         raise UnknownNameError("object split", split, SPLITS)
-    infos = [_info(f) for f in _folders("train")]  # shipped folder holds train and unseen
-    infos += [_info(f) for f in _folders("user")]
+    infos = [_info(f) for f in _folders("train") if (f / store.META_FILE).is_file()]
+    infos += [i for i in map(_user_info, _folders("user")) if i is not None]
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
 def get_object(name: str) -> ObjectInfo:
     """The object called `name`; UnknownNameError lists the valid names."""
-    for root in (store.shipped_root(), store.user_root()):
-        if importer.NAME_PATTERN.match(name) and (root / name / store.META_FILE).is_file():
-            return _info(root / name)
+    if importer.NAME_PATTERN.match(name):
+        if (store.shipped_root() / name / store.META_FILE).is_file():
+            return _info(store.shipped_root() / name)
+        if (store.user_root() / name).is_dir():
+            info = _user_info(store.user_root() / name)
+            if info is not None:
+                return info
     raise UnknownNameError("object", name, [i.name for i in list_objects()])
 
 
-def import_mesh(path: str | Path, name: str, category: str = "user", scale: float = 1.0, overwrite: bool = False) -> ObjectInfo:
-    """Import a mesh file (OBJ/STL/PLY/GLB) as user object `name` under cache_dir()/objects/user/.
+def import_mesh(path: str | Path, name: str, category: str = "user", scale: float = 1.0, overwrite: bool = False,
+                up_axis: str | None = None) -> ObjectInfo:
+    """Import a mesh file (OBJ/STL/PLY/GLB) as user object `name` under data_dir()/objects/.
 
-    The mesh is scaled by `scale` (to metres), repaired, validated and re-centred at its
-    centre of mass. Refusals raise an `importer.MeshImportError` subclass (a DexdrakeError)
-    that says why, and leave the disk unchanged.
+    The mesh is scaled by `scale` (to metres), turned so `up_axis` (default: y for glTF,
+    whose convention is y up, else z) points up, repaired, validated and re-centred at its
+    centre of mass; what was repaired is in the meta's "import" report (`repairs`).
+    Refusals raise an `importer.MeshImportError` subclass (a DexdrakeError) that says why,
+    and leave the disk unchanged.
     """
     importer.check_name(name)
     if (store.shipped_root() / name).is_dir():
         raise importer.MeshImportError(f"{name!r} is a shipped object; choose another name")
     folder = store.user_root() / name
     if folder.exists() and not overwrite:
-        raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass overwrite=True to replace it")
-    mesh, report = importer.prepare_mesh(Path(path), scale)
+        raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass --overwrite to replace it")
+    mesh, report = importer.prepare_mesh(Path(path), scale, up_axis)
     store.write_object_dir(folder, mesh, {"name": name, "category": category, "split": "user", "import": report}, with_pieces=False)
     return _info(folder)
 
@@ -151,8 +178,8 @@ def import_mesh(path: str | Path, name: str, category: str = "user", scale: floa
 def remove_user_object(name: str) -> None:
     """Delete an imported object (shipped objects cannot be removed)."""
     folder = store.user_root() / name
-    if not (folder / store.META_FILE).is_file():
-        raise UnknownNameError("user object", name, [i.name for i in list_objects("user")])
+    if not importer.NAME_PATTERN.match(name) or not folder.is_dir():
+        raise UnknownNameError("user object", name, [p.name for p in _folders("user")])
     shutil.rmtree(folder)
 
 

@@ -1,7 +1,7 @@
 """On-disk layout of object folders: mesh.obj + meta.json (+ convex/ for shipped objects).
 
-Shipped objects live in `models_dir()/objects/<name>/`, imported ones in
-`cache_dir()/objects/user/<name>/`. A folder is written completely in a temporary
+Shipped objects live in `models_dir()/objects/<name>/`, imported ones in the user's data
+folder, `data_dir()/objects/<name>/` (not the cache: clearing the cache keeps them). A folder is written completely in a temporary
 sibling and renamed into place, so a failed write leaves nothing behind.
 """
 
@@ -30,9 +30,9 @@ def shipped_root() -> Path:
 
 def user_root() -> Path:
     """Folder of imported (user) objects."""
-    from dexdrake.paths import cache_dir
+    from dexdrake.paths import data_dir
 
-    return cache_dir() / "objects" / "user"
+    return data_dir() / "objects"
 
 
 def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:

@@ -11,6 +11,7 @@ import json
 import time
 from pathlib import Path
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 POLICY_NAME = "adroit_dexrep_policy"
@@ -40,10 +41,10 @@ def best_unseen_object(manifest_path: Path) -> str:
 def add_parser(subparsers) -> None:
     demo = subparsers.add_parser("demo", help="the shipped policy tries to grasp an unseen object (writes a rerun recording)")
     demo.add_argument("--object", help="object name (default: the unseen object the shipped policy grasps best)")
-    demo.add_argument("--seed", type=int, default=0, help="placement seed")
-    demo.add_argument("--rrd", type=Path, default=Path("demo.rrd"), help="rerun recording to write")
+    demo.add_argument("--seed", type=argtypes.seed, default=0, help="placement seed")
+    demo.add_argument("--rrd", type=argtypes.output_file(".rrd"), default=Path("demo.rrd"), help="rerun recording to write")
     demo.add_argument("--policy", type=Path, help="policy checkpoint (default: the shipped one)")
-    demo.add_argument("--steps", type=int, default=100, help="control steps (50 Hz; paper evaluation: 100)")
+    demo.add_argument("--steps", type=argtypes.count, default=100, help="control steps (50 Hz; paper evaluation: 100)")
     demo.set_defaults(func=cmd_demo)
 
 

@@ -6,6 +6,8 @@ import argparse
 import time
 from dataclasses import replace
 
+from dexdrake import argtypes
+
 CONTROLLERS = ("scripted",)
 
 
@@ -14,10 +16,12 @@ def add_parser(subparsers) -> None:
     sim.add_argument("--hand", default="adroit")
     sim.add_argument("--object", default="sphere_medium")
     sim.add_argument("--controller", default="scripted", help=f"one of {', '.join(CONTROLLERS)}")
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--steps", type=int, default=150, help="control steps (50 Hz)")
-    sim.add_argument("--time-step", type=float, help="plant step (s); default: the scene's (5 ms)")
-    sim.add_argument("--rrd", help="write a rerun recording to this .rrd file")
+    sim.add_argument("--seed", type=argtypes.seed, default=0)
+    sim.add_argument("--steps", type=argtypes.count, default=150, help="control steps (50 Hz)")
+    sim.add_argument("--time-step", type=argtypes.positive, help="plant step (s); default: the "
+                     "scene's (5 ms); must divide the 0.02 s control period")
+    sim.add_argument("--rrd", type=argtypes.output_file(".rrd"),
+                     help="write a rerun recording to this .rrd file")
     sim.set_defaults(func=run_sim)
 
     models = subparsers.add_parser("models", help="robot model utilities")
@@ -27,10 +31,16 @@ def add_parser(subparsers) -> None:
 
 
 def _validate_names(args: argparse.Namespace) -> None:
-    from dexdrake.errors import UnknownNameError
+    from dexdrake.errors import DexdrakeError, UnknownNameError
     from dexdrake.hands.description import load_hand
     from dexdrake.objects.library import get_object
+    from dexdrake.systems.scenario import is_multiple
+    from dexdrake.systems.scene import SceneConfig
 
+    period = SceneConfig.control_period
+    if args.time_step is not None and not is_multiple(period, args.time_step):
+        raise DexdrakeError(f"--time-step {args.time_step:g} must divide the control period "
+                            f"({period:g} s) a whole number of times, e.g. 0.005 or 0.002")
     load_hand(args.hand)
     get_object(args.object)
     if args.controller not in CONTROLLERS:
@@ -51,7 +61,7 @@ def run_sim(args: argparse.Namespace) -> int:
     if args.rrd:
         from dexdrake.systems.rerun_logger import RerunEpisodeLogger
 
-        logger = RerunEpisodeLogger(args.rrd)
+        logger = RerunEpisodeLogger(str(args.rrd))
     start = time.perf_counter()
     summary = env.rollout(ScriptedGrasp, args.seed, logger=logger)
     wall = time.perf_counter() - start

@@ -9,14 +9,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 
 def add_parser(subparsers) -> None:
     hil = subparsers.add_parser("hil", help="run one grasp episode hardware-in-the-loop")
     hil.add_argument("--config", default="configs/hil.yaml", help="scenario YAML (mode hil)")
-    hil.add_argument("--steps", type=int, default=150, help="control steps")
-    hil.add_argument("--rrd", help="write a rerun recording of the loop to this .rrd file")
+    hil.add_argument("--steps", type=argtypes.count, default=150, help="control steps")
+    hil.add_argument("--rrd", type=argtypes.output_file(".rrd"), help="write a rerun recording of the loop to this .rrd file")
     hil.set_defaults(func=run_hil)
 
     real = subparsers.add_parser("real", help="the real Allegro + Z1 + Kinect station")

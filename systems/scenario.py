@@ -169,6 +169,12 @@ def _check_vector(values: Optional[list[float]], n: int, name: str, source: str)
              f"{name} needs {n} finite values, got {values}")
 
 
+def is_multiple(period: float, step: float) -> bool:
+    """True if `period` is a whole number (>= 1) of `step`s (to 1e-9 relative)."""
+    n = round(period / step)
+    return n >= 1 and abs(n * step - period) <= 1e-9 * period
+
+
 def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     """Raise ScenarioError unless `s` describes a station that can be built."""
     from dexdrake.hands.description import load_hand
@@ -183,6 +189,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
              f"time_step must be > 0, got {s.time_step}")
     _require(s.control_period >= s.time_step, source,
              f"control_period ({s.control_period}) must be >= time_step ({s.time_step})")
+    _require(is_multiple(s.control_period, s.time_step), source,
+             f"control_period ({s.control_period}) must be a whole multiple of time_step "
+             f"({s.time_step}): the controller runs every control_period and the plant steps "
+             "by time_step, so a remainder stalls the loop")
     h, a, c = s.drivers.hand, s.drivers.arm, s.drivers.camera
     for name, kind, valid in (("drivers.hand.kind", h.kind, HAND_KINDS),
                               ("drivers.arm.kind", a.kind, HAND_KINDS),

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 DATASET_FORMAT = "dexdrake.replay/1"
@@ -28,15 +29,15 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("replay", help="replay retargeted demos in Drake into a BC dataset")
     p.add_argument("--hand", required=True, help="hand name, e.g. adroit")
     p.add_argument("--demos", required=True, type=Path, help="folder of demo .npz files (demo format)")
-    p.add_argument("--out", required=True, type=Path, help="dataset .npz to write")
+    p.add_argument("--out", required=True, type=argtypes.output_file(".npz"), help="dataset .npz to write")
     p.add_argument("--feature-set", default=None, help="observation feature set, e.g. DexRep "
                    "(default: hand state [q; v] only)")
-    p.add_argument("--attempts", type=int, default=8, help="K correlated-sampling attempts per failed demo")
-    p.add_argument("--seed", type=int, default=0, help="base seed of the episode placements and sampling")
+    p.add_argument("--attempts", type=argtypes.int_at_least(0), default=8, help="K correlated-sampling attempts per failed demo")
+    p.add_argument("--seed", type=argtypes.seed, default=0, help="base seed of the episode placements and sampling")
     p.add_argument("--objects", default=None, help="'train', 'unseen' or comma-separated names "
                    "(default: every demo in --demos)")
-    p.add_argument("--horizon", type=int, default=200, help="control steps per episode")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (each builds its own envs)")
+    p.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per episode")
+    p.add_argument("--workers", type=argtypes.count, default=1, help="worker processes (each builds its own envs)")
     p.set_defaults(func=cmd_replay)
 
 

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from dexdrake import argtypes
+
 
 def _describe(args: argparse.Namespace) -> int:
     from dexdrake.dexrep.feature_sets import feature_set_names, observation_blocks
@@ -51,7 +53,7 @@ def add_parser(subparsers) -> None:
     s.add_argument("--object", required=True, help="object library name")
     s.add_argument("--hand", default="adroit")
     s.add_argument("--rrd", default=None, help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=argtypes.seed, default=0)
     s.add_argument("--steps", type=int, default=200, help="control steps (20 ms each)")
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
     s.set_defaults(func=_show)
@@ -59,11 +61,11 @@ def add_parser(subparsers) -> None:
     enc = subparsers.add_parser("encoder", help="the PointNet encoder").add_subparsers(dest="action", required=True)
     t = enc.add_parser("train", help="train the PointNet auto-encoder, write the encoder")
     t.add_argument("--meshes", default="train", help="'train' (object library), 'primitives' or a folder")
-    t.add_argument("--epochs", type=int, default=10)
-    t.add_argument("--steps-per-epoch", type=int, default=8)
-    t.add_argument("--batch-size", type=int, default=8)
-    t.add_argument("--lr", type=float, default=1e-3)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--threads", type=int, default=1)
-    t.add_argument("--out", default="models/weights/pointnet_encoder.pt")
+    t.add_argument("--epochs", type=argtypes.count, default=10)
+    t.add_argument("--steps-per-epoch", type=argtypes.count, default=8)
+    t.add_argument("--batch-size", type=argtypes.count, default=8)
+    t.add_argument("--lr", type=argtypes.positive, default=1e-3)
+    t.add_argument("--seed", type=argtypes.seed, default=0)
+    t.add_argument("--threads", type=argtypes.count, default=1)
+    t.add_argument("--out", type=argtypes.output_file(".pt"), default="models/weights/pointnet_encoder.pt")
     t.set_defaults(func=_train)

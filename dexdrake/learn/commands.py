@@ -11,6 +11,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 
@@ -56,7 +57,7 @@ def add_parser(subparsers) -> None:
     bc.add_argument("--epochs", type=_positive_int, default=150)
     bc.add_argument("--batch", type=_positive_int, default=64)
     bc.add_argument("--lr", type=_positive_float, default=1e-5)
-    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--seed", type=argtypes.seed, default=0)
     bc.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads")
     bc.set_defaults(func=cmd_train_bc)
 
@@ -72,7 +73,7 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--workers", type=_positive_int, default=2)
     dapg.add_argument("--backend", choices=("process", "ray", "sequential"), default="process")
     dapg.add_argument("--resume", action="store_true", help="continue from OUT/dapg_state.pt")
-    dapg.add_argument("--seed", type=int, default=0)
+    dapg.add_argument("--seed", type=argtypes.seed, default=0)
     dapg.set_defaults(func=cmd_train_dapg)
 
     dagger = train_sub.add_parser("dagger", help="DAgger with the state-driven grasp expert (no demo file needed)")
@@ -87,18 +88,18 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--lr", type=_positive_float, default=1e-4)
     dagger.add_argument("--workers", type=_positive_int, default=2)
     dagger.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads for the BC fits")
-    dagger.add_argument("--seed", type=int, default=0)
+    dagger.add_argument("--seed", type=argtypes.seed, default=0)
     dagger.set_defaults(func=cmd_train_dagger)
 
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
     ev.add_argument("--episodes", type=_positive_int, default=10, help="episodes per object (seeds S..S+N-1)")
-    ev.add_argument("--seed", type=int, default=0, help="first episode seed S")
+    ev.add_argument("--seed", type=argtypes.seed, default=0, help="first episode seed S")
     ev.add_argument("--workers", type=_positive_int, default=1, help="worker processes")
     ev.add_argument("--horizon", type=_positive_int, default=100, help="control steps per episode (paper: 100)")
-    ev.add_argument("--out", type=Path, help="folder for eval_<label>.md/.csv/.json")
-    ev.add_argument("--label", help="table label (default: seen, unseen or selected, from --objects)")
+    ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
+    ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
     ev.set_defaults(func=cmd_eval)
 
 
@@ -192,6 +193,9 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     if args.objects in ("unseen", "seen"):
         raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
     _, objects = resolve_objects(args.objects)
+    from dexdrake.hands.description import load_hand
+
+    load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, epochs=args.epochs, lr=args.lr,

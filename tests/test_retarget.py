@@ -336,3 +336,18 @@ def test_fixed_wrist_moves_fingers_only():
     assert max(_twist_deg(r, Q[t], kp[t]) for t in range(len(Q))) < 1e-6
     assert Retargeter("allegro").lower[0] < r.lower[0] or Retargeter("allegro").upper[0] > \
         r.upper[0]  # the shared joint-limit arrays were not changed
+
+
+def test_output_filter_does_not_feed_back(toy):
+    from dexdrake.retarget.retargeter import low_pass
+
+    hand, config = toy
+    demo, _ = _robot_demo(Retargeter(hand, config))
+    raw = Retargeter(hand, config).retarget_sequence(demo, progress=False)
+    filtered = Retargeter(hand, dict(config, solver={"filter": 0.3})).retarget_sequence(
+        demo, progress=False)
+    np.testing.assert_allclose(filtered, low_pass(raw, 0.3), atol=1e-12)
+    np.testing.assert_allclose(filtered[0], raw[0])
+    assert np.abs(np.diff(filtered, axis=0)).mean() < np.abs(np.diff(raw, axis=0)).mean()
+    with pytest.raises(Exception, match="solver.filter"):
+        Retargeter(hand, dict(config, solver={"filter": 0.0}))

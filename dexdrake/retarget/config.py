@@ -13,7 +13,7 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
               object_contact: 0.012, object_depth: 0.0, palm: 1.0,
               wrist_position: 0.05, smooth: 4.0e-3}
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
-    solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6}
+    solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6, filter: 1.0}
 
 A point is `{fingertip: NAME}` (a fingertip of the hand description) or
 `{body: BODY, offset: [x, y, z]}`; `human:` overrides the human keypoint it matches
@@ -23,6 +23,7 @@ A point is `{fingertip: NAME}` (a fingertip of the hand description) or
 description's grasp centre; override with body/offset) where the human's palm centre is:
 `out` m out of the human palm plane (wrist, index and little MCPs) along its normal, at
 `along` of the way from the wrist to the middle MCP (see `human_hand.palm_centre`).
+`solver.filter` low-passes the output trajectory (alpha, 1 = off; `retargeter.low_pass`).
 Finger-to-object targets move `object_depth` inside the object's surface when the human
 fingertip is within `object_contact` of it (fading out at twice that), so the position
 servos squeeze the object instead of stopping at its surface.
@@ -84,6 +85,7 @@ class RetargetConfig:
     iterations: int = 10
     first_iterations: int = 80
     damping: float = 1e-6
+    filter: float = 1.0  # output low-pass alpha (1: none); see retargeter.low_pass
 
     def weight(self, key: str) -> float:
         return float(self.weights.get(key, _DEFAULT_WEIGHTS[key]))
@@ -146,7 +148,16 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
         iterations=int(s.get("iterations", 10)),
         first_iterations=int(s.get("first_iterations", 80)),
         damping=float(s.get("damping", 1e-6)),
+        filter=_alpha(hand, s.get("filter", 1.0)),
     )
+
+
+def _alpha(hand: HandDescription, value) -> float:
+    alpha = float(value)
+    if not 0.0 < alpha <= 1.0:
+        raise DexdrakeError(f"retarget config {hand.name}: solver.filter must be in (0, 1], "
+                            f"got {value}")
+    return alpha
 
 
 def load_config(hand: HandDescription, config: str | Path | dict | None = None

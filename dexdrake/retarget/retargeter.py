@@ -376,7 +376,19 @@ class Retargeter:
                 anchors, normals = closest(self.human_tips(kp), t)
             q = self.retarget_frame(kp, anchors, q, normals)
             out[t] = q
+        return low_pass(out, self.config.filter)
+
+
+def low_pass(Q: np.ndarray, alpha: float) -> np.ndarray:
+    """Exponential low-pass of a (T, n) trajectory, y_t = alpha q_t + (1 - alpha) y_t-1
+    (alpha 1: unchanged). Applied to the output only: each frame's solve still starts from
+    the previous unfiltered solution, so the filter does not feed back into the fit."""
+    out = np.array(Q, float)
+    if alpha >= 1.0:
         return out
+    for t in range(1, len(out)):
+        out[t] = alpha * out[t] + (1.0 - alpha) * out[t - 1]
+    return out
 
 
 def _closest_point_fn(demo: HumanDemo, mesh):

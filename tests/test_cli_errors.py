@@ -128,7 +128,25 @@ def test_user_mistakes_are_one_line(files, capsys, argv, names):
 
 
 def test_scenario_control_period_must_be_a_multiple_of_time_step():
-    from dexdrake.systems.scenario import is_multiple
+    from dexdrake.systems.scenario import ScenarioError, is_multiple, parse_scenario
 
     assert is_multiple(0.02, 0.002) and is_multiple(0.02, 0.001) and is_multiple(0.02, 0.02)
     assert not is_multiple(0.02, 0.003) and not is_multiple(0.02, 0.5)
+    with pytest.raises(ScenarioError, match="whole multiple of time_step"):
+        parse_scenario("time_step: 0.003\ncontrol_period: 0.02", source="bad.yaml")
+    parse_scenario("time_step: 0.001\ncontrol_period: 0.02", source="good.yaml")
+
+
+def test_dagger_refuses_to_resume_a_folder_made_with_other_arguments(tmp_path, capsys):
+    import json
+    from dataclasses import asdict
+
+    from dexdrake.learn.dagger import DaggerConfig
+
+    out = tmp_path / "run"
+    out.mkdir()
+    meta = {"format": "x", "objects": ["mug", "mug"], "config": asdict(DaggerConfig(hand="adroit"))}
+    np.savez(out / "data_00.npz", metadata=np.array(json.dumps(meta)))
+    err = _run(["train", "dagger", "--out", str(out), "--hand", "allegro", "--objects",
+                "mug,apple", "--iterations", "5"], capsys)
+    assert "hand 'adroit' (now 'allegro')" in err and "objects mug (now apple,mug)" in err

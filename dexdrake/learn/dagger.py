@@ -149,6 +149,28 @@ def collect(pool: ProcessPoolExecutor, policy: DexRepNetPolicy | None, jobs: lis
     return DaggerData.concat([f.result() for f in tqdm(futures, desc=desc, unit="episode")])
 
 
+RESUMABLE = ("iterations", "workers")  # DaggerConfig fields a resumed run may change
+
+
+def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> None:
+    """Refuse to resume into `out_dir` if its data were made with other arguments; the
+    message names each difference (resuming would mix the runs and mislabel the policy)."""
+    first = out_dir / "data_00.npz"
+    if not first.is_file():
+        return
+    with np.load(first, allow_pickle=False) as d:
+        meta = json.loads(str(d["metadata"]))
+    old, now = meta.get("config", {}), asdict(config)
+    diff = [f"{k} {old.get(k)!r} (now {now[k]!r})" for k in now
+            if k not in RESUMABLE and old.get(k) != now[k]]
+    old_objects, new_objects = sorted(set(meta.get("objects", []))), sorted(set(objects))
+    if old_objects != new_objects:
+        diff.append(f"objects {','.join(old_objects)} (now {','.join(new_objects)})")
+    if diff:
+        raise DexdrakeError(f"{out_dir} holds DAgger data made with other arguments: "
+                            f"{'; '.join(diff)}; use another --out or delete that folder")
+
+
 def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = DaggerConfig(),
                  metadata: dict[str, Any] | None = None) -> Path:
     """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
@@ -159,6 +181,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
     """
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
+    check_resume(out_dir, config, objects)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
     finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),

@@ -1,5 +1,6 @@
-"""CLI: `demos synth` (synthetic human grasps), `demos replay` (see replay_commands) and
-`retarget` (demo -> robot joint angles)."""
+"""CLI: `demos synth` (synthetic human grasps), `demos import` (keypoint files -> demo files),
+`demos replay` (see replay_commands) and `retarget` (demo or keypoint file -> robot joint
+angles)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from dexdrake import argtypes
+from dexdrake.errors import DexdrakeError
 
 # MediaPipe skeleton: each finger's chain from the wrist
 _CHAINS = [[0, 1, 2, 3, 4], [0, 5, 6, 7, 8], [0, 9, 10, 11, 12], [0, 13, 14, 15, 16],
@@ -84,18 +86,19 @@ to a robot hand. Without an object the hand is put into the canonical hand frame
 on the robot hand at its reference pose, so the arm starts inside its reach."""
 
 
-def _load_demo_or_keypoints(args: argparse.Namespace, notes: list[str]):
-    """The demo named on the command line: a dexdrake demo file, else a keypoint file."""
+def _load_demo_or_keypoints(path: Path, args: argparse.Namespace, notes: list[str],
+                            demo_files: bool):
+    """The demo at `path`: a dexdrake demo file (if `demo_files`), else a keypoint file read
+    with the keypoint flags of `args`."""
     from dexdrake.demos.format import DemoFormatError, is_demo_file, load_demo
     from dexdrake.demos.loaders import KEYPOINT_SUFFIXES, load_keypoint_array, parse_pose
 
-    path = args.demo if hasattr(args, "demo") else args.file
     if not path.is_file():
         raise DemoFormatError(f"{path}: no such file")
     if path.suffix.lower() not in KEYPOINT_SUFFIXES:
         raise DemoFormatError(f"{path}: not a demo or keypoint file (use a dexdrake demo .npz "
                               f"or keypoints as {', '.join(KEYPOINT_SUFFIXES)})")
-    if hasattr(args, "demo") and is_demo_file(path):
+    if demo_files and is_demo_file(path):
         return load_demo(path)
     pos = quat = None
     if args.object:
@@ -116,7 +119,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     from dexdrake.demos.format import save_demo
 
     notes: list[str] = []
-    demo = _load_demo_or_keypoints(args, notes)
+    demo = _load_demo_or_keypoints(args.file, args, notes, demo_files=False)
     out = save_demo(demo, args.out)
     for n in notes:
         print(f"  {n}")
@@ -154,9 +157,12 @@ def cmd_retarget(args: argparse.Namespace) -> int:
     from dexdrake.retarget.retargeter import Retargeter
 
     hand = load_hand(args.hand)
-    out = args.out or argtypes.writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
+    try:
+        out = args.out or argtypes.writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
+    except argparse.ArgumentTypeError as e:
+        raise DexdrakeError(f"default --out: {e}; pass --out") from None
     notes: list[str] = []
-    demo = _load_demo_or_keypoints(args, notes)
+    demo = _load_demo_or_keypoints(args.demo, args, notes, demo_files=True)
     r = Retargeter(hand, fixed_wrist=args.fixed_wrist)
     place = args.fixed_wrist or not demo.object_name
     if args.fixed_wrist and demo.object_name:

@@ -312,7 +312,7 @@ def load_keypoint_array(path: str | Path, order: str = "mediapipe", fps: float =
         kp = canonical(kp)
         done.append("put into the canonical hand frame (wrist at the origin, "
                     "see dexdrake/demos/hand_frame.py)")
-    extra = {"hand": hand, "units": units, "frame": "world" if object_name else "hand"}
+    extra = {"hand": hand, "frame": "world" if object_name else "hand"}
     demo = HumanDemo(kp, np.asarray(t, float), object_name, np.array(pos, float),
                      np.array(quat, float),
                      DemoMeta(subject=subject, fps=fps, source=f"keypoints:{path.name}:{order}",

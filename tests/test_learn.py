@@ -293,11 +293,9 @@ def test_sampler_rejects_mismatched_policy():
         make_sampler(make_toy_env, backend="mpi")
 
 
-def test_ray_sampler_matches_sequential():
-    pytest.importorskip("ray")
-    policy = toy_policy()
-    with make_sampler(make_toy_env, backend="ray", num_workers=2) as ray_sampler:
-        assert _same(ray_sampler.sample(policy, [1, 2, 3]), SequentialSampler(make_toy_env).sample(policy, [1, 2, 3]))
+def test_cluster_address_needs_ray():
+    with pytest.raises(DexdrakeError, match="needs the 'ray' backend"):
+        make_sampler(make_toy_env, backend="process", address="auto")
 
 
 # ----------------------------------------------------------------------------- DAPG

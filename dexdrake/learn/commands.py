@@ -47,6 +47,13 @@ def command_line(words: list[str], args: argparse.Namespace, options: list[str])
     return shlex.join(parts)
 
 
+def _add_backend_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backend", choices=("process", "ray", "sequential"), default="process",
+                        help="where rollout workers run: local processes, Ray actors, or in this process")
+    parser.add_argument("--address", help="Ray cluster to join (e.g. auto or HEAD_IP:6379; needs --backend ray; "
+                        "default: a local Ray instance); see configs/ray_cluster.md")
+
+
 def add_parser(subparsers) -> None:
     train = subparsers.add_parser("train", help="train a DexRepNet policy (behaviour cloning, DAPG)")
     train_sub = train.add_subparsers(dest="train_command", required=True)
@@ -71,7 +78,7 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--objects", default="train", help="'train' or comma-separated object names")
     dapg.add_argument("--horizon", type=_positive_int, default=200, help="control steps per trajectory")
     dapg.add_argument("--workers", type=_positive_int, default=2)
-    dapg.add_argument("--backend", choices=("process", "ray", "sequential"), default="process")
+    _add_backend_options(dapg)
     dapg.add_argument("--resume", action="store_true", help="continue from OUT/dapg_state.pt")
     dapg.add_argument("--seed", type=argtypes.seed, default=0)
     dapg.set_defaults(func=cmd_train_dapg)
@@ -87,6 +94,7 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--epochs", type=_positive_int, default=20, help="BC epochs after each iteration")
     dagger.add_argument("--lr", type=_positive_float, default=1e-4)
     dagger.add_argument("--workers", type=_positive_int, default=2)
+    _add_backend_options(dagger)
     dagger.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads for the BC fits")
     dagger.add_argument("--seed", type=argtypes.seed, default=0)
     dagger.set_defaults(func=cmd_train_dagger)
@@ -167,13 +175,13 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
                         time_scale=args.horizon, seed=args.seed)
     command = command_line(["train", "dapg"], args, ["init", "demos", "out", "iterations", "per-object", "objects",
-                                                      "horizon", "workers", "backend", "resume", "seed"])
+                                                      "horizon", "workers", "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
             "dataset_metadata": dataset_summary(demos.metadata), "objects": objects,
             "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch")}}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{args.iterations} iterations, backend {args.backend} with {args.workers} worker(s)")
-    sampler = make_sampler(factory, args.backend, args.workers)
+    sampler = make_sampler(factory, args.backend, args.workers, args.address)
     try:
         result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
     finally:
@@ -199,10 +207,11 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, epochs=args.epochs, lr=args.lr,
-                          workers=args.workers, seed=args.seed)
+                          workers=args.workers, backend=args.backend, seed=args.seed)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
-                                                        "horizon", "epochs", "lr", "workers", "threads", "seed"])
-    final = train_dagger(objects, args.out, config, {"command": command})
+                                                        "horizon", "epochs", "lr", "workers", "backend", "address",
+                                                        "threads", "seed"])
+    final = train_dagger(objects, args.out, config, {"command": command}, args.address)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 

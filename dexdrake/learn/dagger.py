@@ -14,13 +14,10 @@ The returned policy is the iterate that succeeded most often on its own training
 
 from __future__ import annotations
 
-import io
 import json
-import multiprocessing as mp
 import time
-import uuid
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +31,8 @@ from dexdrake.hands.description import load_hand
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
-from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, policy_from_payload, save_policy
-from dexdrake.learn.samplers import policy_to_bytes
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.learn.samplers import Sampler, make_sampler
 
 DATA_FORMAT = "dexdrake.dagger/1"
 
@@ -52,6 +49,7 @@ class DaggerConfig:
     lr: float = 1e-4
     batch_size: int = 64
     workers: int = 2
+    backend: str = "process"  # sampler backend (samplers.BACKENDS)
     seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k
 
 
@@ -121,32 +119,17 @@ def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise
                       np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
 
 
-_ENV = None
-_POLICY: tuple[str, DexRepNetPolicy | None] = ("", None)
+def dagger_job(noise: float, env, policy: DexRepNetPolicy | None, job: tuple[str, int]) -> DaggerData:
+    """`run_episode` as a sampler Episode (job = (object, seed)), with `noise` bound first."""
+    name, seed = job
+    return run_episode(env, name, seed, policy, noise)
 
 
-def _init_worker(hand: str, feature_set: str, objects: tuple[str, ...], horizon: int) -> None:
-    global _ENV
-    from dexdrake.eval.envs import GraspEnvFactory
-
-    torch.set_num_threads(1)
-    _ENV = GraspEnvFactory(hand, feature_set, objects, horizon)()
-
-
-def _worker_episode(key: str, blob: bytes | None, name: str, seed: int, noise: float) -> DaggerData:
-    global _POLICY
-    if _POLICY[0] != key:
-        policy = None if blob is None else policy_from_payload(torch.load(io.BytesIO(blob), weights_only=True)).eval()
-        _POLICY = (key, policy)
-    return run_episode(_ENV, name, seed, _POLICY[1], noise)
-
-
-def collect(pool: ProcessPoolExecutor, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,
+def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,
             desc: str) -> DaggerData:
-    """Run `jobs` (object, seed) on the pool's workers; results in job order."""
-    key, blob = uuid.uuid4().hex, None if policy is None else policy_to_bytes(policy)
-    futures = [pool.submit(_worker_episode, key, blob, name, seed, noise) for name, seed in jobs]
-    return DaggerData.concat([f.result() for f in tqdm(futures, desc=desc, unit="episode")])
+    """Run `jobs` (object, seed) on the sampler's workers; results in job order (a job whose
+    worker died is left out, with a warning)."""
+    return DaggerData.concat(sampler.map(partial(dagger_job, noise), policy, jobs, desc))
 
 
 RESUMABLE = ("iterations", "workers")  # DaggerConfig fields a resumed run may change
@@ -172,13 +155,16 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
 
 
 def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = DaggerConfig(),
-                 metadata: dict[str, Any] | None = None) -> Path:
+                 metadata: dict[str, Any] | None = None, address: str | None = None) -> Path:
     """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
-    see SELECTION).
+    see SELECTION). Episodes run on `config.workers` workers of `config.backend` (`address`:
+    a Ray cluster to join).
 
     Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
     success rate (iteration 0: the expert; later: the previous iteration's policy).
     """
+    from dexdrake.eval.envs import GraspEnvFactory
+
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
     check_resume(out_dir, config, objects)
@@ -192,9 +178,9 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     parts: list[DaggerData] = []
     policy: DexRepNetPolicy | None = None
-    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
-    with ProcessPoolExecutor(config.workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(config.hand, config.feature_set, tuple(objects), config.horizon)) as pool:
+    factory = GraspEnvFactory(config.hand, config.feature_set, tuple(objects), config.horizon)
+    with make_sampler(factory, config.backend, config.workers, address) as sampler:
+        print(f"DAgger: {sampler.describe()}", flush=True)
         for it in range(config.iterations):
             data_path, policy_path = out_dir / f"data_{it:02d}.npz", out_dir / f"policy_{it:02d}.pt"
             t0 = time.perf_counter()
@@ -204,7 +190,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
                 seeds = [config.seed * 10**6 + it * 10**4 + k for k in range(config.episodes_per_object)]
                 jobs = [(name, s) for s in seeds for name in objects]
                 driver = "expert" if policy is None else "policy"
-                data = collect(pool, policy, jobs, config.expert_noise if policy is None else 0.0,
+                data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
                                f"DAgger {it} ({driver})")
                 data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
             collect_s = time.perf_counter() - t0

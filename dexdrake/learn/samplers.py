@@ -1,9 +1,16 @@
-"""Seeded policy rollouts: in-process, in local worker processes, or on Ray actors.
+"""Seeded episodes on a pool of workers: in-process, in local worker processes, or on Ray actors.
 
-Every worker builds its env once from the picklable EnvFactory and keeps it (Drake
-diagrams do not pickle). The policy travels as serialised bytes (config + state dict) with
-each batch of seeds; rollout i is fully determined by seeds[i] (env reset and action
-noise), so all backends return identical trajectories for the same seeds and policy.
+One abstraction serves DAPG sampling (`Sampler.sample`: policy rollouts) and DAgger
+collection (`Sampler.map` with DAgger's episode function). `map` hands the jobs out one at
+a time to whichever worker is free. Every worker builds its env once from the picklable
+EnvFactory and keeps it (Drake diagrams do not pickle); it receives the policy as bytes
+(config + state dict) only when the policy changed. A job's result depends only on the job
+and the policy (env reset and noise are seeded by it), so every backend returns the same
+results, in job order.
+
+A worker that dies (a crash, out of memory, a lost Ray node) loses only the job it was
+running: a RuntimeWarning names the job, a fresh worker replaces the dead one and `map`
+returns the other jobs' results. An exception raised by an episode is a bug and propagates.
 
 The process backend uses the 'forkserver' (default on Linux) or 'spawn' start method, so
 a script that uses it must guard its entry point with `if __name__ == "__main__":`.
@@ -14,15 +21,23 @@ from __future__ import annotations
 import io
 import math
 import multiprocessing as mp
+import os
+import signal
+import traceback
 import uuid
-from collections.abc import Iterator, Sequence
+import warnings
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from typing import Any, Protocol
+from dataclasses import dataclass
+from functools import partial
+from multiprocessing.connection import Connection, wait
+from typing import Any
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import Env, EnvFactory, observation_dim
@@ -30,6 +45,9 @@ from dexdrake.learn.policy import DexRepNetPolicy, policy_from_payload, policy_p
 from dexdrake.learn.trajectory import Trajectory
 
 BACKENDS = ("sequential", "process", "ray")
+
+Episode = Callable[[Env, DexRepNetPolicy | None, Any], Any]
+"""episode(env, policy, job) -> result; must be picklable (a top-level function or a partial of one)."""
 
 
 def check_env_matches(env: Env, policy: DexRepNetPolicy) -> None:
@@ -80,6 +98,13 @@ def rollout(env: Env, policy: DexRepNetPolicy, seed: int, deterministic: bool = 
     )
 
 
+def rollout_job(deterministic: bool, env: Env, policy: DexRepNetPolicy | None, seed: int) -> Trajectory:
+    """`rollout` as an Episode (job = seed), with `deterministic` bound first."""
+    if policy is None:
+        raise DexdrakeError("a policy rollout needs a policy")
+    return rollout(env, policy, seed, deterministic)
+
+
 def policy_to_bytes(policy: DexRepNetPolicy) -> bytes:
     """The policy as checkpoint bytes (what workers receive)."""
     buf = io.BytesIO()
@@ -88,23 +113,32 @@ def policy_to_bytes(policy: DexRepNetPolicy) -> bytes:
 
 
 class RolloutWorker:
-    """Holds one env (built once) and the most recent policy; runs seeded rollouts."""
+    """Holds one env (built on first use, then kept) and the most recent policy; runs episode jobs."""
 
     def __init__(self, env_factory: EnvFactory, single_thread: bool = True):
         if single_thread:  # one torch thread per worker; the workers are the parallelism
             torch.set_num_threads(1)
-        self.env = env_factory()
+        self._factory = env_factory
+        self._env: Env | None = None
         self._policy_key: str | None = None
         self._policy: DexRepNetPolicy | None = None
 
-    def run(self, policy_key: str, policy_bytes: bytes, seeds: Sequence[int], deterministic: bool) -> list[Trajectory]:
+    @property
+    def env(self) -> Env:
+        if self._env is None:
+            self._env = self._factory()
+        return self._env
+
+    def run(self, episode: Episode, job: Any, policy_key: str, policy_bytes: bytes | None) -> Any:
+        """episode(env, policy, job); the policy is (re)loaded from `policy_bytes` when `policy_key` changed."""
         if policy_key != self._policy_key:
-            payload = torch.load(io.BytesIO(policy_bytes), map_location="cpu", weights_only=True)
-            self._policy = policy_from_payload(payload).eval()
-            check_env_matches(self.env, self._policy)
+            self._policy = None
+            if policy_bytes is not None:
+                payload = torch.load(io.BytesIO(policy_bytes), map_location="cpu", weights_only=True)
+                self._policy = policy_from_payload(payload).eval()
+                check_env_matches(self.env, self._policy)
             self._policy_key = policy_key
-        assert self._policy is not None
-        return [rollout(self.env, self._policy, s, deterministic) for s in seeds]
+        return episode(self.env, self._policy, job)
 
 
 @contextmanager
@@ -118,137 +152,307 @@ def single_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-class Sampler(Protocol):
-    def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]: ...
+class Sampler(ABC):
+    """Runs episode jobs on `num_workers` workers, each holding its own env."""
 
-    def close(self) -> None: ...
+    num_workers: int
+
+    @abstractmethod
+    def map(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
+            desc: str | None = None) -> list[Any]:
+        """episode(env, policy, job) for every job, results in job order; a job whose worker died
+        is left out (with a warning). `desc` labels a progress bar (none when None)."""
+
+    def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]:
+        """One rollout of `policy` per seed."""
+        return self.map(partial(rollout_job, deterministic), policy, list(seeds))
+
+    def describe(self) -> str:
+        """One line for logs: the backend and its workers."""
+        return f"{type(self).__name__} with {self.num_workers} worker(s)"
+
+    def close(self) -> None:
+        """Stop the workers."""
+
+    def __enter__(self) -> Sampler:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
-def _chunks(seeds: Sequence[int], n: int) -> list[list[int]]:
-    size = max(1, math.ceil(len(seeds) / n))
-    return [list(seeds[i : i + size]) for i in range(0, len(seeds), size)]
+class SequentialSampler(Sampler):
+    """Episodes one after another in this process (debugging, CI)."""
 
-
-class SequentialSampler:
-    """Rollouts one after another in this process (debugging, CI)."""
+    num_workers = 1
 
     def __init__(self, env_factory: EnvFactory):
         self._factory = env_factory
         self._worker: RolloutWorker | None = None
 
-    def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]:
+    def map(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
+            desc: str | None = None) -> list[Any]:
         if self._worker is None:
             self._worker = RolloutWorker(self._factory, single_thread=False)
-        check_env_matches(self._worker.env, policy)
+        env = self._worker.env
+        if policy is not None:
+            check_env_matches(env, policy)
         with single_torch_thread():
-            return [rollout(self._worker.env, policy, s, deterministic) for s in seeds]
+            return [episode(env, policy, job) for job in tqdm(jobs, desc=desc, unit="episode", disable=desc is None)]
 
     def close(self) -> None:
         self._worker = None
 
-    def __enter__(self) -> SequentialSampler:
-        return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+class WorkerDied(Exception):
+    """A worker process or actor ended while it ran a job."""
 
 
-_WORKER: RolloutWorker | None = None
+@dataclass(eq=False)
+class _Worker:
+    handle: Any  # backend-specific: a (process, connection) pair or a Ray actor
+    location: str  # where it runs, for messages: a pid, or a Ray node id
+    policy_key: str | None = None  # the policy it holds
 
 
-def _init_process_worker(env_factory: EnvFactory) -> None:
-    global _WORKER
-    _WORKER = RolloutWorker(env_factory)
+class _WorkerPool(Sampler):
+    """The scheduling shared by the process and Ray backends: one job per free worker, dead
+    workers replaced. Subclasses start, stop and talk to workers."""
 
-
-def _run_in_process_worker(key: str, policy_bytes: bytes, seeds: list[int], deterministic: bool) -> list[Trajectory]:
-    if _WORKER is None:
-        raise DexdrakeError("rollout worker process was not initialised")
-    return _WORKER.run(key, policy_bytes, seeds, deterministic)
-
-
-class ProcessSampler:
-    """Rollouts in `num_workers` local processes, each holding its own env."""
-
-    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, start_method: str | None = None):
+    def __init__(self, num_workers: int):
         if num_workers < 1:
             raise DexdrakeError(f"num_workers must be >= 1, got {num_workers}")
+        self.num_workers = num_workers
+        self._workers = self._start(num_workers)
+
+    @abstractmethod
+    def _start(self, n: int) -> list[_Worker]: ...
+
+    @abstractmethod
+    def _stop(self, worker: _Worker) -> None: ...
+
+    @abstractmethod
+    def _share(self, blob: bytes) -> Any:
+        """The policy bytes in the form _submit passes on (sent once per map call where possible)."""
+
+    @abstractmethod
+    def _submit(self, worker: _Worker, episode: Episode, job: Any, key: str, blob: Any) -> Any:
+        """Start `job` on the idle `worker`; returns a hashable token for _wait and _result."""
+
+    @abstractmethod
+    def _wait(self, tokens: list[Any]) -> list[Any]:
+        """Blocks until at least one token is done; returns the done ones."""
+
+    @abstractmethod
+    def _result(self, token: Any) -> Any:
+        """The job's result; raises WorkerDied if its worker died, or the episode's exception."""
+
+    def map(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
+            desc: str | None = None) -> list[Any]:
+        key, blob = ("none", None) if policy is None else (uuid.uuid4().hex, self._share(policy_to_bytes(policy)))
+        results: dict[int, Any] = {}
+        todo, running, idle = deque(range(len(jobs))), {}, list(self._workers)
+        with tqdm(total=len(jobs), desc=desc, unit="episode", disable=desc is None) as bar:
+            while todo or running:
+                while idle and todo:
+                    worker, i = idle.pop(), todo.popleft()
+                    running[self._submit(worker, episode, jobs[i], key, blob if worker.policy_key != key else None)] = (worker, i)
+                    worker.policy_key = key
+                for token in self._wait(list(running)):
+                    worker, i = running.pop(token)
+                    try:
+                        results[i] = self._result(token)
+                    except WorkerDied as exc:
+                        idle.append(self._replace(worker, exc, jobs[i]))
+                    except Exception:
+                        self._drain(running, jobs)
+                        raise
+                    else:
+                        idle.append(worker)
+                    bar.update()
+        if jobs and not results:
+            raise DexdrakeError(f"every job's worker died ({len(jobs)} jobs); see the warnings above")
+        return [results[i] for i in sorted(results)]
+
+    def _replace(self, dead: _Worker, exc: WorkerDied, job: Any) -> _Worker:
+        warnings.warn(f"rollout worker {dead.location} died ({exc}) while running job {job!r}: that episode is "
+                      "lost, a new worker replaces it and the run continues", RuntimeWarning, stacklevel=2)
+        self._stop(dead)
+        fresh = self._start(1)[0]
+        self._workers[self._workers.index(dead)] = fresh
+        return fresh
+
+    def _drain(self, running: dict[Any, tuple[_Worker, int]], jobs: Sequence[Any]) -> None:
+        """Wait out the jobs still running (results dropped) so no stale reply is left behind."""
+        while running:
+            for token in self._wait(list(running)):
+                worker, i = running.pop(token)
+                try:
+                    self._result(token)
+                except WorkerDied as exc:
+                    self._replace(worker, exc, jobs[i])
+                except Exception:
+                    pass  # the first error is the one raised
+
+    def close(self) -> None:
+        for worker in self._workers:
+            self._stop(worker)
+        self._workers: list[_Worker] = []
+
+
+def _process_worker_main(conn: Connection, env_factory: EnvFactory) -> None:
+    """A worker process: run (episode, job, key, blob) messages until None or a closed pipe."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    worker = RolloutWorker(env_factory)
+    while True:
+        try:
+            message = conn.recv()
+        except EOFError:
+            return
+        if message is None:
+            return
+        try:
+            reply = (True, worker.run(*message))
+        except Exception as exc:
+            exc.add_note(f"(in rollout worker process {os.getpid()})\n{traceback.format_exc()}")
+            reply = (False, exc)
+        try:
+            conn.send(reply)
+        except Exception:  # an exception that does not pickle
+            conn.send((False, DexdrakeError(f"rollout worker process {os.getpid()}:\n{traceback.format_exc()}")))
+
+
+class ProcessSampler(_WorkerPool):
+    """Episodes in `num_workers` local processes, each holding its own env."""
+
+    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, start_method: str | None = None):
         method = start_method or ("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
         if method not in ("forkserver", "spawn"):
             raise DexdrakeError(f"start_method must be 'forkserver' or 'spawn' (Drake and torch are not fork-safe), got {method!r}")
-        self.num_workers = num_workers
-        self._pool = ProcessPoolExecutor(
-            max_workers=num_workers,
-            mp_context=mp.get_context(method),
-            initializer=_init_process_worker,
-            initargs=(env_factory,),
-        )
+        self._ctx = mp.get_context(method)
+        self._factory = env_factory
+        super().__init__(num_workers)
 
-    def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]:
-        key, blob = uuid.uuid4().hex, policy_to_bytes(policy)
-        futures = [
-            self._pool.submit(_run_in_process_worker, key, blob, chunk, deterministic)
-            for chunk in _chunks(seeds, self.num_workers)
-        ]
+    def _start(self, n: int) -> list[_Worker]:
+        workers = []
+        for _ in range(n):
+            conn, child = self._ctx.Pipe()
+            process = self._ctx.Process(target=_process_worker_main, args=(child, self._factory), daemon=True)
+            process.start()
+            child.close()
+            workers.append(_Worker((process, conn), f"pid {process.pid}"))
+        return workers
+
+    def _stop(self, worker: _Worker) -> None:
+        process, conn = worker.handle
         try:
-            return [traj for f in futures for traj in f.result()]
-        except BrokenProcessPool as exc:
-            raise DexdrakeError(
-                "a rollout worker process died (crash or out of memory in the env factory or env); "
-                "run with backend='sequential' to see the error in-process"
-            ) from exc
+            conn.send(None)
+        except OSError:
+            pass  # already gone
+        process.join(timeout=5)
+        if process.is_alive():
+            process.terminate()
+            process.join()
+        conn.close()
 
-    def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+    def _share(self, blob: bytes) -> bytes:
+        return blob
 
-    def __enter__(self) -> ProcessSampler:
-        return self
+    def _submit(self, worker: _Worker, episode: Episode, job: Any, key: str, blob: Any) -> _Worker:
+        worker.handle[1].send((episode, job, key, blob))
+        return worker
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def _wait(self, tokens: list[_Worker]) -> list[_Worker]:
+        by_conn = {w.handle[1]: w for w in tokens}
+        return [by_conn[c] for c in wait(list(by_conn))]
+
+    def _result(self, token: _Worker) -> Any:
+        process, conn = token.handle
+        try:
+            ok, value = conn.recv()
+        except (EOFError, OSError):
+            process.join(timeout=5)
+            raise WorkerDied(f"exit code {process.exitcode}") from None
+        if not ok:
+            raise value
+        return value
 
 
-class RaySampler:
-    """Rollouts on `num_workers` Ray actors (needs the optional `ray` extra)."""
+class _RayRolloutWorker(RolloutWorker):
+    def node_id(self) -> str:
+        import ray
 
-    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, **ray_init: Any):
+        return ray.get_runtime_context().get_node_id()
+
+
+class RaySampler(_WorkerPool):
+    """Episodes on `num_workers` Ray actors of one CPU each (needs the optional `ray` extra).
+
+    Joins the running Ray instance, else the cluster at `address` (e.g. "auto" or
+    "HEAD_IP:6379"), else starts a local one.
+    """
+
+    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, address: str | None = None):
         try:
             import ray
         except ImportError as exc:
             raise DexdrakeError("the Ray backend needs `pip install dexdrake[ray]`") from exc
-        self._ray = ray
-        if not ray.is_initialized():
-            ray.init(**ray_init)
-        actor_cls = ray.remote(num_cpus=1)(RolloutWorker)
-        self._actors = [actor_cls.remote(env_factory) for _ in range(num_workers)]
+        self._ray, self._factory, self._owns_ray = ray, env_factory, not ray.is_initialized()
+        self._workers: list[_Worker] = []
+        if self._owns_ray:
+            local = {} if address else {"num_cpus": max(num_workers, os.cpu_count() or 1), "include_dashboard": False}
+            try:
+                ray.init(address=address, **local)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise DexdrakeError(f"cannot join the Ray cluster at {address!r}: {exc}") from exc
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if cpus < num_workers:
+            self.close()
+            raise DexdrakeError(f"the Ray cluster has {cpus:g} CPUs; {num_workers} workers need one each")
+        self._actor_cls = ray.remote(num_cpus=1)(_RayRolloutWorker)
+        super().__init__(num_workers)
 
-    def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]:
-        key = uuid.uuid4().hex
-        blob = self._ray.put(policy_to_bytes(policy))
-        refs = [
-            actor.run.remote(key, blob, chunk, deterministic)
-            for actor, chunk in zip(self._actors, _chunks(seeds, len(self._actors)))
-        ]
-        return [traj for part in self._ray.get(refs) for traj in part]
+    def _start(self, n: int) -> list[_Worker]:
+        actors = [self._actor_cls.remote(self._factory) for _ in range(n)]
+        nodes = self._ray.get([a.node_id.remote() for a in actors])
+        return [_Worker(actor, f"on Ray node {node}") for actor, node in zip(actors, nodes)]
+
+    def _stop(self, worker: _Worker) -> None:
+        self._ray.kill(worker.handle)
+
+    def _share(self, blob: bytes) -> Any:
+        return self._ray.put(blob)
+
+    def _submit(self, worker: _Worker, episode: Episode, job: Any, key: str, blob: Any) -> Any:
+        return worker.handle.run.remote(episode, job, key, blob)
+
+    def _wait(self, tokens: list[Any]) -> list[Any]:
+        return self._ray.wait(tokens, num_returns=1)[0]
+
+    def _result(self, token: Any) -> Any:
+        try:
+            return self._ray.get(token)
+        except self._ray.exceptions.RayActorError as exc:
+            raise WorkerDied(type(exc).__name__) from None
+
+    def describe(self) -> str:
+        return f"RaySampler with {self.num_workers} worker(s) on {len({w.location for w in self._workers})} node(s)"
 
     def close(self) -> None:
-        for actor in self._actors:
-            self._ray.kill(actor)
-        self._actors = []
-
-    def __enter__(self) -> RaySampler:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+        super().close()
+        if self._owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
 
 
-def make_sampler(env_factory: EnvFactory, backend: str = "process", num_workers: int = 2) -> Sampler:
-    """A sampler for `backend` in ("sequential", "process", "ray")."""
+def make_sampler(env_factory: EnvFactory, backend: str = "process", num_workers: int = 2,
+                 address: str | None = None) -> Sampler:
+    """A sampler for `backend` in BACKENDS; `address` (Ray only) joins an existing Ray cluster."""
+    if address is not None and backend != "ray":
+        raise DexdrakeError(f"a cluster address needs the 'ray' backend, not {backend!r}")
     if backend == "sequential":
         return SequentialSampler(env_factory)
     if backend == "process":
         return ProcessSampler(env_factory, num_workers)
     if backend == "ray":
-        return RaySampler(env_factory, num_workers)
+        return RaySampler(env_factory, num_workers, address)
     raise DexdrakeError(f"unknown sampler backend {backend!r}; valid: {', '.join(BACKENDS)}")

@@ -1,0 +1,123 @@
+"""Rollout backends on the real grasp env: Ray (a two-node cluster on this machine) against
+local processes, for DAPG sampling and DAgger collection, and workers that die mid-run.
+
+Ray start-up is slow, so the module shares one cluster and one sampler per backend; each
+test runs a few episodes of a few control steps.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from functools import partial
+
+import numpy as np
+import pytest
+import ray
+import torch
+from ray.cluster_utils import Cluster
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.eval.envs import GraspEnvFactory
+from dexdrake.learn.dagger import collect
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
+from dexdrake.learn.samplers import ProcessSampler, RaySampler, rollout
+
+OBJECT = "sphere_medium"
+FACTORY = GraspEnvFactory("adroit", "DexRep", (OBJECT,), horizon=6)
+MiB = 2**20
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two Ray nodes of one CPU each, so two one-CPU workers must land on different nodes."""
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": 100 * MiB})
+    cluster.add_node(num_cpus=1, object_store_memory=100 * MiB)
+    ray.init(address=cluster.address)
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # this module's episode functions
+    yield cluster
+    ray.cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    ray.shutdown()
+    cluster.shutdown()
+
+
+@pytest.fixture(scope="module")
+def ray_sampler(cluster):
+    with RaySampler(FACTORY, num_workers=2) as sampler:
+        yield sampler
+
+
+@pytest.fixture(scope="module")
+def process_sampler():
+    with ProcessSampler(FACTORY, num_workers=2) as sampler:
+        yield sampler
+
+
+@pytest.fixture(scope="module")
+def policy():
+    env = FACTORY()
+    torch.manual_seed(0)
+    return DexRepNetPolicy(PolicyConfig.from_blocks(env.observation_blocks, env.action_dim, feature_set="DexRep",
+                                                    hand="adroit"))
+
+
+def _assert_same_trajectories(a, b) -> None:
+    assert [t.seed for t in a] == [t.seed for t in b] and [t.success for t in a] == [t.success for t in b]
+    for x, y in zip(a, b, strict=True):
+        for field in ("observations", "actions", "rewards", "log_probs"):
+            np.testing.assert_allclose(getattr(x, field), getattr(y, field), rtol=1e-6, atol=1e-6, err_msg=field)
+
+
+def test_dapg_sampling_on_ray_matches_processes(ray_sampler, process_sampler, policy):
+    seeds = [0, 1, 2]
+    on_ray = ray_sampler.sample(policy, seeds)
+    _assert_same_trajectories(on_ray, process_sampler.sample(policy, seeds))
+    assert all(len(t) == FACTORY.horizon for t in on_ray)
+    with torch.no_grad():
+        policy.mlp[-1].bias.add_(0.5)  # the workers must pick up new weights
+    changed = ray_sampler.sample(policy, seeds[:1])
+    _assert_same_trajectories(changed, process_sampler.sample(policy, seeds[:1]))
+    assert not np.allclose(changed[0].actions, on_ray[0].actions)
+
+
+def test_dagger_collection_on_ray_matches_processes(ray_sampler, process_sampler, policy):
+    for driver, jobs, noise in ((None, [(OBJECT, 10), (OBJECT, 11)], 0.3), (policy, [(OBJECT, 12)], 0.0)):
+        a = collect(ray_sampler, driver, jobs, noise, "ray")
+        b = collect(process_sampler, driver, jobs, noise, "processes")
+        assert a.objects == b.objects and a.seeds.tolist() == [s for _, s in jobs]
+        assert np.array_equal(a.success, b.success) and np.array_equal(a.episode_starts, b.episode_starts)
+        for field in ("positions", "observations", "labels"):
+            np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-6, atol=1e-6, err_msg=field)
+    assert len(a.labels) == FACTORY.horizon
+
+
+def _node_and_rollout(env, policy, seed):
+    return ray.get_runtime_context().get_node_id(), rollout(env, policy, seed)
+
+
+def test_work_lands_on_both_nodes(ray_sampler, policy):
+    nodes = [node for node, _ in ray_sampler.map(_node_and_rollout, policy, [0, 1, 2, 3])]
+    assert set(nodes) == {n["NodeID"] for n in ray.nodes() if n["Alive"]} and len(set(nodes)) == 2
+    assert ray_sampler.describe() == "RaySampler with 2 worker(s) on 2 node(s)"
+
+
+def _exit_on_seed(doomed: int, env, policy, seed: int):
+    """A rollout whose worker dies without clean-up (like a crash) on seed `doomed`."""
+    if seed == doomed:
+        os._exit(3)
+    return rollout(env, policy, seed)
+
+
+@pytest.mark.parametrize("backend", ["process", "ray"])
+def test_a_dead_worker_loses_only_its_episode_and_is_replaced(backend, request, policy):
+    sampler = request.getfixturevalue(f"{backend}_sampler")
+    expected = sampler.sample(policy, [20, 22, 23])
+    with pytest.warns(RuntimeWarning, match=r"died \(.*\) while running job 21: that episode is lost"):
+        got = sampler.map(partial(_exit_on_seed, 21), policy, [20, 21, 22, 23])
+    _assert_same_trajectories(got, expected)
+    _assert_same_trajectories(sampler.sample(policy, [20, 22, 23]), expected)  # the replacement works
+    assert sampler.num_workers == 2
+    with pytest.warns(RuntimeWarning), pytest.raises(DexdrakeError, match="every job's worker died"):
+        sampler.map(partial(_exit_on_seed, 24), policy, [24])

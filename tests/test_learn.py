@@ -293,11 +293,6 @@ def test_sampler_rejects_mismatched_policy():
         make_sampler(make_toy_env, backend="mpi")
 
 
-def test_cluster_address_needs_ray():
-    with pytest.raises(DexdrakeError, match="needs the 'ray' backend"):
-        make_sampler(make_toy_env, backend="process", address="auto")
-
-
 # ----------------------------------------------------------------------------- DAPG
 FAST = dict(rollouts_per_iteration=4, time_scale=20, progress=False, checkpoint_every=0)
 

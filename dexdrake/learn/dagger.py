@@ -32,7 +32,7 @@ from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
-from dexdrake.learn.samplers import Sampler, make_sampler
+from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
 
 DATA_FORMAT = "dexdrake.dagger/1"
 
@@ -132,7 +132,7 @@ def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[s
     return DaggerData.concat(sampler.map(partial(dagger_job, noise), policy, jobs, desc))
 
 
-RESUMABLE = ("iterations", "workers")  # DaggerConfig fields a resumed run may change
+RESUMABLE = ("iterations", "workers", "backend")  # DaggerConfig fields a resumed run may change
 
 
 def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> None:
@@ -167,6 +167,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
 
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
+    check_backend(config.backend, address)
     check_resume(out_dir, config, objects)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)

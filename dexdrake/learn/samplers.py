@@ -23,6 +23,7 @@ import math
 import multiprocessing as mp
 import os
 import signal
+import time
 import traceback
 import uuid
 import warnings
@@ -129,8 +130,10 @@ class RolloutWorker:
             self._env = self._factory()
         return self._env
 
-    def run(self, episode: Episode, job: Any, policy_key: str, policy_bytes: bytes | None) -> Any:
-        """episode(env, policy, job); the policy is (re)loaded from `policy_bytes` when `policy_key` changed."""
+    def run(self, episode: Episode, job: Any, policy_key: str, policy_bytes: bytes | None) -> tuple[Any, float]:
+        """(episode(env, policy, job), CPU seconds this process spent on it); the policy is
+        (re)loaded from `policy_bytes` when `policy_key` changed."""
+        start = time.process_time()
         if policy_key != self._policy_key:
             self._policy = None
             if policy_bytes is not None:
@@ -138,7 +141,8 @@ class RolloutWorker:
                 self._policy = policy_from_payload(payload).eval()
                 check_env_matches(self.env, self._policy)
             self._policy_key = policy_key
-        return episode(self.env, self._policy, job)
+        result = episode(self.env, self._policy, job)
+        return result, time.process_time() - start
 
 
 @contextmanager
@@ -153,9 +157,14 @@ def single_torch_thread() -> Iterator[None]:
 
 
 class Sampler(ABC):
-    """Runs episode jobs on `num_workers` workers, each holding its own env."""
+    """Runs episode jobs on `num_workers` workers, each holding its own env.
+
+    `episode_cpu_s` adds up the CPU seconds the workers spent on finished jobs (env builds
+    and policy loads included), for rates per CPU-second.
+    """
 
     num_workers: int
+    episode_cpu_s: float = 0.0
 
     @abstractmethod
     def map(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
@@ -194,11 +203,14 @@ class SequentialSampler(Sampler):
             desc: str | None = None) -> list[Any]:
         if self._worker is None:
             self._worker = RolloutWorker(self._factory, single_thread=False)
+        start = time.process_time()
         env = self._worker.env
         if policy is not None:
             check_env_matches(env, policy)
         with single_torch_thread():
-            return [episode(env, policy, job) for job in tqdm(jobs, desc=desc, unit="episode", disable=desc is None)]
+            results = [episode(env, policy, job) for job in tqdm(jobs, desc=desc, unit="episode", disable=desc is None)]
+        self.episode_cpu_s += time.process_time() - start
+        return results
 
     def close(self) -> None:
         self._worker = None
@@ -261,7 +273,8 @@ class _WorkerPool(Sampler):
                 for token in self._wait(list(running)):
                     worker, i = running.pop(token)
                     try:
-                        results[i] = self._result(token)
+                        results[i], cpu_s = self._result(token)
+                        self.episode_cpu_s += cpu_s
                     except WorkerDied as exc:
                         idle.append(self._replace(worker, exc, jobs[i]))
                     except Exception:
@@ -444,15 +457,20 @@ class RaySampler(_WorkerPool):
             self._ray.shutdown()
 
 
+def check_backend(backend: str, address: str | None = None) -> None:
+    """Raise unless `backend` is one of BACKENDS and `address` is None or used with Ray."""
+    if backend not in BACKENDS:
+        raise DexdrakeError(f"unknown sampler backend {backend!r}; valid: {', '.join(BACKENDS)}")
+    if address is not None and backend != "ray":
+        raise DexdrakeError(f"a cluster address needs the 'ray' backend, not {backend!r}")
+
+
 def make_sampler(env_factory: EnvFactory, backend: str = "process", num_workers: int = 2,
                  address: str | None = None) -> Sampler:
     """A sampler for `backend` in BACKENDS; `address` (Ray only) joins an existing Ray cluster."""
-    if address is not None and backend != "ray":
-        raise DexdrakeError(f"a cluster address needs the 'ray' backend, not {backend!r}")
+    check_backend(backend, address)
     if backend == "sequential":
         return SequentialSampler(env_factory)
     if backend == "process":
         return ProcessSampler(env_factory, num_workers)
-    if backend == "ray":
-        return RaySampler(env_factory, num_workers, address)
-    raise DexdrakeError(f"unknown sampler backend {backend!r}; valid: {', '.join(BACKENDS)}")
+    return RaySampler(env_factory, num_workers, address)

@@ -257,7 +257,8 @@ class _WorkerPool(Sampler):
 
     @abstractmethod
     def _result(self, token: Any) -> Any:
-        """The job's result; raises WorkerDied if its worker died, or the episode's exception."""
+        """(the job's result, the worker's CPU seconds on it); raises WorkerDied if the worker
+        died, or the episode's exception."""
 
     def map(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
             desc: str | None = None) -> list[Any]:

@@ -16,8 +16,9 @@ Drake physics, DexRep features, the task's reward and the state-driven expert's 
   env reset (per step), and Python overhead (the rest);
 - MuJoCo stepping the paper's Adroit relocate scene (optional `bench` extra, see
   `mujoco_peer.py`) and our rate as a multiple of it;
-- DAgger collection with 1 and 2 worker processes (labelled steps per wall second, parallel
-  efficiency), policy inference and a behaviour-cloning epoch.
+- DAgger collection with 1 and 2 workers, local processes and Ray (`bench_scaling.py`:
+  labelled steps per wall and per worker CPU-second, parallel efficiency), policy inference
+  and a behaviour-cloning epoch.
 Rates are per CPU-second (time.process_time): on a shared machine wall time is inflated by
 other processes; the load average is printed before and after.
 """
@@ -193,23 +194,6 @@ def startup_cpu_s(obj: str) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def dagger_wall_rate(factory, objects, episodes: int, workers: int) -> float:
-    """Expert-driven labelled steps per wall second of DAgger's own collection on `workers` processes."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from dexdrake.learn.dagger import _init_worker, collect as dagger_collect
-
-    ctx = mp.get_context("forkserver")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(factory.hand, factory.feature_set, tuple(objects), factory.horizon)) as pool:
-        dagger_collect(pool, None, [(o, 0) for o in objects for _ in range(workers)], 0.0, "warm-up")
-        jobs = [(o, 100 + k) for k in range(episodes) for o in objects]
-        start = time.perf_counter()
-        data = dagger_collect(pool, None, jobs, 0.0, f"{workers} worker(s)")
-        return len(data.labels) / (time.perf_counter() - start)
-
-
 def bench_bc_epoch(config, samples: int, epochs: int = 2) -> float:
     """Seconds per BC epoch (batch 64, one torch thread) on random data of the policy's sizes."""
     from dexdrake.learn.bc import BCConfig, train_bc
@@ -273,13 +257,14 @@ def main() -> None:
               f"per CPU-s; {peer.env_steps_per_cpu_s:.0f} gymnasium env steps per CPU-s (no features, no labels)")
 
     if args.workers:
-        counts = [int(w) for w in args.workers.split(",")]
-        rates = {w: dagger_wall_rate(factory, objects, max(args.episodes, 1) * w, w) for w in counts}
-        print("\nDAgger collection (expert-driven) on worker processes, labelled steps per wall second:")
-        print(f"{'workers':>8}{'steps/s':>10}{'speed-up':>10}{'efficiency':>12}")
-        for w, r in rates.items():
-            speedup = r / rates[counts[0]] * counts[0]
-            print(f"{w:>8}{r:>10.0f}{speedup:>9.2f}x{speedup / w:>11.0%}")
+        from bench_scaling import measure_scaling, print_scaling
+
+        counts = tuple(int(w) for w in args.workers.split(","))
+        episodes = max(args.episodes, 1) * len(objects) * max(counts)
+        print(f"\nDAgger collection (expert-driven) with {args.workers} workers, local processes and Ray:")
+        print_scaling(measure_scaling(objects, episodes, args.horizon, ("process", "ray"), counts),
+                      f"python scripts/bench_scaling.py --objects {','.join(objects)} --episodes {episodes} "
+                      f"--horizon {args.horizon} --backends process,ray --workers {args.workers}")
 
     obs = factory().reset(0).astype(np.float32)
     start, n = time.process_time(), 300

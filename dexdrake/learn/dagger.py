@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.errors import DexdrakeError

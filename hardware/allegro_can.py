@@ -6,6 +6,11 @@ The firmware does not implement position set-points, so `AllegroHand` runs a 333
 loop on the host: it waits for the 4 position frames of a cycle, low-pass filters the
 position, differentiates it, computes PD torques in PWM counts with the vendor gains,
 clamps them to the per-joint PWM limits and sends 4 torque frames.
+Nothing says the firmware stops when the host goes quiet (specs/allegro_v4.md), so every
+fault path ends on the host's side: zero torque and servo off (`_trip`). Faults: a silent
+position stream, a hot joint or palm, a status fault bit, temperatures not heard for
+`temperature_timeout_s` (polled by RTR with the status), a failing loop. `reset_fault()`
+re-runs the whole start sequence (after a power loss the hand streams nothing until told).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
+from functools import cache
 
 import can
 import numpy as np
@@ -319,21 +325,37 @@ def decode(msg: can.Message, device_id: int = 0) -> Frame:
 # ----------------------------------------------------------------------------- driver
 def default_joint_limits() -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) in bus order from the `allegro` hand description's model file."""
+    lo, hi, _ = _model_limits()
+    return lo.copy(), hi.copy()
+
+
+@cache
+def _model_limits() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lower, upper, velocity) in bus order from the `allegro` description's model file."""
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
     from dexdrake.hands.description import load_hand
 
     hand = load_hand("allegro")
-    lo, hi = hand.joint_limits()
-    perm = hand.hardware_permutation()
-    return lo[perm], hi[perm]
+    plant = MultibodyPlant(0.0)
+    (robot,) = Parser(plant).AddModels(str(hand.model_path))
+    joints = [plant.GetJointByName(name, robot) for name in hand.hardware_joints]
+    return (np.array([j.position_lower_limits()[0] for j in joints]),
+            np.array([j.position_upper_limits()[0] for j in joints]),
+            np.array([j.velocity_upper_limits()[0] for j in joints]))
 
 
 @dataclass(frozen=True)
 class AllegroConfig:
-    """Driver settings. Arrays are 16 values in bus order; None means the vendor default."""
+    """Driver settings. Arrays are 16 values in bus order; None means the vendor default
+    (gains and PWM limits: dexdrake/hands/allegro_units.py) or the model's joint limits.
+    They may be lowered from there, never raised (`check_allegro_config`)."""
 
     position_period_ms: int = 3
     temperature_period_ms: int = 100
-    status_poll_s: float = 0.1  # RTR status request interval (0 disables)
+    status_poll_s: float = 0.1  # RTR status + temperature request interval
+    temperature_timeout_s: float = 0.5  # no temperature of a finger for this long: fault
     watchdog_timeout_s: float = 0.05
     reply_timeout_s: float = 0.2  # for the RTR info/serial replies during start()
     filter_cutoff_hz: float = 80.0  # first-order low-pass on position before differentiating
@@ -345,6 +367,54 @@ class AllegroConfig:
     pwm_limit: Sequence[float] | None = None
     lower: Sequence[float] | None = None
     upper: Sequence[float] | None = None
+
+
+@dataclass(frozen=True)
+class AllegroSettings:
+    """A config resolved against the vendor's and the model's limits (bus order)."""
+
+    kp: np.ndarray
+    kd: np.ndarray
+    pwm_limit: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
+    """Resolve `cfg`; HardwareError naming the limit a value exceeds: gains above the vendor
+    gains, PWM limits above the vendor's, joint limits outside the model's, a target rate
+    above the joints' velocity limit, or no way to hear the temperatures."""
+    lo_m, hi_m, vel = _model_limits()
+
+    def capped(values, ceiling: np.ndarray, name: str, what: str) -> np.ndarray:
+        arr = ceiling.copy() if values is None else _array(values, name)
+        if np.any(arr < 0):
+            raise HardwareError(f"Allegro {name} must be >= 0, got {arr.tolist()}")
+        if np.any(arr > ceiling):
+            i = int(np.flatnonzero(arr > ceiling)[0])
+            raise HardwareError(f"Allegro {name}[{i}] = {arr[i]:g} exceeds {what} {ceiling[i]:g}")
+        return arr
+
+    kp = capped(cfg.kp, units.KP_VENDOR, "kp", "the vendor gain")
+    kd = capped(cfg.kd, units.KD_VENDOR, "kd", "the vendor gain")
+    pwm = capped(cfg.pwm_limit, units.PWM_LIMITS, "pwm_limit", "the vendor PWM limit")
+    lower = lo_m.copy() if cfg.lower is None else _array(cfg.lower, "lower")
+    upper = hi_m.copy() if cfg.upper is None else _array(cfg.upper, "upper")
+    if np.any(lower < lo_m - 1e-6) or np.any(upper > hi_m + 1e-6):
+        raise HardwareError(f"Allegro joint limits {lower.tolist()} .. {upper.tolist()} reach outside "
+                            f"the model's {lo_m.tolist()} .. {hi_m.tolist()}")
+    vmax = float(np.min(vel))
+    if not (math.isfinite(cfg.max_target_rate) and 0 < cfg.max_target_rate <= vmax):
+        raise HardwareError(f"Allegro max_target_rate {cfg.max_target_rate:g} rad/s must be in "
+                            f"(0, {vmax:g}], the joints' velocity limit in the model")
+    for name in ("watchdog_timeout_s", "temperature_timeout_s", "reply_timeout_s"):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value > 0):
+            raise HardwareError(f"Allegro {name} must be > 0, got {value}")
+    if not cfg.status_poll_s > 0:
+        raise HardwareError(f"Allegro status_poll_s must be > 0 (status and temperatures are "
+                            f"polled with it), got {cfg.status_poll_s}")
+    return AllegroSettings(kp, kd, pwm, lower, upper)
 
 
 @dataclass(frozen=True)
@@ -391,14 +461,9 @@ class AllegroHand(SafeStopContext):
         self.config = cfg = config or AllegroConfig()
         self._clock = clock
         n = NUM_JOINTS
-        self.kp = _array(cfg.kp, units.KP_VENDOR, "kp")
-        self.kd = _array(cfg.kd, units.KD_VENDOR, "kd")
-        self.pwm_limit = _array(cfg.pwm_limit, units.PWM_LIMITS, "pwm_limit")
-        if cfg.lower is None or cfg.upper is None:
-            lo, hi = default_joint_limits()
-        else:
-            lo, hi = cfg.lower, cfg.upper
-        self.limits = JointLimits(_array(lo, None, "lower"), _array(hi, None, "upper"))
+        st = check_allegro_config(cfg)
+        self.kp, self.kd, self.pwm_limit = st.kp, st.kd, st.pwm_limit
+        self.limits = JointLimits(st.lower, st.upper)
         self._rate = RateLimiter(cfg.max_target_rate, initial=self.limits.last_safe)
         self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
@@ -413,6 +478,7 @@ class AllegroHand(SafeStopContext):
         self._dq = np.zeros(n)
         self._tau = np.zeros(n)
         self._temps = np.full(n, np.nan)
+        self._t_temps = np.full(NUM_FINGERS, -math.inf)  # when each finger's temperatures came
         self._status: int | None = None
         self._t_cycle: float | None = None
         self._initialised = False
@@ -454,12 +520,21 @@ class AllegroHand(SafeStopContext):
             raise HardwareError("Allegro: already started")
         if self.fault.tripped:
             raise HardwareError(f"Allegro: fault latched ({self.fault.reason}); call reset_fault() first")
+        while self.bus.recv(0.0) is not None:  # flush
+            pass
+        self._start_sequence()
+        self._running.set()
+        self._thread = threading.Thread(target=self._loop, name="allegro-pd", daemon=True)
+        self._thread.start()
+        return self.info
+
+    def _start_sequence(self) -> None:
+        """Servo off, info, serial, periodic read, servo on; the loop then holds the measured
+        position (HardwareError when the hand does not answer or is too hot)."""
         cfg = self.config
         with self._lock:
             self._initialised, self._has_command = False, False
             self._fresh = [False] * NUM_FINGERS
-        while self.bus.recv(0.0) is not None:  # flush
-            pass
         self._send(ServoOff())
         self._send(Request(Msg.INFO))
         info = self._await(Info, cfg.reply_timeout_s)
@@ -473,10 +548,7 @@ class AllegroHand(SafeStopContext):
         self._send(SetPeriod(cfg.position_period_ms, 0, cfg.temperature_period_ms))
         self._send(ServoOn())
         self._watchdog.reset()
-        self._running.set()
-        self._thread = threading.Thread(target=self._loop, name="allegro-pd", daemon=True)
-        self._thread.start()
-        return self.info
+        self._t_temps[:] = self._clock()
 
     def stop(self) -> None:
         """Stop the loop, zero the torques, stop streaming (period 0) and servo off."""
@@ -506,9 +578,10 @@ class AllegroHand(SafeStopContext):
             return self._target.copy()
 
     def reset_fault(self) -> None:
-        """Clear a latched fault: hold the current position and switch the servo back on.
+        """Clear a latched fault: re-run the start sequence and hold the current position.
 
-        While running, the loop thread does the reset; when stopped, only the latch clears.
+        While running, the loop thread does the reset (a hand that does not answer trips
+        again); when stopped, only the latch clears (`start()` runs the sequence).
         """
         if self.running:
             self._reset_request.set()
@@ -562,9 +635,11 @@ class AllegroHand(SafeStopContext):
         while self._running.is_set():
             now = self._clock()
             try:
-                if self.config.status_poll_s > 0 and now >= next_poll:
+                if now >= next_poll:
                     next_poll = now + self.config.status_poll_s
                     self._send(Request(Msg.STATUS))
+                    for f in range(NUM_FINGERS):
+                        self._send(Request(Msg.TEMPERATURE, f))
                 self._iterate(now)
             except can.CanError as err:
                 self._stats.frame_errors[f"bus:{type(err).__name__}"] += 1
@@ -576,6 +651,10 @@ class AllegroHand(SafeStopContext):
             self._do_reset()
         if not self.fault.tripped and self._watchdog.expired(now):
             self._trip(f"position stream silent for {self._watchdog.since_last(now) * 1e3:.0f} ms")
+        stale = now - self._t_temps
+        if not self.fault.tripped and np.max(stale) > self.config.temperature_timeout_s:
+            f = int(np.argmax(stale))
+            self._trip(f"finger {f} temperature not heard for {stale[f] * 1e3:.0f} ms")
         frame = self._recv(0.005)
         if frame is not None:
             self._handle(frame)
@@ -583,11 +662,10 @@ class AllegroHand(SafeStopContext):
     def _do_reset(self) -> None:
         self.fault.reset()
         self._faulted_stop_done = False
-        with self._lock:
-            self._initialised = False  # re-hold the measured position at the next cycle
-            self._has_command = False
-        self._watchdog.reset()
-        self._send(ServoOn())
+        try:
+            self._start_sequence()
+        except HardwareError as err:
+            self._trip(f"reset failed: {err}")
 
     def _handle(self, frame: Frame) -> None:
         match frame:
@@ -596,6 +674,7 @@ class AllegroHand(SafeStopContext):
             case Temperature(finger, celsius):
                 with self._lock:
                     self._temps[4 * finger: 4 * finger + 4] = celsius
+                self._t_temps[finger] = self._clock()
                 if max(celsius) > self.config.max_temperature_c:
                     self._trip(f"finger {finger} joint temperature {max(celsius)} C")
             case Status(bits):
@@ -657,8 +736,11 @@ class AllegroHand(SafeStopContext):
             self._send(Torque(f, tuple(int(v) for v in pwm[4 * f: 4 * f + 4])))
 
 
-def _array(values: Sequence[float] | None, default: Sequence[float] | None, name: str) -> np.ndarray:
-    arr = np.asarray(default if values is None else values, dtype=float)
+def _array(values: Sequence[float], name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise HardwareError(f"Allegro {name}: need {NUM_JOINTS} numbers (bus order), got {values!r}") from None
     if arr.shape != (NUM_JOINTS,) or not np.all(np.isfinite(arr)):
         raise HardwareError(f"Allegro {name}: need {NUM_JOINTS} finite values (bus order), got {arr}")
     return arr

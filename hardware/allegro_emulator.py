@@ -3,12 +3,15 @@
 It answers RTR info / serial / status / temperature / position / IMU requests, streams
 position (and temperature/status) frames at the periods the host sets, obeys servo on/off
 and moves its joints with a pluggable `JointDynamics` model, stepped every tick with the
-effective PWM (zero when the servo is off or no torque frame arrived for
-`torque_timeout_s`). The default, `PwmJointDynamics`, is a per-joint double integrator:
+effective PWM: the last torque frames' PWM while the servo is on, zero when it is off.
+Host silence does not stop it: nothing documents a firmware timeout (specs/allegro_v4.md),
+so by default the last PWM stays applied; `torque_timeout_s` adds such a cut-off only
+when a test asks for one. `power_cycle()` emulates a power loss (servo off, no streams). The default, `PwmJointDynamics`, is a per-joint double integrator:
     ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits.
 A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
 Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
-Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature.
+Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature,
+never report temperatures, lose power.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ class EmulatorConfig:
     serial: str = "AH4EMU01"
     accel_per_pwm: float = 2.0  # rad/s^2 per PWM count
     damping: float = 5.0  # 1/s
-    torque_timeout_s: float = 0.05
+    torque_timeout_s: float | None = None  # None: keep the last PWM on host silence (spec)
     physics_dt_s: float = 0.0005
     temperature_c: int = 35
     over_temperature_c: int = 95
@@ -110,6 +113,7 @@ class _Injection:
     corrupt_rate: float = 0.0
     over_temperature: bool = False
     silent: bool = False  # answer nothing at all (not even RTR)
+    mute_temperature: bool = False  # never send temperature frames (periodic or RTR)
     counts: collections.Counter = field(default_factory=collections.Counter)
 
 
@@ -175,6 +179,13 @@ class AllegroEmulator:
     def stall(self, seconds: float) -> None:
         """Stop streaming periodic frames for `seconds` (RTR replies still work)."""
         self.inject.stall_until = self._clock() + seconds
+
+    def power_cycle(self) -> None:
+        """A power loss and restore: servo off, PWM zero, every periodic stream off."""
+        with self._lock:
+            self._pwm[:] = 0.0
+        self.servo_on = False
+        self.periods = SetPeriod(0, 0, 0, 0)
 
     def set_over_temperature(self, on: bool = True) -> None:
         """Report joint over-temperature (status bit 1, hot temperature frames)."""
@@ -249,7 +260,8 @@ class AllegroEmulator:
             case Msg.POSITION:
                 self._send(self._position(req.finger))
             case Msg.TEMPERATURE:
-                self._send(Temperature(req.finger, self._temperatures(req.finger)))
+                if not self.inject.mute_temperature:
+                    self._send(Temperature(req.finger, self._temperatures(req.finger)))
             case Msg.IMU:
                 self._send(Imu((16384, 0, 0, 0)))
 
@@ -281,8 +293,10 @@ class AllegroEmulator:
 
     # --------------------------------------------------------------- tick
     def _integrate(self, dt: float, now: float) -> None:
-        """Zero the PWM when inactive (servo off / torque timeout), then step the dynamics."""
-        active = self.servo_on and now - self._last_torque <= self.config.torque_timeout_s
+        """Zero the PWM when the servo is off (or past the optional torque timeout), then
+        step the dynamics."""
+        timeout = self.config.torque_timeout_s
+        active = self.servo_on and (timeout is None or now - self._last_torque <= timeout)
         with self._lock:
             if not active:
                 self._pwm[:] = 0.0
@@ -310,7 +324,7 @@ class AllegroEmulator:
                     self._send(self._position(f), periodic=True)
                 self.position_batches += 1
                 self._torque_fingers.clear()
-            elif name == "temperature":
+            elif name == "temperature" and not self.inject.mute_temperature:
                 for f in range(NUM_FINGERS):
                     self._send(Temperature(f, self._temperatures(f)), periodic=True)
             else:

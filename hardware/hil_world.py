@@ -4,10 +4,13 @@ emulator and the Z1 controller emulator, on one simulated clock.
 The emulators keep their bus/UDP behaviour (framing, periods, servo and FSM logic, fault
 injection) and get their joints from the plant through their public dynamics hooks:
   Allegro (`JointDynamics`): effective PWM -> plant actuation tau = pwm * torque_per_pwm on the
-           finger joints (zero when the servo is off or torque frames stop, as the firmware does);
+           finger joints (zero when the servo is off; the last PWM stays applied while the
+           servo is on, whether or not torque frames keep coming, as specs/allegro_v4.md says);
   Z1 (`ArmDynamics`): the controller's LOWCMD/JOINTCTRL set-points -> the plant's implicit PD
            actuators (gains kp*25.6 and kd*0.0128, feed-forward torque); PASSIVE -> hold
-           with damping only;
+           with damping only. The arm carries its weight and the hand's: the gravity load
+           of the Z1 model (hardware/z1_model.py) acts on the arm joints, so the client's
+           gravity feed-forward is what holds it up;
   plant joint positions/velocities (and arm torques) -> what the emulators stream and reply.
 
 Timing design (correctness must not depend on how the host schedules threads):
@@ -27,7 +30,8 @@ Timing design (correctness must not depend on how the host schedules threads):
   up it runs slower (real-time factor < 1, reported by `stats()`) instead of taking larger
   steps, so a loaded machine slows the episode down but does not change its outcome. After
   a hiccup it catches up at most `max_lag_s` (briefly running faster than real time).
-The robot is gravity compensated (as in the simulated scene); the object is not.
+The hand's own joints are gravity compensated (as in the simulated scene); the arm joints
+carry the arm's and the hand's weight; the object is not compensated.
 """
 
 from __future__ import annotations
@@ -52,7 +56,8 @@ from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.safety import HardwareError, period_stats
 from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConfig
-from dexdrake.hardware.z1_udp import KD_SCALE, KP_SCALE, ArmFSMState
+from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
+from dexdrake.hardware.z1_udp import ArmFSMState
 from dexdrake.objects.library import add_object, exclude_distance_geometry_from_contact, get_object
 from dexdrake.systems.scenario import Scenario
 from dexdrake.systems.scene import ObjectPlacement, _add_table
@@ -85,12 +90,14 @@ def build_world_plant(scenario: Scenario) -> WorldPlant:
     (robot,) = Parser(plant).AddModels(str(hand.model_path))
     plant.set_gravity_enabled(robot, False)
     n_arm = len(hand.arm_joints)
+    limits = z1_model().limits
+    kp = limits.kp if arm_cfg.kp is None else arm_cfg.kp
+    kd = limits.kd if arm_cfg.kd is None else arm_cfg.kd
     for i, name in enumerate(hand.policy_joints):
         joint = plant.GetJointByName(name, robot)
         actuator = _actuator_of(plant, robot, name)
         if i < n_arm:
-            actuator.set_controller_gains(PdControllerGains(p=arm_cfg.kp[i] * KP_SCALE,
-                                                            d=arm_cfg.kd[i] * KD_SCALE))
+            actuator.set_controller_gains(PdControllerGains(p=kp[i] * KP_SCALE, d=kd[i] * KD_SCALE))
         else:
             actuator.set_controller_gains(PdControllerGains(p=0.0, d=0.0))  # torque-driven
             actuator.set_default_rotor_inertia(w.finger_reflected_inertia)
@@ -102,6 +109,7 @@ def build_world_plant(scenario: Scenario) -> WorldPlant:
     exclude_distance_geometry_from_contact(scene_graph)
     builder.ExportInput(plant.get_desired_state_input_port(robot), "desired_state")
     builder.ExportInput(plant.get_actuation_input_port(), "actuation")
+    builder.ExportInput(plant.get_applied_generalized_force_input_port(), "arm_weight")
     diagram = builder.Build()
     actuators = [plant.get_joint_actuator(i) for i in plant.GetJointActuatorIndices(robot)]
     order = [a.joint().name() for a in actuators]
@@ -181,6 +189,8 @@ class HilWorld:
                                        clock=self.clock, dynamics=self._arm)
         self._desired = np.zeros(2 * w.hand.num_actuators)
         self._actuation = np.zeros(w.plant.num_actuators())
+        self._arm_model = z1_model()
+        self._weight = np.zeros(w.plant.num_velocities())  # generalized forces: the arm's load
         self._lock = threading.Lock()
         self._q = q0.copy()
         self._object_pose = RigidTransform()
@@ -276,11 +286,14 @@ class HilWorld:
         self._desired[n + arm] = dq_d
         self._actuation[:] = 0.0
         self._actuation[arm] = tau_ff
+        q_arm = w.plant.GetPositions(self._plant_context)[w.q_index[:n_arm]]
+        self._weight[w.v_index[:n_arm]] = -self._arm_model.gravity(q_arm)
         tau_fingers = np.zeros(n - n_arm)
         tau_fingers[self.bus_perm - n_arm] = self._fingers.pwm * self.scenario.hil.torque_per_pwm
         self._actuation[w.act_index[n_arm:]] = tau_fingers
         w.diagram.get_input_port(0).FixValue(self._context, self._desired)
         w.diagram.get_input_port(1).FixValue(self._context, self._actuation)
+        w.diagram.get_input_port(2).FixValue(self._context, self._weight)
 
     def _publish(self) -> None:
         w, n_arm = self.world, self.n_arm

@@ -30,7 +30,10 @@ class HardwareError(DexdrakeError):
 
 
 def _vector(values: Sequence[float] | np.ndarray | float, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):  # strings, None, ragged lists: the driver's own error
+        raise HardwareError(f"{name}: expected {n} numbers, got {values!r}") from None
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.shape != (n,):

@@ -1,14 +1,19 @@
 """An emulated `z1_controller` on loopback UDP (for tests and hardware-in-loop).
 
-It binds the controller port (8072 by default) and answers every SendCmd with a RecvState
-(to the sender's address, or to a fixed reply port such as 8071). State machine: starts
-PASSIVE (joint damping only); LOWCMD is entered only from PASSIVE and left only to PASSIVE;
-JOINTCTRL is entered from PASSIVE and tracks the commanded positions with the controller's
-default gains; other states are not emulated and are refused. Silence in LOWCMD/JOINTCTRL
-for `command_timeout_s` drops the arm to PASSIVE. The joints move with a pluggable
-`ArmDynamics` model stepped every tick with the controller's current `ArmCommand`; the
-default, `SimpleArmDynamics` (no gravity, i.e. a gravity-compensated arm), integrates
-I * ddq = clip(tau, +-effort) - b * dq inside hard joint stops, with
+It binds the controller port (8071 by default) and answers every valid SendCmd with a
+RecvState (to the sender's address, or to a fixed reply port such as 8072). Like the vendor
+controller it silently drops (no reply; counted in `packet_errors`) every command that is
+not exactly 147 bytes or whose head is not FE FF, and anything else that does not parse.
+State machine: starts PASSIVE (joint damping only); LOWCMD is entered only from PASSIVE and
+left only to PASSIVE; JOINTCTRL is entered from PASSIVE and follows the commanded positions
+only while `track` is set (else it holds), with the controller's default gains and its own
+gravity compensation; other states are not emulated and are refused. Silence in
+LOWCMD/JOINTCTRL for `command_timeout_s` drops the arm to PASSIVE. The joints move with a
+pluggable `ArmDynamics` model stepped every tick with the controller's current
+`ArmCommand`; the default, `SimpleArmDynamics`, integrates
+I * ddq = clip(tau, +-effort) - g(q) - b * dq inside hard joint stops, where g is the
+gravity load of the arm and its payload from the model (the real arm is not gravity
+compensated in LOWCMD: the client must feed it forward), with
 LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff (PASSIVE: damping only).
 A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
 Run it in its own thread (`start()`), or `open()` it and call `poll(now)` from yours.
@@ -31,13 +36,10 @@ from typing import Protocol
 import numpy as np
 
 from dexdrake.hardware.safety import HardwareError
+from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, NUM_ARM_JOINTS, z1_model
 from dexdrake.hardware.z1_udp import (
+    COMMAND_HEAD,
     CONTROLLER_PORT,
-    DEFAULT_KD,
-    DEFAULT_KP,
-    KD_SCALE,
-    KP_SCALE,
-    NUM_ARM_JOINTS,
     NUM_MOTOR_SLOTS,
     ArmFSMState,
     JointState,
@@ -52,7 +54,6 @@ from dexdrake.hardware.z1_udp import (
 _ORIGINS = np.array([[0, 0, 0.0585], [0, 0, 0.045], [-0.35, 0, 0], [0.218, 0, 0.057],
                      [0.07, 0, 0], [0.0492, 0, 0]])
 _AXES = "zyyyzx"
-EFFORT = (30.0, 60.0, 30.0, 30.0, 30.0, 30.0)
 
 
 def _rot(axis: str, angle: float) -> np.ndarray:
@@ -105,24 +106,28 @@ class ArmDynamics(Protocol):
 
 
 class SimpleArmDynamics:
-    """Independent joints: I * ddq = tau - b * dq inside hard stops, sub-stepped at physics_dt_s."""
+    """Independent joints: I * ddq = tau - gravity(q) - b * dq inside hard stops, sub-stepped
+    at physics_dt_s (`gravity`: the torques that hold the arm; None: weightless)."""
 
     def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                  inertia: Sequence[float], damping: float, passive_damping: float,
-                 effort: Sequence[float], physics_dt_s: float = 0.0005):
+                 effort: Sequence[float], physics_dt_s: float = 0.0005,
+                 gravity: Callable[[np.ndarray], np.ndarray] | None = None):
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         self.q = np.clip(np.asarray(q0, float), self.lower, self.upper)
         self.dq = np.zeros(NUM_ARM_JOINTS)
         self.tau = np.zeros(NUM_ARM_JOINTS)
         self.inertia, self.effort = np.asarray(inertia, float), np.asarray(effort, float)
         self.damping, self.passive_damping, self.physics_dt_s = damping, passive_damping, physics_dt_s
+        self.gravity = gravity
 
     def step(self, command: ArmCommand, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         steps = max(1, int(math.ceil(dt / self.physics_dt_s)))
         h = dt / steps
+        load = np.zeros(NUM_ARM_JOINTS) if self.gravity is None else self.gravity(self.q)
         for _ in range(steps):
             self.tau = command.torque(self.q, self.dq, self.passive_damping, self.effort)
-            self.dq = self.dq + h * (self.tau - self.damping * self.dq) / self.inertia
+            self.dq = self.dq + h * (self.tau - load - self.damping * self.dq) / self.inertia
             self.q = self.q + h * self.dq
             low, high = self.q < self.lower, self.q > self.upper
             self.q = np.clip(self.q, self.lower, self.upper)
@@ -138,9 +143,7 @@ class Z1EmulatorConfig:
     inertia: Sequence[float] = (0.15, 0.3, 0.15, 0.05, 0.03, 0.02)  # kg m^2, reflected
     damping: float = 0.5  # N m s / rad, always present
     passive_damping: float = 5.0  # N m s / rad, PASSIVE mode
-    effort: Sequence[float] = EFFORT
-    jointctrl_kp: Sequence[float] = DEFAULT_KP
-    jointctrl_kd: Sequence[float] = DEFAULT_KD
+    gravity: bool = True  # the arm and its payload weigh what the model says (else weightless)
     command_timeout_s: float = 0.1
     physics_dt_s: float = 0.0005
     q0: Sequence[float] | None = None
@@ -161,6 +164,8 @@ class Z1Emulator:
                  clock: Callable[[], float] = time.monotonic, dynamics: ArmDynamics | None = None):
         self.config = cfg = config or Z1EmulatorConfig()
         self._clock = clock
+        model = z1_model()  # effort limits, JOINTCTRL gains and gravity of the real arm
+        self._model = model
         lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
                   else (cfg.lower, cfg.upper))
         self.lower, self.upper = np.asarray(lo, float), np.asarray(hi, float)
@@ -168,13 +173,12 @@ class Z1Emulator:
                      self.lower, self.upper)
         if q0.shape != (NUM_ARM_JOINTS,):
             raise HardwareError(f"Z1 emulator q0 needs {NUM_ARM_JOINTS} values")
-        self._inertia = np.asarray(cfg.inertia, float)
-        self._effort = np.asarray(cfg.effort, float)
+        self._effort = model.limits.effort.copy()
         self._lock = threading.Lock()
         self._q, self._dq, self._tau = q0, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS)
         self.dynamics: ArmDynamics = dynamics or SimpleArmDynamics(
-            q0, self.lower, self.upper, cfg.inertia, cfg.damping, cfg.passive_damping, cfg.effort,
-            cfg.physics_dt_s)
+            q0, self.lower, self.upper, cfg.inertia, cfg.damping, cfg.passive_damping, self._effort,
+            cfg.physics_dt_s, model.gravity if cfg.gravity else None)
         self._last_tick: float | None = None
         self.fsm = ArmFSMState.PASSIVE
         self._q_d = q0.copy()
@@ -260,10 +264,14 @@ class Z1Emulator:
         elif new in self._ENTRY and self.fsm in self._ENTRY[new]:
             self.fsm = new
             self._q_d, self._dq_d = self._q.copy(), np.zeros(NUM_ARM_JOINTS)
-            self._tau_ff = np.zeros(NUM_ARM_JOINTS)
-            self._kp, self._kd = np.asarray(self.config.jointctrl_kp, float), np.asarray(self.config.jointctrl_kd, float)
+            self._tau_ff = self._own_gravity(self._q_d)
+            self._kp, self._kd = self._model.limits.kp.copy(), self._model.limits.kd.copy()
         else:
             self.rejected_transitions[f"{self.fsm.name}->{new.name}"] += 1
+
+    def _own_gravity(self, q: np.ndarray) -> np.ndarray:
+        """JOINTCTRL: the controller compensates the gravity its model expects."""
+        return self._model.gravity(q) if self.config.gravity else np.zeros(NUM_ARM_JOINTS)
 
     def _apply(self, cmd: SendCmd, now: float) -> None:
         with self._lock:
@@ -275,9 +283,10 @@ class Z1Emulator:
                 self._tau_ff = np.array([j.T for j in joints])
                 self._kp = np.array([j.K_P for j in joints])
                 self._kd = np.array([j.K_W for j in joints])
-            elif self.fsm == cmd.state == ArmFSMState.JOINTCTRL:
+            elif self.fsm == cmd.state == ArmFSMState.JOINTCTRL and cmd.track:
                 self._q_d = np.clip([j.Pos for j in joints], self.lower, self.upper)
                 self._dq_d = np.array([j.W for j in joints])
+                self._tau_ff = self._own_gravity(self._q_d)
             self._tau = self._torque()  # the reply reports the torque of the new command
             self._last_cmd = now
 
@@ -350,6 +359,9 @@ class Z1Emulator:
                 cmd = SendCmd.unpack(data)
             except PacketError as err:
                 self.packet_errors[err.kind] += 1
+                continue
+            if cmd.head != COMMAND_HEAD:  # the vendor controller drops it without a word
+                self.packet_errors["head"] += 1
                 continue
             self.commands_received += 1
             self._apply(cmd, now)

@@ -2,12 +2,18 @@
 
 Wire formats (specs/z1.md, packed little-endian, from the SDK's public header):
 JointCmd 20 B, SendCmd 147 B, JointState 22 B, RecvState 208 B; ArmFSMState is a 4-byte
-enum in header order. The client plays the SDK side (binds 8071, sends to 8072 on
+enum in header order. The client plays the SDK side (binds 8072, sends to 8071 on
 localhost by default): each 2 ms tick it sends one SendCmd and reads the RecvState replies.
+The vendor controller silently drops a command that is not 147 bytes or whose head is not
+FE FF, so every command carries that head.
 Modes: LOWCMD (per-joint q, dq, tau_ff, kp, kd; the controller computes
-tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff) and JOINTCTRL (joint targets).
-Safety: joint-limit clamps, a velocity limit on targets, a state watchdog and motor-error
-checks that latch a fault and command PASSIVE until `reset_fault()`.
+tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff; tau_ff carries the gravity
+feed-forward of the arm and its payload, from the model) and JOINTCTRL (joint targets,
+`track` set so that the controller follows them).
+Limits, gains and the payload come from the model file (hardware/z1_model.py); a config
+beyond them is refused. Safety: joint-limit clamps, a velocity limit on targets, torque
+clamped to the effort limits, a state watchdog and motor-error checks that latch a fault
+and command PASSIVE until `reset_fault()`.
 `OfficialZ1` wraps Unitree's own `unitree_arm_interface` binding when it is importable.
 """
 
@@ -27,6 +33,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, Z1Limits, z1_model
 from dexdrake.hardware.safety import (
     FaultLatch,
     SafeStopContext,
@@ -37,13 +44,9 @@ from dexdrake.hardware.safety import (
     period_stats,
 )
 
-NUM_ARM_JOINTS = 6
 NUM_MOTOR_SLOTS = 7  # 6 joints + gripper
-KP_SCALE, KD_SCALE = 25.6, 0.0128  # LOWCMD gain scales on the controller side
-DEFAULT_KP = (20.0, 30.0, 30.0, 20.0, 15.0, 10.0)
-DEFAULT_KD = (2000.0,) * NUM_ARM_JOINTS
-MAX_VELOCITY = math.pi  # rad/s, every joint
-SDK_PORT, CONTROLLER_PORT = 8071, 8072
+SDK_PORT, CONTROLLER_PORT = 8072, 8071  # the SDK binds 8072; z1_controller binds 8071
+COMMAND_HEAD = (0xFE, 0xFF)  # SendCmd.head: anything else is dropped by the controller
 
 # motor error flags and connection codes (Motor_State)
 MOTOR_OVER_CURRENT, MOTOR_PHASE_LEAKAGE, MOTOR_OVER_HEAT, MOTOR_JUMPED = 0x01, 0x02, 0x04, 0x20
@@ -133,7 +136,7 @@ class SendCmd:
     state: ArmFSMState
     joints: tuple[JointCmd, ...] = (JointCmd(),) * NUM_MOTOR_SLOTS
     track: bool = False
-    head: tuple[int, int] = (0xFE, 0xEF)  # real values are set inside the closed SDK
+    head: tuple[int, int] = COMMAND_HEAD
 
     def pack(self) -> bytes:
         if len(self.joints) != NUM_MOTOR_SLOTS:
@@ -201,7 +204,7 @@ class RecvState:
     state: ArmFSMState
     joints: tuple[JointState, ...] = (JointState(),) * NUM_MOTOR_SLOTS
     posture: tuple[float, float, float, float, float, float] = (0.0,) * 6  # rx, ry, rz, x, y, z
-    head: tuple[int, int] = (0xFE, 0xEF)
+    head: tuple[int, int] = (0xFE, 0xEF)  # not checked by the SDK side
 
     def pack(self) -> bytes:
         if len(self.joints) != NUM_MOTOR_SLOTS or len(self.posture) != 6:
@@ -225,20 +228,15 @@ class RecvState:
 
 # ----------------------------------------------------------------------------- client
 def default_joint_limits() -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) of joint1..6 from the `allegro_z1` hand description's model."""
-    from dexdrake.hands.description import load_hand
-
-    hand = load_hand("allegro_z1")
-    lo, hi = hand.joint_limits()
-    n = len(hand.arm_joints)
-    if n != NUM_ARM_JOINTS:
-        raise HardwareError(f"allegro_z1 has {n} arm joints, expected {NUM_ARM_JOINTS}")
-    return lo[:n], hi[:n]
+    """(lower, upper) of joint1..6 from the model file (hardware/z1_model.py)."""
+    limits = z1_model().limits
+    return limits.lower.copy(), limits.upper.copy()
 
 
 @dataclass(frozen=True)
 class Z1Config:
-    """Client settings; None limits mean the `allegro_z1` description's Z1 joint limits."""
+    """Client settings. None means the model's value (hardware/z1_model.py): gains, velocity
+    limit and joint limits may be lowered from there, never raised (`check_z1_config`)."""
 
     host: str = "127.0.0.1"
     local_port: int = SDK_PORT  # 0: an ephemeral port (tests)
@@ -246,12 +244,63 @@ class Z1Config:
     rate_hz: float = 500.0
     watchdog_timeout_s: float = 0.05
     mode: ArmFSMState = ArmFSMState.LOWCMD  # LOWCMD or JOINTCTRL
-    kp: Sequence[float] = DEFAULT_KP
-    kd: Sequence[float] = DEFAULT_KD
-    max_velocity: float = MAX_VELOCITY
+    kp: Sequence[float] | None = None  # raw LOWCMD gains
+    kd: Sequence[float] | None = None
+    max_velocity: float | None = None  # rad/s on targets, every joint
     lower: Sequence[float] | None = None
     upper: Sequence[float] | None = None
+    gravity_feedforward: bool = True  # LOWCMD: send the model's gravity torques as tau_ff
     mode_timeout_s: float = 1.0  # how long start() waits for the controller to enter `mode`
+
+
+@dataclass(frozen=True)
+class Z1Settings:
+    """A config resolved against the model's limits."""
+
+    kp: np.ndarray
+    kd: np.ndarray
+    max_velocity: float
+    lower: np.ndarray
+    upper: np.ndarray
+    effort: np.ndarray
+
+
+def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings:
+    """Resolve `cfg` against the model's `limits`; HardwareError naming the limit a value
+    exceeds (gains above the vendor defaults, a velocity above the joints' limit, joint
+    limits outside the model's)."""
+    lim = limits or z1_model().limits
+    src = lim.source
+    if cfg.mode not in (ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL):
+        raise HardwareError(f"Z1 mode must be LOWCMD or JOINTCTRL, got {cfg.mode!r}")
+    for name in ("rate_hz", "watchdog_timeout_s", "mode_timeout_s"):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value > 0):
+            raise HardwareError(f"Z1 {name} must be > 0, got {value}")
+
+    def vec(values, default: np.ndarray, name: str) -> np.ndarray:
+        arr = default.copy() if values is None else _vec6(values, name)
+        if np.any(arr < 0):
+            raise HardwareError(f"Z1 {name} must be >= 0, got {arr.tolist()}")
+        return arr
+
+    kp, kd = vec(cfg.kp, lim.kp, "kp"), vec(cfg.kd, lim.kd, "kd")
+    for name, arr, top in (("kp", kp, lim.kp), ("kd", kd, lim.kd)):
+        if np.any(arr > top + 1e-9):
+            i = int(np.flatnonzero(arr > top + 1e-9)[0])
+            raise HardwareError(f"Z1 {name}[{i}] = {arr[i]:g} exceeds the LOWCMD gain "
+                                f"{top[i]:g} of joint{i + 1} in {src}")
+    vmax = float(np.min(lim.velocity))
+    velocity = vmax if cfg.max_velocity is None else float(cfg.max_velocity)
+    if not (math.isfinite(velocity) and 0 < velocity <= vmax + 1e-9):
+        raise HardwareError(f"Z1 max_velocity {velocity:g} rad/s must be in (0, {vmax:g}], "
+                            f"the joints' velocity limit in {src}")
+    lower = lim.lower.copy() if cfg.lower is None else _vec6(cfg.lower, "lower")
+    upper = lim.upper.copy() if cfg.upper is None else _vec6(cfg.upper, "upper")
+    if np.any(lower < lim.lower - 1e-6) or np.any(upper > lim.upper + 1e-6):
+        raise HardwareError(f"Z1 joint limits {lower.tolist()} .. {upper.tolist()} reach outside "
+                            f"the model's {lim.lower.tolist()} .. {lim.upper.tolist()} ({src})")
+    return Z1Settings(kp, kd, velocity, lower, upper, lim.effort.copy())
 
 
 @dataclass(frozen=True)
@@ -276,17 +325,12 @@ class Z1Arm(SafeStopContext):
 
     def __init__(self, config: Z1Config | None = None, clock: Callable[[], float] = time.monotonic):
         self.config = cfg = config or Z1Config()
-        if cfg.mode not in (ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL):
-            raise HardwareError(f"Z1 mode must be LOWCMD or JOINTCTRL, got {cfg.mode!r}")
-        if not cfg.rate_hz > 0:
-            raise HardwareError(f"Z1 rate_hz must be > 0, got {cfg.rate_hz}")
         self._clock = clock
-        lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
-                  else (cfg.lower, cfg.upper))
-        self.limits = JointLimits(lo, hi)
-        self.kp = _vec6(cfg.kp, "kp")
-        self.kd = _vec6(cfg.kd, "kd")
-        self._rate = RateLimiter(cfg.max_velocity, initial=self.limits.last_safe)
+        self.model = z1_model()
+        self.settings = st = check_z1_config(cfg, self.model.limits)
+        self.limits = JointLimits(st.lower, st.upper)
+        self.kp, self.kd, self.effort = st.kp, st.kd, st.effort
+        self._rate = RateLimiter(st.max_velocity, initial=self.limits.last_safe)
         self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
         self._lock = threading.Lock()
@@ -305,6 +349,7 @@ class Z1Arm(SafeStopContext):
         self._tick_times: collections.deque[float] = collections.deque(maxlen=20000)
         self.packet_errors: collections.Counter[str] = collections.Counter()
         self.packets_received = 0
+        self.torque_clamped = 0  # ticks whose feed-forward torque hit an effort limit
 
     # --------------------------------------------------------------- session
     @property
@@ -371,12 +416,14 @@ class Z1Arm(SafeStopContext):
 
         Without `dq`, the velocity of the rate-limited reference is fed forward.
         The target is clamped into the joint limits (non-finite targets are rejected and
-        the last safe one is held) and followed at no more than `max_velocity`.
+        the last safe one is held) and followed at no more than `max_velocity`. `tau_ff`
+        adds to the gravity feed-forward; their sum is clamped to the effort limits.
         """
         dq_t = np.zeros(NUM_ARM_JOINTS) if dq is None else _vec6(dq, "dq")
         self._dq_given = dq is not None
         tau = np.zeros(NUM_ARM_JOINTS) if tau_ff is None else _vec6(tau_ff, "tau_ff")
-        dq_t = np.clip(dq_t, -self.config.max_velocity, self.config.max_velocity)
+        vmax = self.settings.max_velocity
+        dq_t = np.clip(dq_t, -vmax, vmax)
         with self._lock:
             self._target = self.limits.apply(q)
             self._dq_target, self._tau_ff = dq_t, tau
@@ -411,7 +458,7 @@ class Z1Arm(SafeStopContext):
         out: dict[str, object] = period_stats(list(self._tick_times))
         out.update(packets_received=self.packets_received, packet_errors=dict(self.packet_errors),
                    rejected_commands=self.limits.rejected, clamped_commands=self.limits.clamped,
-                   fault=self.fault.reason)
+                   torque_clamped=self.torque_clamped, fault=self.fault.reason)
         return out
 
     # --------------------------------------------------------------- loop
@@ -474,10 +521,18 @@ class Z1Arm(SafeStopContext):
                 # feed the reference's own velocity forward unless the caller gave one
                 dq_ref = self._dq_target if self._dq_given else (q_ref - q_prev) / max(dt, 1e-4)
             tau = self._tau_ff
-        kp, kd = (self.kp, self.kd) if mode == ArmFSMState.LOWCMD else (np.zeros(6), np.zeros(6))
+        if mode == ArmFSMState.LOWCMD:
+            kp, kd = self.kp, self.kd
+            if self.config.gravity_feedforward:
+                tau = tau + self.model.gravity(q_ref)
+            clamped = np.clip(tau, -self.effort, self.effort)
+            self.torque_clamped += int(np.any(clamped != tau))
+            tau = clamped
+        else:  # JOINTCTRL: the controller runs its own gains and gravity compensation
+            kp = kd = tau = np.zeros(NUM_ARM_JOINTS)
         joints = tuple(JointCmd(T=float(tau[i]), W=float(dq_ref[i]), Pos=float(q_ref[i]),
                                 K_P=float(kp[i]), K_W=float(kd[i])) for i in range(NUM_ARM_JOINTS))
-        return SendCmd(mode, joints + (JointCmd(),))
+        return SendCmd(mode, joints + (JointCmd(),), track=mode == ArmFSMState.JOINTCTRL)
 
     def _loop(self) -> None:
         """The loop thread: any error latches a fault and commands PASSIVE before exiting."""
@@ -519,7 +574,10 @@ class Z1Arm(SafeStopContext):
 
 
 def _vec6(values: Sequence[float] | np.ndarray, name: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise HardwareError(f"Z1 {name}: need {NUM_ARM_JOINTS} numbers, got {values!r}") from None
     if arr.shape != (NUM_ARM_JOINTS,) or not np.all(np.isfinite(arr)):
         raise HardwareError(f"Z1 {name}: need {NUM_ARM_JOINTS} finite values, got {arr}")
     return arr

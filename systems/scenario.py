@@ -23,14 +23,14 @@ from typing import Optional
 from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.allegro_units import NUM_JOINTS as NUM_HAND_JOINTS
 from dexdrake.hands.allegro_units import PWM_SCALE_12V
+from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 
 HAND_KINDS = ("sim", "emulated", "hardware")
 CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
 ARM_MODES = ("LOWCMD", "JOINTCTRL")
 PERCEPTION_FAILURE_POLICIES = ("hold", "stop")
-NUM_HAND_JOINTS = 16
-NUM_ARM_JOINTS = 6
 
 
 class ScenarioError(DexdrakeError):
@@ -39,8 +39,9 @@ class ScenarioError(DexdrakeError):
 
 @dc.dataclass
 class HandDriver:
-    """The Allegro hand. Gains and limits are 16 values in CAN bus order (None: vendor
-    defaults / the model's limits)."""
+    """The Allegro hand. Gains and limits are 16 values in CAN bus order. None means the
+    driver's default (hardware/allegro_can.AllegroConfig: the vendor gains and PWM limits,
+    the model's joint limits); values beyond those limits are refused at load."""
 
     kind: str = "sim"
     interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
@@ -52,23 +53,25 @@ class HandDriver:
     pwm_limit: Optional[list[float]] = None
     lower: Optional[list[float]] = None  # rad
     upper: Optional[list[float]] = None
-    max_target_rate: float = 3.0  # rad/s
-    watchdog_timeout_s: float = 0.05
+    max_target_rate: Optional[float] = None  # rad/s
+    watchdog_timeout_s: Optional[float] = None
 
 
 @dc.dataclass
 class ArmDriver:
-    """The Unitree Z1 (UDP). Port 0 means a free ephemeral port (emulated only)."""
+    """The Unitree Z1 (UDP). Port 0 means a free ephemeral port (emulated only). None means
+    the driver's default (hardware/z1_udp.Z1Config: ports 8072 -> 8071, the model's LOWCMD
+    gains, velocity and joint limits); values beyond the model's limits are refused at load."""
 
     kind: str = "sim"
     host: str = "127.0.0.1"
-    local_port: int = 8071
-    controller_port: int = 8072
+    local_port: Optional[int] = None
+    controller_port: Optional[int] = None
     mode: str = "LOWCMD"
-    kp: list[float] = dc.field(default_factory=lambda: [20.0, 30.0, 30.0, 20.0, 15.0, 10.0])
-    kd: list[float] = dc.field(default_factory=lambda: [2000.0] * NUM_ARM_JOINTS)
-    max_velocity: float = math.pi  # rad/s on targets
-    watchdog_timeout_s: float = 0.05
+    kp: Optional[list[float]] = None  # raw LOWCMD gains
+    kd: Optional[list[float]] = None
+    max_velocity: Optional[float] = None  # rad/s on targets
+    watchdog_timeout_s: Optional[float] = None
 
 
 @dc.dataclass
@@ -175,6 +178,30 @@ def is_multiple(period: float, step: float) -> bool:
     return n >= 1 and abs(n * step - period) <= 1e-9 * period
 
 
+def driver_configs(s: Scenario, arm_controller_port: int | None = None):
+    """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
+    drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
+    None keep the driver's default."""
+    from dexdrake.hardware.allegro_can import AllegroConfig, check_allegro_config
+    from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, check_z1_config
+
+    def given(**kw):
+        return {k: v for k, v in kw.items() if v is not None}
+
+    h, a = s.drivers.hand, s.drivers.arm
+    hand = AllegroConfig(**given(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
+                                 max_target_rate=h.max_target_rate,
+                                 watchdog_timeout_s=h.watchdog_timeout_s))
+    arm = Z1Config(**given(host=a.host, local_port=a.local_port,
+                           controller_port=a.controller_port if arm_controller_port is None
+                           else arm_controller_port,
+                           watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode],
+                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity))
+    check_allegro_config(hand)
+    check_z1_config(arm)
+    return hand, arm
+
+
 def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     """Raise ScenarioError unless `s` describes a station that can be built."""
     from dexdrake.hands.description import load_hand
@@ -214,22 +241,19 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(0 <= h.device_id <= 3, source, f"drivers.hand.device_id must be 0..3, got {h.device_id}")
         _require(bool(h.interface) and bool(h.channel), source,
                  "drivers.hand.interface and .channel must be set")
-        for name in ("kp", "kd", "pwm_limit", "lower", "upper"):
-            _check_vector(getattr(h, name), NUM_HAND_JOINTS, f"drivers.hand.{name}", source)
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")
-        _require(h.max_target_rate > 0 and h.watchdog_timeout_s > 0, source,
-                 "drivers.hand.max_target_rate and .watchdog_timeout_s must be > 0")
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
-        _check_vector(a.kp, NUM_ARM_JOINTS, "drivers.arm.kp", source)
-        _check_vector(a.kd, NUM_ARM_JOINTS, "drivers.arm.kd", source)
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)
-            _require(0 <= port <= 65535, source, f"drivers.arm.{name} {port} is not a UDP port")
+            _require(port is None or 0 <= port <= 65535, source,
+                     f"drivers.arm.{name} {port} is not a UDP port")
             _require(port != 0 or mode == "hil", source,
                      f"drivers.arm.{name} 0 (a free port) is only allowed with an emulated arm")
-        _require(a.max_velocity > 0 and a.watchdog_timeout_s > 0, source,
-                 "drivers.arm.max_velocity and .watchdog_timeout_s must be > 0")
+        try:  # the drivers' own checks against the model's and the vendor's limits
+            driver_configs(s)
+        except DexdrakeError as err:
+            raise ScenarioError(f"{source}: drivers: {err}") from None
     if c.kind != "sim":
         _require(c.width > 0 and c.height > 0, source, f"camera size {c.width}x{c.height} is invalid")
         _check_vector(c.intrinsics, 4, "drivers.camera.intrinsics", source)

@@ -49,7 +49,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.systems.scenario import CameraDriver, Scenario
+from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
 
@@ -397,20 +397,6 @@ def _bus_maps(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
     return S, A
 
 
-def _driver_configs(scenario: Scenario, arm_controller_port: int | None):
-    from dexdrake.hardware.allegro_can import AllegroConfig
-    from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config
-
-    h, a = scenario.drivers.hand, scenario.drivers.arm
-    hand_cfg = AllegroConfig(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
-                             max_target_rate=h.max_target_rate, watchdog_timeout_s=h.watchdog_timeout_s)
-    arm_cfg = Z1Config(host=a.host, local_port=a.local_port,
-                       controller_port=a.controller_port if arm_controller_port is None else arm_controller_port,
-                       watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode], kp=tuple(a.kp),
-                       kd=tuple(a.kd), max_velocity=a.max_velocity)
-    return hand_cfg, arm_cfg
-
-
 def open_can_bus(scenario: Scenario):
     """The python-can bus of the hand driver entry; HardwareError when it cannot open."""
     import can
@@ -462,7 +448,7 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
         world = _start_world(scenario, stack, hand)
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
         arm_port, clock = world.arm_emulator.port, world.clock
-    hand_cfg, arm_cfg = _driver_configs(scenario, arm_port)
+    hand_cfg, arm_cfg = driver_configs(scenario, arm_port)
     bus = open_can_bus(scenario)
     stack.callback(bus.shutdown)
     allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg, clock=clock)
@@ -474,13 +460,13 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     devices["z1"] = z1
 
     period = scenario.control_period
-    n = hand.num_actuators
+    n, n_arm = hand.num_actuators, len(hand.arm_joints)
     S, A = _bus_maps(hand)
     builder = DiagramBuilder()
     select = builder.AddNamedSystem("command_to_devices", MatrixGain(S))
-    arm_sys = builder.AddNamedSystem("z1_driver", DriverSystem(z1, 6, period, "Z1 arm"))
-    hand_sys = builder.AddNamedSystem("allegro_driver", DriverSystem(allegro, 16, period, "Allegro hand"))
-    n_arm = len(hand.arm_joints)
+    arm_sys = builder.AddNamedSystem("z1_driver", DriverSystem(z1, n_arm, period, "Z1 arm"))
+    hand_sys = builder.AddNamedSystem("allegro_driver",
+                                      DriverSystem(allegro, len(hand.hardware_joints), period, "Allegro hand"))
     split = builder.AddSystem(Demultiplexer([n_arm, n - n_arm]))
     builder.Connect(select.get_output_port(), split.get_input_port())
     builder.Connect(split.get_output_port(0), arm_sys.get_input_port())

@@ -150,16 +150,21 @@ def test_emulator_fsm_rules(emulator):
 
 
 def test_emulator_lowcmd_torque_law(emulator):
-    """The reported torque equals kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff."""
+    """The reported torque equals kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff, each
+    term large enough that dropping it (or a wrong scale) fails: kp term about 5 N*m, kd
+    term about 1.3 N*m, tau_ff 0.5 N*m, all under the 30 N*m effort limit."""
     c = RawClient(emulator.port)
     try:
         c.send(SendCmd(ArmFSMState.LOWCMD))
-        q_d, kp, tau_ff = 0.001, 1.0, 0.5
-        cmd = SendCmd(ArmFSMState.LOWCMD, (JointCmd(T=tau_ff, Pos=q_d, K_P=kp),) * 6 + (JointCmd(),))
+        q_d, dq_d, kp, kd, tau_ff = 0.2, 1.0, 1.0, 100.0, 0.5
+        cmd = SendCmd(ArmFSMState.LOWCMD,
+                      (JointCmd(T=tau_ff, W=dq_d, Pos=q_d, K_P=kp, K_W=kd),) * 6 + (JointCmd(),))
         st = c.send(cmd)
-        st = c.send(cmd)
-        j = st.joints[0]
-        assert j.T == pytest.approx(kp * 25.6 * (q_d - j.Pos) + tau_ff, abs=0.05)
+        for i in (0, 4):  # joints with no gravity load at q = 0: they start at rest
+            j = st.joints[i]
+            kp_term, kd_term = kp * 25.6 * (q_d - j.Pos), kd * 0.0128 * (dq_d - j.W)
+            assert kp_term > 3.0 and kd_term > 0.3
+            assert j.T == pytest.approx(kp_term + kd_term + tau_ff, abs=1e-3)
     finally:
         c.close()
 
@@ -215,12 +220,18 @@ def test_client_tracks_target(emulator, mode):
 
 
 def test_velocity_limit_on_targets(emulator):
+    """The target moves at the velocity limit (pi rad/s from the model): no faster than the
+    elapsed time allows, and not stuck (at least half that rate)."""
     arm = make_arm(emulator)
     with arm:
+        start = arm.state().q_target
+        t0 = time.monotonic()
         arm.command_positions(UPPER)
         time.sleep(0.1)
-        # pi rad/s for about 0.1 s: well short of the 2.6 rad commanded on joint 1
-        assert np.max(np.abs(arm.state().q_target)) < 0.7
+        step = np.max(np.abs(arm.state().q_target - start))
+        elapsed = time.monotonic() - t0
+        # joint 1 is commanded 2.6 rad away: far more than 0.1 s at pi rad/s
+        assert 0.5 * math.pi * 0.1 <= step <= math.pi * elapsed + 0.01, (step, elapsed)
 
 
 def test_nan_and_out_of_range_targets(emulator):
@@ -292,3 +303,155 @@ def test_start_without_controller_fails_cleanly():
 def test_official_backend_explains_missing_module():
     with pytest.raises(HardwareError, match="unitree_arm_interface"):
         OfficialZ1(lower=LOWER, upper=UPPER)
+
+
+# ------------------------------------------------------------------ vendor wire rules
+def test_default_ports_and_head_follow_the_vendor():
+    """The SDK binds 8072 and sends to 8071 (z1_controller binds 8071); head FE FF."""
+    from dexdrake.hardware.z1_udp import COMMAND_HEAD
+
+    assert (Z1Config().local_port, Z1Config().controller_port) == (8072, 8071)
+    assert Z1EmulatorConfig().port == 8071
+    assert COMMAND_HEAD == (0xFE, 0xFF) and SendCmd(ArmFSMState.PASSIVE).pack()[:2] == b"\xfe\xff"
+
+
+@pytest.mark.parametrize("raw, kind", [
+    (SendCmd(ArmFSMState.PASSIVE, head=(0xFE, 0xEF)).pack(), "head"),
+    (SendCmd(ArmFSMState.PASSIVE).pack()[:146], "size"),
+    (SendCmd(ArmFSMState.PASSIVE).pack() + b"\x00", "size"),
+])
+def test_emulator_drops_what_the_controller_drops_without_a_reply(emulator, raw, kind):
+    c = RawClient(emulator.port)
+    c.sock.settimeout(0.2)
+    try:
+        with pytest.raises(socket.timeout):
+            c.send(raw)
+        assert emulator.packet_errors[kind] == 1 and emulator.commands_received == 0
+        assert c.send(SendCmd(ArmFSMState.PASSIVE)).state == ArmFSMState.PASSIVE  # a valid one answers
+    finally:
+        c.close()
+
+
+def test_emulator_jointctrl_follows_targets_only_with_track(emulator):
+    c = RawClient(emulator.port)
+    try:
+        c.send(SendCmd(ArmFSMState.JOINTCTRL))
+        target = (JointCmd(Pos=0.4),) * 6 + (JointCmd(),)
+        c.send(SendCmd(ArmFSMState.JOINTCTRL, target, track=False))
+        assert emulator.command().q_d[0] == pytest.approx(0.0)
+        c.send(SendCmd(ArmFSMState.JOINTCTRL, target, track=True))
+        assert emulator.command().q_d[0] == pytest.approx(0.4)
+    finally:
+        c.close()
+
+
+class Controller:
+    """A bare socket in the controller's place: records what the client sends, answers
+    each valid command with a PASSIVE -> requested-state reply."""
+
+    def __init__(self):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.5)
+        self.port = self.sock.getsockname()[1]
+
+    def capture(self, n: int) -> list[bytes]:
+        out = []
+        while len(out) < n:
+            data, addr = self.sock.recvfrom(4096)
+            out.append(data)
+            state = SendCmd.unpack(data).state
+            self.sock.sendto(RecvState(state).pack(), addr)
+        return out
+
+
+@pytest.mark.parametrize("mode", [ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL])
+def test_client_packets_pass_the_controller_checks(mode):
+    import concurrent.futures as cf
+
+    ctl = Controller()
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=ctl.port, mode=mode, watchdog_timeout_s=0.5))
+    with cf.ThreadPoolExecutor(1) as pool:
+        capture = pool.submit(ctl.capture, 40)
+        try:
+            arm.start()
+            packets = capture.result(5.0)
+        finally:
+            arm.stop()
+            ctl.sock.close()
+    assert all(len(p) == 147 and p[:2] == b"\xfe\xff" for p in packets)
+    cmds = [SendCmd.unpack(p) for p in packets]
+    in_mode = [c for c in cmds if c.state == mode]
+    assert in_mode and all(c.track == (mode == ArmFSMState.JOINTCTRL) for c in in_mode)
+
+
+def test_lowcmd_gravity_feedforward_holds_the_arm_up(emulator):
+    """The emulated arm weighs what the model says: without the feed-forward it sags by
+    g/(kp*25.6) (about 0.012 rad on joint3 at TARGET), with it it holds the target."""
+    from dexdrake.hardware.z1_model import z1_model
+
+    model = z1_model()
+    sag = np.abs(model.gravity(TARGET) / (model.limits.kp * 25.6))
+    assert sag[2] > 0.01
+    errors = {}
+    for ff in (False, True):
+        arm = make_arm(emulator, gravity_feedforward=ff)
+        with arm:
+            arm.command_positions(TARGET)
+            assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.03, 4.0)
+            time.sleep(0.5)
+            errors[ff] = np.abs(emulator.q - TARGET)
+        emulator.stall(0)  # back to PASSIVE between the two runs
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
+    np.testing.assert_allclose(errors[False][1:4], sag[1:4], rtol=0.2)
+    assert np.max(errors[True]) < 0.002
+
+
+def test_feedforward_torque_is_capped_by_the_effort_limits(emulator):
+    from dexdrake.hardware.z1_model import z1_model
+
+    effort = z1_model().limits.effort
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(np.zeros(6), tau_ff=np.full(6, 1e4))
+        assert wait_for(lambda: arm.stats()["torque_clamped"] > 5, 1.0)
+        cmd = emulator.command()
+        np.testing.assert_allclose(cmd.tau_ff, effort)
+    assert arm.state().fault is None
+
+
+def test_model_gives_limits_gains_and_payload():
+    """One source: the allegro_z1 model holds the z1.md limits, the vendor LOWCMD gains and
+    the hand the controller must be told about (the spec's hand link masses, 0.955 kg)."""
+    from dexdrake.hardware.z1_model import z1_model
+
+    m = z1_model()
+    np.testing.assert_allclose(m.limits.effort, [30, 60, 30, 30, 30, 30])
+    np.testing.assert_allclose(m.limits.velocity, math.pi)
+    np.testing.assert_allclose(m.limits.kp, [20, 30, 30, 20, 15, 10])
+    np.testing.assert_allclose(m.limits.kd, 2000)
+    hand = 0.4154 + 3 * (0.0119 + 0.065 + 0.0355 + 0.0096 + 0.0168) + (0.0176 + 0.0119 + 0.038 + 0.0388 + 0.0168)
+    assert m.payload_kg == pytest.approx(hand, abs=1e-6)
+    # gravity: nothing to hold about the vertical joint1; joint3 holds the forearm + hand
+    g = m.gravity(TARGET)
+    assert g[0] == pytest.approx(0.0, abs=1e-9) and abs(g[2]) > 5
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"kp": (21, 30, 30, 20, 15, 10)}, r"kp\[0\] = 21 exceeds the LOWCMD gain 20 of joint1"),
+    ({"kd": (2000,) * 5 + (2500,)}, r"kd\[5\] = 2500 exceeds"),
+    ({"max_velocity": 1e9}, r"max_velocity 1e\+09 rad/s must be in \(0, 3.14159\]"),
+    ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
+    ({"kp": ("a",) * 6}, "need 6 numbers"),
+    ({"watchdog_timeout_s": 0.0}, "watchdog_timeout_s must be > 0"),
+])
+def test_config_beyond_the_model_limits_is_refused(kw, message):
+    with pytest.raises(HardwareError, match=message):
+        Z1Arm(Z1Config(local_port=0, **kw))
+
+
+def test_non_numeric_target_raises_the_drivers_error(emulator):
+    arm = make_arm(emulator)
+    with arm:
+        with pytest.raises(HardwareError, match="numbers"):
+            arm.command_positions(["up"] * 6)

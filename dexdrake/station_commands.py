@@ -61,28 +61,47 @@ class ScriptedGraspController:
 
 
 class PolicyController:
-    """A trained DexRepNet policy: DexRep features of (measured hand, perceived object)."""
+    """A trained DexRepNet policy: DexRep features of (measured hand, perceived object).
+
+    Refused (a DexdrakeError naming the checkpoint and the reason) when the checkpoint is
+    missing or unreadable, or was trained for another hand, feature set or action size."""
 
     def __init__(self, scenario):
         from dexdrake.dexrep.feature_sets import FeatureExtractor
         from dexdrake.dexrep.geometry import load_object_geometry
         from dexdrake.learn.policy import load_policy
+        from dexdrake.paths import resolve_model_path
         from dexdrake.systems.scene import SceneConfig, build_grasp_scene
 
-        from dexdrake.paths import resolve_model_path
-
-        self.policy, self.metadata = load_policy(resolve_model_path(scenario.policy.checkpoint))
-        self.policy.eval()
+        entry = scenario.policy
+        self.path = resolve_model_path(entry.checkpoint)
+        try:
+            self.policy, self.metadata = load_policy(self.path)
+        except DexdrakeError as err:
+            raise DexdrakeError(f"policy refused: {err}") from None
+        cfg = self.policy.config
+        if cfg.hand != scenario.hand:
+            raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
+                                f"the scenario runs {scenario.hand!r}")
+        if cfg.feature_set != entry.feature_set:
+            raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
+                                f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
         self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
+        if cfg.action_dim != self.scene.hand.num_actuators:
+            raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
+                                f"{scenario.hand!r} has {self.scene.hand.num_actuators} joints")
         self.plant_context = self.scene.plant.CreateDefaultContext()
         geometry = load_object_geometry(self.scene.object_info.mesh_path)
         self.features = FeatureExtractor(self.scene.hand, self.scene.plant, self.scene.hand_instance,
-                                         geometry, scenario.policy.feature_set)
-        if self.features.size != self.policy.config.obs_dim:
-            raise DexdrakeError(f"policy expects {self.policy.config.obs_dim} observations, feature set "
-                                f"{scenario.policy.feature_set!r} gives {self.features.size}")
+                                         geometry, entry.feature_set)
+        if self.features.size != cfg.obs_dim:
+            raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
+                                f"feature set {entry.feature_set!r} gives {self.features.size}")
         lo, hi = self.scene.hand.joint_limits()
         self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
+        self.description = (f"policy {entry.checkpoint} (hand {cfg.hand}, feature set {cfg.feature_set}, "
+                            f"{cfg.obs_dim} observations -> {cfg.action_dim} joint targets, "
+                            f"stage {self.metadata.get('stage', 'unknown')})")
 
     def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
         import torch
@@ -101,13 +120,25 @@ class PolicyController:
 
 
 def make_controller(scenario):
-    """(controller, description): the policy when configured and loadable, else scripted."""
-    if scenario.policy is not None and scenario.policy.checkpoint:
-        try:
-            return PolicyController(scenario), f"policy {scenario.policy.checkpoint}"
-        except (OSError, DexdrakeError, RuntimeError, KeyError, ValueError) as err:
-            return ScriptedGraspController(scenario), f"scripted (policy not loadable: {err})"
-    return ScriptedGraspController(scenario), "scripted grasp"
+    """(controller, description) of what the scenario asks for: its policy (a policy that
+    cannot be run is refused with a DexdrakeError, never replaced), or the scripted grasp
+    when the scenario names no policy."""
+    if scenario.policy is not None:
+        controller = PolicyController(scenario)
+        return controller, controller.description
+    return ScriptedGraspController(scenario), describe_script(scenario.hand)
+
+
+def describe_script(hand_name: str) -> str:
+    """The scripted grasp's plan, from the GraspScript the hand description configures."""
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.scripted_grasp import GraspScript, with_overrides
+
+    hand = load_hand(hand_name)
+    g = with_overrides(GraspScript, hand.grasp_script, hand, "grasp_script")
+    return (f"scripted grasp (no policy in the scenario): from the first perceived pose, approach "
+            f"{g.hover:.2f} m above the object by {g.approach_end:.1f} s, descend by {g.descend_end:.1f} s, "
+            f"close by {g.close_end:.1f} s, lift {g.lift:.2f} m by {g.lift_end:.1f} s")
 
 
 # ----------------------------------------------------------------------------- episode
@@ -228,7 +259,7 @@ def run_hil(args: argparse.Namespace) -> int:
     if args.steps <= 0:
         raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
     rrd = args.rrd or scenario.rrd
-    controller, description = make_controller(scenario)
+    controller, description = make_controller(scenario)  # refused before any device starts
     logger = None
     with make_station(scenario) as station:
         if rrd:
@@ -274,19 +305,32 @@ def run_real(args: argparse.Namespace) -> int:
 def dry_run(scenario) -> int:
     """Connectivity checks; prints limits and the plan; commands nothing."""
     from dexdrake.hands.description import load_hand
-    from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, decode, encode
+    from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, check_allegro_config, decode, encode
     from dexdrake.hardware.safety import HardwareError
-    from dexdrake.hardware.z1_udp import RecvState, SendCmd, ArmFSMState  # noqa: F401
+    from dexdrake.hardware.z1_model import z1_model
+    from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
+    from dexdrake.systems.scenario import driver_configs
     from dexdrake.systems.station import open_can_bus
 
     hand = load_hand(scenario.hand)
-    h, a, c = scenario.drivers.hand, scenario.drivers.arm, scenario.drivers.camera
-    lo, hi = hand.joint_limits()
+    h, c = scenario.drivers.hand, scenario.drivers.camera
+    hand_cfg, arm_cfg = driver_configs(scenario)
+    hs, zs = check_allegro_config(hand_cfg), check_z1_config(arm_cfg)
     print(f"real dry run: {scenario.name} hand={scenario.hand} object={scenario.object}")
-    for j, l, u in zip(hand.policy_joints, lo, hi):
+    lower = np.concatenate([zs.lower, hs.lower])
+    upper = np.concatenate([zs.upper, hs.upper])
+    joints = list(hand.arm_joints) + list(hand.hardware_joints)
+    for j, l, u in zip(joints, lower, upper):
         print(f"  limit {j:<11} [{l:+.3f}, {u:+.3f}] rad")
-    print(f"  hand: max target rate {h.max_target_rate} rad/s, watchdog {h.watchdog_timeout_s * 1e3:.0f} ms; "
-          f"arm: {a.mode}, max velocity {a.max_velocity} rad/s, watchdog {a.watchdog_timeout_s * 1e3:.0f} ms")
+    print(f"  hand: max target rate {hand_cfg.max_target_rate} rad/s, watchdog "
+          f"{hand_cfg.watchdog_timeout_s * 1e3:.0f} ms, PWM limits {hs.pwm_limit.astype(int).tolist()}")
+    print(f"  arm: {arm_cfg.mode.name}, max velocity {zs.max_velocity:.3f} rad/s, watchdog "
+          f"{arm_cfg.watchdog_timeout_s * 1e3:.0f} ms, effort {zs.effort.tolist()} N*m, gravity "
+          f"feed-forward {'on' if arm_cfg.gravity_feedforward else 'off'}; payload "
+          f"{z1_model().payload_kg:.3f} kg (the hand, from the model): set it as `load` in "
+          "z1_controller/config/config.xml")
+    _, description = make_controller(scenario)  # a policy that cannot run is refused here
+    print(f"  controller: {description}; control period {scenario.control_period * 1e3:.0f} ms")
     ok = True
     # CAN: open the bus and ask for info + serial (RTR requests only: nothing moves)
     try:
@@ -319,6 +363,7 @@ def dry_run(scenario) -> int:
     # Z1: listen for controller state on the SDK port, sending PASSIVE only (no motion)
     import socket
 
+    a = arm_cfg
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.bind((a.host, a.local_port))
@@ -326,11 +371,12 @@ def dry_run(scenario) -> int:
         sock.sendto(SendCmd(ArmFSMState.PASSIVE).pack(), (a.host, a.controller_port))
         data = sock.recv(4096)
         st = RecvState.unpack(data)
-        print(f"  Z1 {a.host}:{a.controller_port}: OK, state {st.state.name}, q = "
+        print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: OK, state {st.state.name}, q = "
               f"{np.round([j.Pos for j in st.joints[:6]], 3).tolist()}")
     except (OSError, HardwareError) as err:
         ok = False
-        print(f"  Z1 {a.host}:{a.controller_port}: FAILED: {err} (is z1_controller running?)")
+        print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: FAILED: {err} "
+              "(is z1_controller running?)")
     finally:
         sock.close()
     # camera: one frame
@@ -346,8 +392,6 @@ def dry_run(scenario) -> int:
     except DexdrakeError as err:
         ok = False
         print(f"  camera {c.kind}: FAILED: {err}")
-    print("  plan: perceive the object pose, approach above it, descend, close the hand, lift "
-          f"{0.17:.2f} m, hold; control period {scenario.control_period * 1e3:.0f} ms")
     if not ok:
         print("dry run: hardware not ready (nothing was moved)")
         return 1

@@ -119,7 +119,7 @@ class HilWorldConfig:
 
 @dc.dataclass
 class PolicyEntry:
-    checkpoint: str = ""  # a dexdrake policy checkpoint (.pt); empty: the scripted grasp
+    checkpoint: str = ""  # a dexdrake policy checkpoint (.pt); no `policy` entry: the scripted grasp
     feature_set: str = "DexRep"
 
 
@@ -275,6 +275,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     if s.policy is not None:
         from dexdrake.dexrep.feature_sets import FEATURE_SETS
 
+        _require(bool(s.policy.checkpoint), source,
+                 "policy.checkpoint must name a policy file (remove the policy entry for the "
+                 "scripted grasp)")
         _require(s.policy.feature_set in FEATURE_SETS, source,
                  f"policy.feature_set {s.policy.feature_set!r} is not one of "
                  f"{', '.join(sorted(FEATURE_SETS))}")

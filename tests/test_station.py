@@ -156,10 +156,27 @@ def test_hil_outcome_does_not_depend_on_host_speed(monkeypatch):
     assert len(offsets) == 40 and np.ptp(offsets) < 1e-9
 
 
+def _grasp_centre(hand, q: np.ndarray) -> np.ndarray:
+    """The palm's grasp centre in the world at joint positions `q` (policy order)."""
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    plant = MultibodyPlant(0.0)
+    (robot,) = Parser(plant).AddModels(str(hand.model_path))
+    plant.Finalize()
+    context = plant.CreateDefaultContext()
+    for name, value in zip(hand.policy_joints, q):
+        plant.GetJointByName(name, robot).set_angle(context, value)
+    X = plant.EvalBodyPoseInWorld(context, plant.GetBodyByName(hand.palm.body, robot))
+    return X @ np.array(hand.palm.centre)
+
+
 def test_hil_episode_driven_by_the_shipped_policy():
     """`dexdrake hil`'s controller: the shipped Allegro-on-Z1 policy commands the emulated
     Allegro over CAN and the emulated Z1 over UDP (ground-truth pose here; the slow test
-    and `dexdrake hil` use perception on rendered images)."""
+    and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
+    centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
+    0.6 m away)."""
     from dexdrake.station_commands import PolicyController, make_controller, run_episode
     from dexdrake.systems.station import make_station
 
@@ -168,13 +185,15 @@ def test_hil_episode_driven_by_the_shipped_policy():
     assert isinstance(controller, PolicyController), description
     with make_station(scenario) as station:
         q0 = station.world.robot_positions()
+        p_object = station.world.object_pose().translation()
         result = run_episode(station, controller, steps=30)
         q1 = station.world.robot_positions()
     assert result.fault is None and result.steps == 30
     assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
     assert result.stats["z1"]["packets_received"] > 50 and result.stats["can"]["rate_hz"] > 300
-    n_arm = len(station.hand.arm_joints)
-    assert np.max(np.abs(q1[:n_arm] - q0[:n_arm])) > 0.02  # the policy moved the arm toward the object
+    d0 = np.linalg.norm(_grasp_centre(station.hand, q0) - p_object)
+    d1 = np.linalg.norm(_grasp_centre(station.hand, q1) - p_object)
+    assert d1 < d0 - 0.05, (d0, d1)  # the arm moved toward the object
 
 
 def test_nan_command_holds_and_is_never_sent():
@@ -299,3 +318,110 @@ def test_policy_checkpoint_paths_resolve_to_the_shipped_models(tmp_path, monkeyp
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / "mine.pt").write_bytes(b"")
     assert resolve_model_path("models/mine.pt") == Path("models/mine.pt")  # an existing local file wins
+
+
+# ----------------------------------------------------------------------------- policies
+def _hil_config(tmp_path, policy: str | None, feature_set: str = "DexRep") -> str:
+    text = (CONFIGS / "hil.yaml").read_text().split("\npolicy:")[0]
+    if policy is not None:
+        text += f"\npolicy:\n  checkpoint: {policy}\n  feature_set: {feature_set}\n"
+    path = tmp_path / "hil.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def _garbage(tmp_path) -> str:
+    path = tmp_path / "garbage.pt"
+    path.write_bytes(b"\x80\x04not a checkpoint")
+    return str(path)
+
+
+@pytest.mark.parametrize("policy, feature_set, reason", [
+    ("no/such/policy.pt", "DexRep", "does not exist"),
+    ("GARBAGE", "DexRep", "not a dexdrake policy file"),
+    ("models/weights/adroit_dexrep_policy.pt", "DexRep", "trained for hand 'adroit'"),
+    ("models/weights/allegro_z1_dexrep_policy.pt", "Hand2obj", "trained on feature set 'DexRep'"),
+])
+def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_set, reason):
+    """Exit 2 and one line; never the scripted grasp in its place, never torch's advice to
+    unpickle with weights_only=False."""
+    from dexdrake.cli import main
+
+    if policy == "GARBAGE":
+        policy = _garbage(tmp_path)
+    config = _hil_config(tmp_path, policy, feature_set)
+    assert main(["hil", "--config", config, "--steps", "1"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and err.startswith("dexdrake hil: error: policy refused")
+    assert reason in err and "weights_only=False" not in err
+
+
+def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
+    from dexdrake.station_commands import PolicyController, ScriptedGraspController, make_controller
+
+    controller, description = make_controller(load_scenario(_hil_config(tmp_path, None)))
+    assert isinstance(controller, ScriptedGraspController) and "no policy in the scenario" in description
+    assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
+    controller, description = make_controller(hil_scenario())
+    assert isinstance(controller, PolicyController)
+    assert "allegro_z1_dexrep_policy.pt" in description and "2451 observations -> 22" in description
+    with pytest.raises(ScenarioError, match="policy.checkpoint must name"):
+        parse_scenario("policy: {checkpoint: ''}")
+
+
+def _real_config(tmp_path, can_channel: str, arm_port: int, policy: str) -> str:
+    """configs/real.yaml on a virtual CAN channel, a loopback Z1 port and a recorded frame."""
+    import socket
+
+    from dexdrake.hardware.kinect import CameraIntrinsics, RgbdFrame, save_frame
+
+    frame = RgbdFrame(np.zeros((36, 64, 3), np.uint8), np.full((36, 64), 500, np.uint16),
+                      CameraIntrinsics(64, 36, 50.0, 50.0, 31.5, 17.5), 0.0)
+    save_frame(frame, tmp_path / "frame_000000.npz")
+    free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    free.bind(("127.0.0.1", 0))
+    local = free.getsockname()[1]
+    free.close()
+    text = (CONFIGS / "real.yaml").read_text()
+    text = (text.replace("interface: socketcan", "interface: virtual")
+            .replace("channel: can0", f"channel: {can_channel}")
+            .replace("local_port: 8072", f"local_port: {local}")
+            .replace("controller_port: 8071", f"controller_port: {arm_port}")
+            .replace("kind: k4a", f"kind: recorded\n    recording: {tmp_path}")
+            .replace("checkpoint: models/weights/allegro_z1_dexrep_policy.pt", f"checkpoint: {policy}"))
+    path = tmp_path / "real.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.parametrize("policy", ["models/weights/allegro_z1_dexrep_policy.pt", "GARBAGE"])
+def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, policy):
+    """All devices answer (CAN emulator on a virtual bus, the Z1 emulator on loopback, a
+    recorded frame): exit 0 and the policy's own description; a bad policy: exit 2."""
+    import uuid
+
+    import can
+
+    from dexdrake.cli import main
+    from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+
+    if policy == "GARBAGE":
+        policy = _garbage(tmp_path)
+    channel = f"dry-{uuid.uuid4().hex}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        with AllegroEmulator(bus), Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
+            code = main(["real", "--config", _real_config(tmp_path, channel, arm.port, policy), "--dry-run"])
+    finally:
+        bus.shutdown()
+    out, err = capsys.readouterr()
+    if policy.endswith("garbage.pt"):
+        assert code == 2 and "policy refused" in err and "all devices answered" not in out
+        return
+    assert code == 0, out + err
+    for line in ("CAN virtual", "Z1 127.0.0.1", "state PASSIVE", "camera recorded: OK",
+                 "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
+                 "all devices answered"):
+        assert line in out, out
+    assert "lift 0.17" not in out

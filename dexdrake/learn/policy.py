@@ -207,8 +207,12 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
         raise DexdrakeError(f"policy checkpoint {path} does not exist")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for a bad file
-        raise DexdrakeError(f"cannot read policy checkpoint {path}: {exc}") from exc
+    except Exception as exc:  # torch raises many types for a bad file; its advice to load
+        # with weights_only=False (running pickled code) is not repeated
+        raise DexdrakeError(f"cannot read policy checkpoint {path}: not a dexdrake policy file "
+                            f"({type(exc).__name__}; only tensors and plain data are loaded)") from exc
+    if not isinstance(payload, Mapping):
+        raise DexdrakeError(f"policy checkpoint {path} holds a {type(payload).__name__}, not a policy")
     policy = policy_from_payload(payload)
     policy.eval()
     return policy, dict(payload.get("metadata", {}))

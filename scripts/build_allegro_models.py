@@ -44,6 +44,9 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
 
+from dexdrake.hands.allegro_units import KD_VENDOR, KP_VENDOR
+from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE
+
 Vec = tuple[float, float, float]
 
 # ---------------------------------------------------------------- Allegro v4 (right hand)
@@ -79,9 +82,6 @@ PALM_MASS = 0.4154
 FINGER_MASSES = (0.0119, 0.065, 0.0355, 0.0096)
 TIP_MASS = 0.0168
 THUMB_MASSES = {12: 0.0176, 13: 0.0119, 14: 0.038, 15: 0.0388}
-# Vendor PD gains (PWM counts per rad, per rad/s), bus order within a finger / the thumb.
-VENDOR_KP_FINGER, VENDOR_KP_THUMB = (500, 800, 900, 500), (1000, 700, 600, 600)
-VENDOR_KD_FINGER, VENDOR_KD_THUMB = (25, 50, 55, 40), (50, 50, 50, 40)
 SIM_NM_PER_PWM = 1.0 / 200.0  # assumed PWM -> N*m scale for the simulated PD gains
 FRICTION = 1.0
 HAND_BASE_BELOW_PALM = 0.095  # palm box bottom, below palm_link along palm -z
@@ -104,9 +104,7 @@ def allegro_joints() -> list[tuple]:
 
 def allegro_gains() -> list[tuple[float, float]]:
     """Drake (p, d) per hand joint in bus order: vendor gains * SIM_NM_PER_PWM."""
-    kp = 3 * VENDOR_KP_FINGER + VENDOR_KP_THUMB
-    kd = 3 * VENDOR_KD_FINGER + VENDOR_KD_THUMB
-    return [(p * SIM_NM_PER_PWM, d * SIM_NM_PER_PWM) for p, d in zip(kp, kd)]
+    return [(float(p) * SIM_NM_PER_PWM, float(d) * SIM_NM_PER_PWM) for p, d in zip(KP_VENDOR, KD_VENDOR)]
 
 
 # ---------------------------------------------------------------- Unitree Z1
@@ -308,7 +306,7 @@ def add_z1(robot: ET.Element) -> None:
         _joint(robot, name, "revolute", parent, child, xyz, (0.0, 0.0, 0.0), axis,
                (lo, hi, effort, Z1_VELOCITY))
     for (name, *_), kp in zip(Z1_JOINTS, Z1_LOWCMD_KP):
-        _transmission(robot, name, kp * 25.6, Z1_LOWCMD_KD * 0.0128)
+        _transmission(robot, name, kp * KP_SCALE, Z1_LOWCMD_KD * KD_SCALE)
     # The link shapes are approximations: arm self-collision is left to the vendor
     # controller, so all Z1 links are filtered against each other.
     _filter_group(robot, "z1_arm", list(Z1_LINKS))

@@ -15,9 +15,7 @@ from numpy.typing import ArrayLike
 
 from dexdrake.errors import DexdrakeError
 
-NUM_JOINTS = 16
-JOINTS_PER_FINGER = 4
-BUS_JOINT_NAMES: tuple[str, ...] = tuple(f"joint_{k}.0" for k in range(NUM_JOINTS))
+NUM_JOINTS = 16  # joint names in bus order: the hand description's `hardware_joints`
 
 #: rad per encoder count: rad = counts * 333.3 / 65536 * pi / 180 (about 8.876e-5).
 #: The manual's printed formula is wrong; every working driver uses this one.

@@ -122,3 +122,34 @@ def test_period_stats():
     assert s["mean_ms"] == pytest.approx(10 / 3) and s["rate_hz"] == pytest.approx(300.0)
     assert s["p50_ms"] == pytest.approx(2.0)
     assert period_stats([1.0])["rate_hz"] == 0.0
+
+
+def _fuzz_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "fuzz_hardware.py"
+    spec = importlib.util.spec_from_file_location("fuzz_hardware", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_fuzzed_can_frames_are_counted_and_faults_latched():
+    """A small run of scripts/fuzz_hardware.py (the volume run: 100k frames)."""
+    fuzz = _fuzz_script()
+    result = fuzz.fuzz_can(2000, seed=3)
+    assert fuzz.passed(result), result
+    assert result["bad"] > 500 and result["counted_bad"] == result["bad"]
+    assert result["must_fault"] > 10 and sum(result["faults_latched"].values()) > 0
+    for kind in ("device", "dlc", "unknown_id", "range", "rtr"):
+        assert result["frame_errors"].get(kind, 0) > 0, result["frame_errors"]
+
+
+def test_fuzzed_udp_datagrams_are_counted_and_faults_latched():
+    fuzz = _fuzz_script()
+    result = fuzz.fuzz_udp(1000, seed=3)
+    assert fuzz.passed(result), result
+    assert result["client_bad"] > 100 and result["emulator_bad"] > 100
+    assert result["client_fault"] > 0 and any("motor error" in k for k in result["faults_latched"])
+    assert {"size", "head", "nonfinite"} <= set(result["emulator_packet_errors"])

@@ -1,0 +1,365 @@
+"""Fuzz the hardware drivers at volume: random and mutated CAN frames into a live Allegro
+driver, random and mutated UDP datagrams into a live Z1 client and into the Z1 emulator.
+
+CAN: the driver runs its PD loop against the firmware emulator on a python-can `virtual`
+bus; a third node sends frames in batches. Each frame is classified by what the driver
+must do with it: reject and count it (undecodable, another device, a position beyond the
+limits), latch a fault (a status fault bit, a joint hotter than the limit), or accept it.
+After each batch the driver must have counted exactly the bad frames and latched a fault
+when one was due; a latched fault (also from the emulator obeying fuzzed servo-off or
+period frames) is reset, which re-runs the start sequence.
+UDP: the client runs against the controller emulator on loopback; datagrams go to the
+client's port (mutated RecvState / random bytes: every bad one counted, a motor error or
+lost link in a valid one latches a fault) and to the emulator's port (mutated SendCmd /
+random bytes: every one it must drop counted, wrong heads included).
+Nothing may crash: both drivers' and both emulators' threads must be alive at the end.
+
+    .venv/bin/python scripts/fuzz_hardware.py --can 100000 --udp 100000 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import re
+import socket
+import struct
+import sys
+import time
+import uuid
+
+import can
+import numpy as np
+
+from dexdrake.hands import allegro_units as units
+from dexdrake.hardware.allegro_can import (
+    STATUS_FAULT_BITS,
+    AllegroConfig,
+    AllegroHand,
+    FrameError,
+    Imu,
+    Info,
+    Position,
+    Serial,
+    ServoOff,
+    ServoOn,
+    SetPeriod,
+    Status,
+    Temperature,
+    Torque,
+    decode,
+    default_joint_limits,
+    encode,
+)
+from dexdrake.hardware.allegro_emulator import AllegroEmulator
+from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+from dexdrake.hardware.z1_udp import (
+    ArmFSMState,
+    JointCmd,
+    JointState,
+    MotorState,
+    PacketError,
+    RecvState,
+    SendCmd,
+    Z1Arm,
+    Z1Config,
+)
+
+
+def _wait(cond, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.001)
+    return cond()
+
+
+def _kind(reason: str) -> str:
+    """A fault reason without its numbers (for counting faults by kind)."""
+    return re.sub(r"0x[0-9a-f]+|-?\d+(\.\d+)?", "#", reason)
+
+
+def _mutate(data: bytes, rng: np.random.Generator) -> bytes:
+    """Flip bits, truncate, extend or overwrite bytes of `data` (1 to 3 mutations)."""
+    buf = bytearray(data)
+    for _ in range(int(rng.integers(1, 4))):
+        kind = int(rng.integers(4))
+        if kind == 0 and buf:
+            buf[int(rng.integers(len(buf)))] ^= 1 << int(rng.integers(8))
+        elif kind == 1 and buf:
+            del buf[int(rng.integers(len(buf))):]
+        elif kind == 2:
+            buf += bytes(rng.integers(0, 256, int(rng.integers(1, 4)), dtype=np.uint8))
+        elif buf:
+            i = int(rng.integers(len(buf)))
+            buf[i] = int(rng.integers(256))
+    return bytes(buf)
+
+
+# ----------------------------------------------------------------------------- CAN
+def _valid_can_frame(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray):
+    kind = int(rng.integers(10))
+    finger = int(rng.integers(4))
+    if kind == 0:
+        q = rng.uniform(lower[4 * finger: 4 * finger + 4], upper[4 * finger: 4 * finger + 4])
+        return Position(finger, tuple(int(c) for c in units.rad_to_counts(q)))
+    if kind == 1:
+        return Status(int(rng.integers(0, 0x20)))
+    if kind == 2:
+        return Temperature(finger, tuple(int(t) for t in rng.integers(-40, 126, 4)))
+    if kind == 3:
+        return Info(int(rng.integers(0x10000)), int(rng.integers(0x10000)), bool(rng.integers(2)),
+                    int(rng.integers(256)), int(rng.integers(0x20)))
+    if kind == 4:
+        return Serial("".join(chr(int(c)) for c in rng.integers(32, 127, 8)))
+    if kind == 5:
+        return Imu(tuple(int(v) for v in rng.integers(-32768, 32768, 4)))
+    if kind == 6:  # host -> hand frames: the emulator obeys them, the driver ignores them
+        return Torque(finger, tuple(int(v) for v in rng.integers(-300, 301, 4)))
+    if kind == 7:
+        return SetPeriod(int(rng.integers(0, 5)), 0, int(rng.integers(0, 200)))
+    return ServoOn() if kind == 8 else ServoOff()
+
+
+def can_frame(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray) -> can.Message:
+    """A random (30 %) or mutated valid (70 %) CAN frame."""
+    if rng.random() < 0.3:
+        extended = rng.random() < 0.1
+        dlc = int(rng.integers(0, 9))
+        if rng.random() < 0.01:
+            return can.Message(arbitration_id=0, is_error_frame=True, dlc=0)
+        return can.Message(arbitration_id=int(rng.integers(0, 1 << (29 if extended else 11))),
+                           is_extended_id=extended, is_remote_frame=bool(rng.random() < 0.05),
+                           dlc=dlc, data=bytes(rng.integers(0, 256, dlc, dtype=np.uint8)))
+    msg = encode(_valid_can_frame(rng, lower, upper))
+    if rng.random() < 0.2:
+        return msg  # a valid frame, unchanged
+    arb, data, rtr, dlc = msg.arbitration_id, bytes(msg.data), msg.is_remote_frame, msg.dlc
+    kind = int(rng.integers(4))
+    if kind == 0:
+        data = _mutate(data, rng)[:8]
+        dlc = len(data) if rng.random() < 0.7 else int(rng.integers(0, 9))
+    elif kind == 1:
+        arb ^= 1 << int(rng.integers(11))
+    elif kind == 2:
+        arb = (arb & ~0x3) | int(rng.integers(4))  # another device id
+    else:
+        rtr, data = True, b""
+    return can.Message(arbitration_id=arb, is_extended_id=False, is_remote_frame=rtr, dlc=dlc,
+                       data=data)
+
+
+def classify_can(msg: can.Message, lower: np.ndarray, upper: np.ndarray, cfg: AllegroConfig) -> str:
+    """What the driver must do with `msg`: 'bad' (count it), 'fault' (latch) or 'ok'."""
+    try:
+        frame = decode(msg, 0)
+    except FrameError:
+        return "bad"
+    if isinstance(frame, Position):
+        q = units.counts_to_rad(frame.counts)
+        sl = slice(4 * frame.finger, 4 * frame.finger + 4)
+        m = cfg.position_margin_rad
+        if np.any(q < lower[sl] - m) or np.any(q > upper[sl] + m):
+            return "bad"
+    if isinstance(frame, Status) and frame.bits & STATUS_FAULT_BITS:
+        return "fault"
+    if isinstance(frame, Temperature) and max(frame.celsius) > cfg.max_temperature_c:
+        return "fault"
+    return "ok"
+
+
+def fuzz_can(frames: int, seed: int, batch: int = 200) -> dict:
+    """Push `frames` frames through a live AllegroHand; counters of what happened."""
+    rng = np.random.default_rng(seed)
+    lower, upper = default_joint_limits()
+    channel = f"fuzz-{uuid.uuid4().hex}"
+    host, dev, fuzz = (can.Bus(interface="virtual", channel=channel) for _ in range(3))
+    cfg = AllegroConfig(watchdog_timeout_s=0.5, temperature_timeout_s=2.0)  # a loaded host
+    emu = AllegroEmulator(dev)
+    hand = AllegroHand(host, config=cfg)
+    out: collections.Counter = collections.Counter()
+    faults: collections.Counter = collections.Counter()
+
+    def errors() -> int:
+        return sum(hand.stats()["frame_errors"].values())
+
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    try:
+        with emu, hand:
+            _wait(lambda: hand.stats()["cycles"] > 3, 2.0)
+            sent = 0
+            while sent < frames:
+                msgs = [can_frame(rng, lower, upper) for _ in range(min(batch, frames - sent))]
+                kinds = [classify_can(m, lower, upper, cfg) for m in msgs]
+                expected_bad = kinds.count("bad")
+                before = errors()
+                for m in msgs:
+                    fuzz.send(m)
+                sent += len(msgs)
+                out.update(kinds)
+                if not _wait(lambda: errors() - before >= expected_bad and host.queue.empty(), 5.0):
+                    out["uncounted"] += expected_bad - (errors() - before)
+                time.sleep(0.002)  # the frame in hand
+                out["overcounted"] += max(0, errors() - before - expected_bad)
+                if "fault" in kinds and hand.fault.reason is None:
+                    out["missed_faults"] += 1
+                if hand.fault.reason is not None:
+                    faults[_kind(hand.fault.reason)] += 1
+                    hand.reset_fault()
+                    if not _wait(lambda: hand.fault.reason is None and hand.stats()["cycles"] > 0, 2.0):
+                        emu.periods = SetPeriod(3, 0, 100)  # fuzz left the emulator mute: recover
+                        hand.reset_fault()
+                        _wait(lambda: hand.fault.reason is None, 2.0)
+            alive = hand.running and emu._thread is not None and emu._thread.is_alive()
+            stats = hand.stats()
+    finally:
+        for b in (host, dev, fuzz):
+            b.shutdown()
+    return {"frames": sent, "bad": out["bad"], "must_fault": out["fault"], "ok": out["ok"],
+            "counted_bad": sum(stats["frame_errors"].values()), "uncounted": out["uncounted"],
+            "overcounted": out["overcounted"], "missed_faults": out["missed_faults"],
+            "faults_latched": dict(faults), "frame_errors": stats["frame_errors"],
+            "emulator_frame_errors": dict(emu.frame_errors), "alive": alive,
+            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
+
+
+# ----------------------------------------------------------------------------- UDP
+def _recv_state(rng: np.random.Generator) -> RecvState:
+    joints = []
+    for _ in range(7):
+        motors = tuple(MotorState(int(rng.integers(-128, 128)),
+                                  0 if rng.random() < 0.99 else int(rng.integers(256)),
+                                  0 if rng.random() < 0.99 else int(rng.integers(256)))
+                       for _ in range(2))
+        joints.append(JointState(*rng.normal(0, 1, 4), motors))
+    return RecvState(ArmFSMState(int(rng.integers(17))), tuple(joints), tuple(rng.normal(0, 1, 6)))
+
+
+def _send_cmd(rng: np.random.Generator) -> SendCmd:
+    joints = tuple(JointCmd(*rng.normal(0, 5, 5)) for _ in range(7))
+    head = (0xFE, 0xFF) if rng.random() < 0.8 else tuple(int(b) for b in rng.integers(256, size=2))
+    return SendCmd(ArmFSMState(int(rng.integers(17))), joints, bool(rng.integers(2)), head)
+
+
+def datagram(rng: np.random.Generator, valid: bytes) -> bytes:
+    """Random bytes (30 %, any length), `valid` unchanged (20 %) or mutated."""
+    r = rng.random()
+    if r < 0.3:
+        return bytes(rng.integers(0, 256, int(rng.integers(0, 300)), dtype=np.uint8))
+    if r < 0.5:
+        return valid
+    data = _mutate(valid, rng)
+    if rng.random() < 0.3:  # non-finite floats where the parser must catch them
+        off = int(rng.integers(0, max(1, len(data) - 4)))
+        data = data[:off] + struct.pack("<f", [np.nan, np.inf, -np.inf][int(rng.integers(3))]) + data[off + 4:]
+    return data
+
+
+def classify_state(data: bytes) -> str:
+    try:
+        st = RecvState.unpack(data)
+    except PacketError:
+        return "bad"
+    if any(m.error or m.link for j in st.joints[:6] for m in j.motors):
+        return "fault"
+    return "ok"
+
+
+def classify_command(data: bytes) -> str:
+    try:
+        cmd = SendCmd.unpack(data)
+    except PacketError:
+        return "bad"
+    return "ok" if cmd.head == (0xFE, 0xFF) else "bad"
+
+
+def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
+    """Half the datagrams to a live Z1Arm's port, half to the emulator's; counters."""
+    rng = np.random.default_rng(seed)
+    emu = Z1Emulator(Z1EmulatorConfig(port=0))
+    fuzz = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    fuzz.bind(("127.0.0.1", 0))
+    fuzz.setblocking(False)
+    out: collections.Counter = collections.Counter()
+    faults: collections.Counter = collections.Counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    emu.start()
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=emu.port, watchdog_timeout_s=0.5))
+    try:
+        with arm:
+            sent = 0
+            while sent < datagrams:
+                to_client = (sent // batch) % 2 == 0
+                n = min(batch, datagrams - sent)
+                if to_client:
+                    data = [datagram(rng, _recv_state(rng).pack()) for _ in range(n)]
+                    kinds = [classify_state(d) for d in data]
+                    counter = lambda: sum(arm.packet_errors.values())  # noqa: E731
+                    dest = ("127.0.0.1", arm.local_port)
+                else:
+                    data = [datagram(rng, _send_cmd(rng).pack()) for _ in range(n)]
+                    kinds = [classify_command(d) for d in data]
+                    counter = lambda: sum(emu.packet_errors.values())  # noqa: E731
+                    dest = ("127.0.0.1", emu.port)
+                expected_bad = kinds.count("bad")
+                before = counter()
+                for d in data:
+                    fuzz.sendto(d, dest)
+                sent += n
+                out.update(f"{'client' if to_client else 'emulator'}_{k}" for k in kinds)
+                if not _wait(lambda: counter() - before >= expected_bad, 5.0):
+                    out["uncounted"] += expected_bad - (counter() - before)
+                time.sleep(0.003)
+                out["overcounted"] += max(0, counter() - before - expected_bad)
+                if to_client and "fault" in kinds and arm.fault.reason is None:
+                    out["missed_faults"] += 1
+                while True:  # drain the emulator's replies to the fuzzer
+                    try:
+                        fuzz.recv(4096)
+                    except BlockingIOError:
+                        break
+                if arm.fault.reason is not None:
+                    faults[_kind(arm.fault.reason)] += 1
+                    arm.reset_fault()
+                    _wait(lambda: arm.fault.reason is None, 2.0)
+            alive = arm.running and emu._thread is not None and emu._thread.is_alive()
+            client_errors, emu_errors = dict(arm.packet_errors), dict(emu.packet_errors)
+    finally:
+        emu.stop()
+        fuzz.close()
+    return {"datagrams": sent,
+            **{k: out[k] for k in ("client_bad", "client_fault", "client_ok", "emulator_bad", "emulator_ok")},
+            "uncounted": out["uncounted"], "overcounted": out["overcounted"],
+            "missed_faults": out["missed_faults"], "faults_latched": dict(faults),
+            "client_packet_errors": client_errors, "emulator_packet_errors": emu_errors,
+            "alive": alive, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
+
+
+def passed(result: dict) -> bool:
+    return (result["alive"] and result["uncounted"] == 0 and result["overcounted"] == 0
+            and result["missed_faults"] == 0)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--can", type=int, default=100_000, help="CAN frames (0: skip)")
+    parser.add_argument("--udp", type=int, default=100_000, help="UDP datagrams (0: skip)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    ok = True
+    for name, n, run in (("CAN", args.can, fuzz_can), ("UDP", args.udp, fuzz_udp)):
+        if n <= 0:
+            continue
+        result = run(n, args.seed)
+        ok &= passed(result)
+        print(f"{name}: {'PASS' if passed(result) else 'FAIL'}")
+        for key, value in result.items():
+            print(f"  {key}: {round(value, 2) if isinstance(value, float) else value}")
+    print(f"command: .venv/bin/python scripts/fuzz_hardware.py --can {args.can} --udp {args.udp} "
+          f"--seed {args.seed}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

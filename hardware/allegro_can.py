@@ -505,11 +505,17 @@ class AllegroHand(SafeStopContext):
             return None
 
     def _await(self, kind: type, timeout: float) -> Frame:
+        """The next frame of `kind`; meanwhile status and temperature frames are still
+        checked for faults and positions for range (other frames are dropped)."""
         deadline = self._clock() + timeout
         while (left := deadline - self._clock()) > 0:
             frame = self._recv(left)
             if isinstance(frame, kind):
                 return frame
+            if isinstance(frame, (Status, Temperature)):
+                self._handle(frame)
+            elif isinstance(frame, Position):
+                self._position_in_range(frame.finger, units.counts_to_rad(np.asarray(frame.counts, float)))
         raise HardwareError(f"Allegro: no {kind.__name__} reply within {timeout} s "
                             f"(device {self.device_id}; is the hand powered and the bus up?)")
 
@@ -546,6 +552,8 @@ class AllegroHand(SafeStopContext):
             raise HardwareError(f"Allegro: palm at {info.palm_temperature_c} C at start "
                                 f"(limit {cfg.max_temperature_c} C)")
         self._send(SetPeriod(cfg.position_period_ms, 0, cfg.temperature_period_ms))
+        if self.fault.tripped:  # the hand reported a fault during the sequence: stay off
+            raise HardwareError(f"Allegro: fault during start: {self.fault.reason}")
         self._send(ServoOn())
         self._watchdog.reset()
         self._t_temps[:] = self._clock()
@@ -685,12 +693,19 @@ class AllegroHand(SafeStopContext):
             case _:
                 self._stats.ignored += 1
 
-    def _on_position(self, finger: int, counts: tuple[int, ...]) -> None:
-        q = units.counts_to_rad(np.asarray(counts, dtype=float))
+    def _position_in_range(self, finger: int, q: np.ndarray) -> bool:
+        """False (and counted) for positions beyond the joint limits +- the margin."""
         sl = slice(4 * finger, 4 * finger + 4)
         m = self.config.position_margin_rad
         if np.any(q < self.limits.lower[sl] - m) or np.any(q > self.limits.upper[sl] + m):
             self._stats.frame_errors["range"] += 1
+            return False
+        return True
+
+    def _on_position(self, finger: int, counts: tuple[int, ...]) -> None:
+        q = units.counts_to_rad(np.asarray(counts, dtype=float))
+        sl = slice(4 * finger, 4 * finger + 4)
+        if not self._position_in_range(finger, q):
             return
         self._watchdog.feed()
         if self._fresh[finger]:  # a new batch began before the last one completed (drop)

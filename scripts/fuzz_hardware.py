@@ -206,8 +206,8 @@ def fuzz_can(frames: int, seed: int, batch: int = 200) -> dict:
                     out["missed_faults"] += 1
                 if hand.fault.reason is not None:
                     faults[_kind(hand.fault.reason)] += 1
-                    hand.reset_fault()
-                    if not _wait(lambda: hand.fault.reason is None and hand.stats()["cycles"] > 0, 2.0):
+                    hand.reset_fault()  # re-runs the start sequence, which ends with servo on
+                    if not _wait(lambda: hand.fault.reason is None and emu.servo_on, 2.0):
                         emu.periods = SetPeriod(3, 0, 100)  # fuzz left the emulator mute: recover
                         hand.reset_fault()
                         _wait(lambda: hand.fault.reason is None, 2.0)

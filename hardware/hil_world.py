@@ -3,7 +3,8 @@ emulator and the Z1 controller emulator, on one simulated clock.
 
 The emulators keep their bus/UDP behaviour (framing, periods, servo and FSM logic, fault
 injection) and get their joints from the plant through their public dynamics hooks:
-  Allegro (`JointDynamics`): effective PWM -> plant actuation tau = pwm * torque_per_pwm on the
+  Allegro (`JointDynamics`): effective PWM -> plant actuation tau = pwm * scenario.torque_per_pwm
+           (allegro_units.NM_PER_PWM, the one PWM -> N*m assumption, times hil.pwm_torque_scale) on the
            finger joints (zero when the servo is off; the last PWM stays applied while the
            servo is on, whether or not torque frames keep coming, as specs/allegro_v4.md says);
   Z1 (`ArmDynamics`): the controller's LOWCMD/JOINTCTRL set-points -> the plant's implicit PD
@@ -82,7 +83,7 @@ def build_world_plant(scenario: Scenario) -> WorldPlant:
     """Robot (arm PD in the plant, fingers torque-driven), table and object; see module doc."""
     hand = load_hand(scenario.hand)
     info = get_object(scenario.object)
-    arm_cfg, w = scenario.drivers.arm, scenario.hil
+    arm_cfg = scenario.drivers.arm
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(
         MultibodyPlantConfig(time_step=scenario.time_step, discrete_contact_approximation="sap",
@@ -91,6 +92,8 @@ def build_world_plant(scenario: Scenario) -> WorldPlant:
     plant.set_gravity_enabled(robot, False)
     n_arm = len(hand.arm_joints)
     limits = z1_model().limits
+    emu = EmulatorConfig()  # the firmware emulator's PWM model, kept at this torque scale
+    inertia = scenario.torque_per_pwm / emu.accel_per_pwm  # kg*m^2 reflected per finger joint
     kp = limits.kp if arm_cfg.kp is None else arm_cfg.kp
     kd = limits.kd if arm_cfg.kd is None else arm_cfg.kd
     for i, name in enumerate(hand.policy_joints):
@@ -100,9 +103,9 @@ def build_world_plant(scenario: Scenario) -> WorldPlant:
             actuator.set_controller_gains(PdControllerGains(p=kp[i] * KP_SCALE, d=kd[i] * KD_SCALE))
         else:
             actuator.set_controller_gains(PdControllerGains(p=0.0, d=0.0))  # torque-driven
-            actuator.set_default_rotor_inertia(w.finger_reflected_inertia)
+            actuator.set_default_rotor_inertia(inertia)
             actuator.set_default_gear_ratio(1.0)
-            joint.set_default_damping(w.finger_damping)
+            joint.set_default_damping(inertia * emu.damping)
     _add_table(plant, 1.0)
     object_instance = add_object(plant, info)
     plant.Finalize()
@@ -289,7 +292,7 @@ class HilWorld:
         q_arm = w.plant.GetPositions(self._plant_context)[w.q_index[:n_arm]]
         self._weight[w.v_index[:n_arm]] = -self._arm_model.gravity(q_arm)
         tau_fingers = np.zeros(n - n_arm)
-        tau_fingers[self.bus_perm - n_arm] = self._fingers.pwm * self.scenario.hil.torque_per_pwm
+        tau_fingers[self.bus_perm - n_arm] = self._fingers.pwm * self.scenario.torque_per_pwm
         self._actuation[w.act_index[n_arm:]] = tau_fingers
         w.diagram.get_input_port(0).FixValue(self._context, self._desired)
         w.diagram.get_input_port(1).FixValue(self._context, self._actuation)

@@ -13,8 +13,8 @@ Modelling choices (not in the specs; documented here and in each file's header c
   (the spec gives masses only). The spec's link masses sum to 0.955 kg, less than the
   "about 1.2 kg" of the whole hand; the table is transcribed as given.
 - Allegro PD gains (Drake actuator gains, N*m/rad and N*m*s/rad) are the vendor gains in
-  PWM counts scaled by 1/200 N*m per count (full PWM 1200 <-> 6 N*m, an assumption: the spec
-  says the PWM -> N*m mapping is undocumented). kp 2.5-5 N*m/rad holds a 0.5 kg object with
+  PWM counts scaled by dexdrake.hands.allegro_units.NM_PER_PWM (1/200 N*m per count, full
+  PWM 1200 <-> 6 N*m, an assumption: the spec says the PWM -> N*m mapping is undocumented). kp 2.5-5 N*m/rad holds a 0.5 kg object with
   friction 1 (about 2.5 N of pinch force per side needs 0.25 N*m at a 0.1 m lever, i.e.
   0.1 rad of command past contact); SAP integrates the PD implicitly, so it is stable at
   plant dt 2 ms. tests/test_allegro_z1_models.py closes the hand on a 0.5 kg box and lifts
@@ -44,7 +44,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
 
-from dexdrake.hands.allegro_units import KD_VENDOR, KP_VENDOR
+from dexdrake.hands.allegro_units import KD_VENDOR, KP_VENDOR, NM_PER_PWM
 from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE
 
 Vec = tuple[float, float, float]
@@ -82,7 +82,6 @@ PALM_MASS = 0.4154
 FINGER_MASSES = (0.0119, 0.065, 0.0355, 0.0096)
 TIP_MASS = 0.0168
 THUMB_MASSES = {12: 0.0176, 13: 0.0119, 14: 0.038, 15: 0.0388}
-SIM_NM_PER_PWM = 1.0 / 200.0  # assumed PWM -> N*m scale for the simulated PD gains
 FRICTION = 1.0
 HAND_BASE_BELOW_PALM = 0.095  # palm box bottom, below palm_link along palm -z
 
@@ -103,8 +102,8 @@ def allegro_joints() -> list[tuple]:
 
 
 def allegro_gains() -> list[tuple[float, float]]:
-    """Drake (p, d) per hand joint in bus order: vendor gains * SIM_NM_PER_PWM."""
-    return [(float(p) * SIM_NM_PER_PWM, float(d) * SIM_NM_PER_PWM) for p, d in zip(KP_VENDOR, KD_VENDOR)]
+    """Drake (p, d) per hand joint in bus order: vendor gains * NM_PER_PWM (an assumption)."""
+    return [(float(p) * NM_PER_PWM, float(d) * NM_PER_PWM) for p, d in zip(KP_VENDOR, KD_VENDOR)]
 
 
 # ---------------------------------------------------------------- Unitree Z1

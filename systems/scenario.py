@@ -24,7 +24,7 @@ from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.allegro_units import NUM_JOINTS as NUM_HAND_JOINTS
-from dexdrake.hands.allegro_units import PWM_SCALE_12V
+from dexdrake.hands.allegro_units import NM_PER_PWM
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 
 HAND_KINDS = ("sim", "emulated", "hardware")
@@ -106,13 +106,12 @@ class HilWorldConfig:
     Its timing (one simulated clock, lockstep with the hand's PD loop, never faster than
     real time) is described in hardware/hil_world.py.
 
-    The Allegro PWM -> torque map is not documented (specs/allegro_v4.md); the default
-    treats the normalised torque pwm / 1200 as N*m, and the reflected inertia and damping
-    match the firmware emulator's own model (ddq = 2 * pwm - 5 * dq)."""
+    A finger joint gets tau = pwm * pwm_torque_scale * NM_PER_PWM (the one PWM -> N*m
+    assumption, dexdrake/hands/allegro_units.py, which the simulated hand's gains use too);
+    its reflected motor inertia and damping keep the firmware emulator's PWM model
+    (ddq = accel_per_pwm * pwm - damping * dq) at that torque scale."""
 
-    torque_per_pwm: float = 1.0 / PWM_SCALE_12V  # N*m per PWM count
-    finger_reflected_inertia: float = 4.2e-4  # kg*m^2, per finger joint
-    finger_damping: float = 2.1e-3  # N*m*s/rad
+    pwm_torque_scale: float = 1.0  # multiplies NM_PER_PWM (a sensitivity knob; 1 = as simulated)
     max_lag_s: float = 0.05  # at most this much lag behind the wall clock is caught up
     reply_timeout_s: float = 0.1  # wall time a world step waits for the hand's torque reply
 
@@ -135,6 +134,11 @@ class Scenario:
     hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
     policy: Optional[PolicyEntry] = None
     rrd: Optional[str] = None  # write a rerun recording of the loop here
+
+    @property
+    def torque_per_pwm(self) -> float:
+        """N*m per PWM count in the HIL world (the assumption times its scale)."""
+        return NM_PER_PWM * self.hil.pwm_torque_scale
 
     @property
     def mode(self) -> str:
@@ -268,10 +272,8 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(c.kind != "recorded" or bool(c.recording), source,
                  "drivers.camera.recording must name a folder or .npz for kind 'recorded'")
     w = s.hil
-    _require(w.torque_per_pwm > 0 and w.finger_reflected_inertia >= 0 and w.finger_damping >= 0
-             and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
-             "hil.torque_per_pwm, .max_lag_s and .reply_timeout_s must be > 0, inertia and "
-             "damping >= 0")
+    _require(w.pwm_torque_scale > 0 and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
+             "hil.pwm_torque_scale, .max_lag_s and .reply_timeout_s must be > 0")
     if s.policy is not None:
         from dexdrake.dexrep.feature_sets import FEATURE_SETS
 

@@ -24,6 +24,14 @@ RAD_PER_COUNT = 333.3 / 65536 * math.pi / 180
 #: PWM duty for a normalised torque of 1: 1200 on v4 at 12 V (v3 at 8 V: 800; 24 V: 500).
 PWM_SCALE_12V = 1200.0
 
+#: ASSUMPTION, the one place it is made: joint torque per PWM count (N*m). The vendor does
+#: not document the PWM -> N*m mapping (max motor torque 0.70 N*m, gearing 1:369); full PWM
+#: 1200 is taken as 6 N*m. The simulated hand's PD gains are the vendor gains times this
+#: (scripts/build_allegro_models.py) and the HIL world turns PWM into joint torque with it
+#: (systems/scenario.HilWorldConfig.pwm_torque_scale multiplies it; scripts/parity_hil.py
+#: reports HIL success at 0.5x, 1x and 2x).
+NM_PER_PWM = 6.0 / PWM_SCALE_12V
+
 #: Per-joint PWM limits of the vendor driver: fingers j0..j3 375, 675, 450, 285;
 #: thumb 525, 405, 270, 270.
 PWM_LIMITS = np.array(3 * [375, 675, 450, 285] + [525, 405, 270, 270], dtype=float)

@@ -59,8 +59,10 @@ def rig(channel):
     spare = can.Bus(interface="virtual", channel=channel)
     q0 = np.clip(np.zeros(16), LOWER, UPPER)
     emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, q0=q0))
-    # a watchdog generous enough for a loaded 2-core CI machine; stalls below are longer
-    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2))
+    # a watchdog and reply wait generous enough for a loaded 2-core CI machine (a reset
+    # re-runs the start sequence); stalls below are longer
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2,
+                                                  reply_timeout_s=1.0))
     emu.start()
     yield hand, emu, spare
     hand.stop()
@@ -232,7 +234,7 @@ def test_watchdog_on_stalled_stream_then_reset(rig):
         time.sleep(0.6)
         assert hand.state().fault is not None and not emu.servo_on
         hand.reset_fault()
-        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 1.0)
+        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 3.0)
         target = LOWER + 0.3 * (UPPER - LOWER)
         hand.command_positions(target)
         assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
@@ -308,7 +310,7 @@ def test_emulator_drops_and_corruption_are_counted_and_tolerated(channel):
         with emu, hand:
             target = LOWER + 0.5 * (UPPER - LOWER)
             hand.command_positions(target)
-            assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
+            assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 8.0)  # a loaded host
             s = hand.stats()
             assert hand.state().fault is None
             for kind in ("dlc", "device", "unknown_id", "range"):
@@ -389,7 +391,7 @@ def test_reset_after_power_loss_reruns_the_start_sequence(rig):
         assert wait_for(lambda: hand.state().fault is not None, 1.0)
         n_info = sum(f == Request(Msg.INFO) for f in emu.log)
         hand.reset_fault()
-        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 1.0)
+        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 3.0)
         assert sum(f == Request(Msg.INFO) for f in emu.log) == n_info + 1
         assert emu.periods.position_ms == 3
         time.sleep(0.3)  # streaming again: no new trip
@@ -406,7 +408,7 @@ def test_reset_of_an_unpowered_hand_trips_again(rig):
         emu.inject.silent = True
         assert wait_for(lambda: hand.state().fault is not None, 1.0)
         hand.reset_fault()
-        assert wait_for(lambda: "reset failed" in (hand.state().fault or ""), 2.0)
+        assert wait_for(lambda: "reset failed" in (hand.state().fault or ""), 5.0)
         assert not emu.servo_on
 
 

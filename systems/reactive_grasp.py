@@ -52,6 +52,8 @@ class ReactiveRules:
     settled_speed: float = 1.0  # fingers slower than this (rad/s, largest joint) have settled
     lifted: float = 0.01  # object this far above its start is lifted (m)
     replan_shift: float = 0.01  # re-plan when the object moved this far before the grasp (m)
+    lift_steps: int = 3  # IK steps of the lift set-point ...
+    replan_steps: int = 3  # ... and of each re-planned way-point (from the old one)
 
 
 class ReactiveGrasp(ScriptedGrasp):
@@ -71,6 +73,18 @@ class ReactiveGrasp(ScriptedGrasp):
 
     def _plan(self, env) -> None:
         super()._plan(env)
+        self._planned(env)
+
+    def _replan(self, env) -> None:
+        """The plan for the object's new pose, its way-points a few IK steps from the old ones."""
+        self._choose_grasp(env)
+        steps = self.rules.replan_steps
+        self.q_above = self.step_arm(self.plan.above, self.R_grasp, self.q_above, steps)
+        self.q_grasp = self.step_arm(self.plan.grasp, self.R_grasp, self.q_grasp, steps)
+        self.q_lift = self.step_arm(self.plan.lift, self.R_grasp, self.q_lift, steps)
+        self._planned(env)
+
+    def _planned(self, env) -> None:
         self.p_planned = env.object_position()
         self.grasp_point = self._palm_pose(self.q_grasp)[0]
 
@@ -88,6 +102,7 @@ class ReactiveGrasp(ScriptedGrasp):
         lifted = p_obj[2] - self.p_start[2] > r.lifted
         closure = self.closure(q)
         offset = self._palm_pose(q[: self.n_arm])[0] - self.grasp_point
+        above, aside = offset[2], float(np.linalg.norm(offset[:2]))
         touch = env.fingertip_distances() < r.touch
         thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
         settled = float(np.max(np.abs(v[self._fingers]))) < r.settled_speed
@@ -95,19 +110,19 @@ class ReactiveGrasp(ScriptedGrasp):
         holding = (closure > r.started and settled and (thumb_and_fingers or closure > r.closed_hold)
                    and float(np.linalg.norm(offset)) < r.hold_reach)
         if not holding and not lifted and np.linalg.norm((p_obj - self.p_planned)[:2]) > r.replan_shift and closure < r.closed:
-            self._plan(env)
+            self._replan(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self._straight_up(q[: self.n_arm]), self.q_closed
         elif np.linalg.norm(offset) < r.at_grasp or (
-            np.linalg.norm(offset[:2]) < r.above_xy and offset[2] < r.blocked_height and (arm_stopped or closure > r.started)
+            aside < r.above_xy and above < r.blocked_height and (arm_stopped or closure > r.started)
         ):
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
-        elif closure > r.missed or (closure > r.closed and not np.linalg.norm(offset[:2]) < r.above_xy):
+        elif closure > r.missed or (closure > r.closed and not aside < r.above_xy):
             self.phase, arm = "open", q[: self.n_arm]
         else:  # a funnel: the farther off horizontally, the closer the target to the approach way-point
-            tolerance = r.above_xy + r.descend_cone * max(offset[2], 0.0)
-            s = float(np.clip((np.linalg.norm(offset[:2]) - tolerance) / r.funnel, 0.0, 1.0))
+            tolerance = r.above_xy + r.descend_cone * max(above, 0.0)
+            s = float(np.clip((aside - tolerance) / r.funnel, 0.0, 1.0))
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
         out = np.array(fingers, dtype=float)
@@ -117,9 +132,11 @@ class ReactiveGrasp(ScriptedGrasp):
 
     def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
         """Arm set-points that lift the grasp centre vertically from where it is now to the
-        lift height (the object's start position cannot be seen once it is in the hand)."""
+        lift height (the object's start position cannot be seen once it is in the hand): a
+        few IK steps from q_arm, so the label stays a cheap function of the state."""
         p = self._palm_pose(q_arm)[0]
-        return self.solve_arm(np.array([p[0], p[1], self.grasp_point[2] + self.script.lift]), self.R_grasp, q_arm)
+        target = np.array([p[0], p[1], self.grasp_point[2] + self.script.lift])
+        return self.step_arm(target, self.R_grasp, q_arm, self.rules.lift_steps)
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

@@ -12,10 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.tree import JacobianWrtVariable
 from scipy.optimize import least_squares
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
+from dexdrake.objects.library import ObjectInfo
 
 
 @dataclass(frozen=True)
@@ -34,6 +37,7 @@ class GraspScript:
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
+    ik_damping: float = 1e-3  # damping of `step_arm`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
 
 
@@ -75,6 +79,49 @@ def _smooth(s: float) -> float:
     return s * s * s * (10 - 15 * s + 6 * s * s)  # minimum-jerk profile
 
 
+@dataclass(frozen=True)
+class GraspPlan:
+    """Where the hand grasps: the palm rotation and the grasp centre's way-points (world
+    frame), reached in the order above -> grasp -> lift."""
+
+    R: np.ndarray
+    above: np.ndarray
+    grasp: np.ndarray
+    lift: np.ndarray
+
+
+def plan_grasp(script: GraspScript, info: ObjectInfo, X_obj: RigidTransform, R_start: np.ndarray) -> GraspPlan:
+    """The grasp for an object at pose X_obj, from its shape (extents, footprint) and pose
+    only: the palm turned from rotation R_start across the footprint's shorter axis, the
+    grasp centre below the object's top (deeper on tall objects)."""
+    widths = info.footprint_widths()
+    is_round = widths.max() - widths.min() < script.round_footprint * widths.max()
+    yaw = 0.0 if is_round else _grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
+    R = _rot_z(yaw) @ R_start
+    fingers_dir = R[:, 2].copy()
+    fingers_dir[2] = 0.0
+    fingers_dir /= np.linalg.norm(fingers_dir)
+    p_obj = X_obj.translation()
+    top = p_obj[2] + info.extents[2] / 2
+    tall = top - script.palm_depth > p_obj[2] + script.tall_margin
+    height = top - (script.tall_palm_depth if tall else script.palm_depth)
+    grasp = np.array([p_obj[0], p_obj[1], height]) + script.reach * fingers_dir
+    up = np.array([0.0, 0.0, 1.0])
+    return GraspPlan(R, grasp + (top - height + script.hover) * up, grasp, grasp + script.lift * up)
+
+
+def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
+    """Yaw (about world z) that turns the fingers across the object's shorter horizontal
+    axis; square footprints have a quarter-turn symmetry, others a half turn. (Round
+    footprints, whose yaw a policy cannot see, are not turned; see `plan_grasp`.)"""
+    ex, ey = extents[0], extents[1]
+    short_axis = R_obj[:, 1] if ex >= ey else R_obj[:, 0]
+    period = np.pi / 2 if abs(ex - ey) < 0.15 * max(ex, ey) else np.pi
+    f = R_start[:, 2]
+    yaw = np.arctan2(short_axis[1], short_axis[0]) - np.arctan2(f[1], f[0])
+    return float((yaw + period / 2) % period - period / 2)
+
+
 class ScriptedGrasp:
     """Callable controller for `GraspEnv.rollout`: returns joint set-points each step."""
 
@@ -85,6 +132,7 @@ class ScriptedGrasp:
         plant = scene.plant
         self.plant, self.ctx = plant, plant.CreateDefaultContext()
         self.palm_frame = plant.GetFrameByName(self.hand.palm.body, scene.hand_instance)
+        self.world = plant.world_frame()
         self.centre = np.array(self.hand.palm.centre)
         self.q_index = scene.q_index
         self.n_arm = len(self.hand.arm_joints)
@@ -93,12 +141,16 @@ class ScriptedGrasp:
         self.q_closed = closed_pose(self.hand, self.script.closure)
         self._plan(env)
 
-    def _palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Grasp-centre position and palm rotation in the world for arm set-points q_arm."""
+    def _set_arm(self, q_arm: np.ndarray):
+        """Puts the arm of the private context at q_arm; returns the palm body's pose in the world."""
         q = self.plant.GetPositions(self.ctx)
         q[self.q_index[: self.n_arm]] = q_arm
         self.plant.SetPositions(self.ctx, q)
-        X = self.palm_frame.CalcPoseInWorld(self.ctx)
+        return self.palm_frame.CalcPoseInWorld(self.ctx)
+
+    def _palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grasp-centre position and palm rotation in the world for arm set-points q_arm."""
+        X = self._set_arm(q_arm)
         return X.multiply(self.centre), X.rotation().matrix()
 
     def solve_arm(self, target: np.ndarray, R_target: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
@@ -113,41 +165,44 @@ class ScriptedGrasp:
         margin = 1e-3 * (hi - lo)  # start strictly inside the bounds: trf stalls on them
         return least_squares(residual, np.clip(q_seed, lo + margin, hi - margin), bounds=(lo, hi), xtol=1e-8).x
 
-    def _plan(self, env) -> None:
-        q_now = env.scene.hand_positions(env.plant_context)
-        self.q_start_arm = q_now[: self.n_arm]
-        _, R_start = self._palm_pose(self.q_start_arm)
-        X_obj = env.scene.object_pose(env.plant_context)
-        info = env.scene.object_info
-        widths = info.footprint_widths()
-        is_round = widths.max() - widths.min() < self.script.round_footprint * widths.max()
-        yaw = 0.0 if is_round else self._grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
-        self.R_grasp = R_grasp = _rot_z(yaw) @ R_start
-        fingers_dir = R_grasp[:, 2].copy()
-        fingers_dir[2] = 0.0
-        fingers_dir /= np.linalg.norm(fingers_dir)
-        p_obj = X_obj.translation()
-        top = p_obj[2] + env.scene.object_info.extents[2] / 2
-        tall = top - self.script.palm_depth > p_obj[2] + self.script.tall_margin
-        height = top - (self.script.tall_palm_depth if tall else self.script.palm_depth)
-        grasp = np.array([p_obj[0], p_obj[1], height]) + self.script.reach * fingers_dir
-        above = grasp + np.array([0.0, 0.0, top - height + self.script.hover])
-        lift = grasp + np.array([0.0, 0.0, self.script.lift])
-        self.q_above = self.solve_arm(above, R_grasp, self.q_start_arm)
-        self.q_grasp = self.solve_arm(grasp, R_grasp, self.q_above)
-        self.q_lift = self.solve_arm(lift, R_grasp, self.q_grasp)
+    def step_arm(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
+        """`solve_arm` near q_arm, cheaply: a fixed number of damped least-squares steps on the
+        grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
+        push past a limit stay on it and the others take the step."""
+        w = np.r_[np.full(3, self.script.orientation_weight), np.ones(3)]  # rotation (m per rad), position
+        lo, hi = self.lo[: self.n_arm], self.hi[: self.n_arm]
+        q = np.clip(q_arm, lo, hi)
+        for _ in range(steps):
+            X = self._set_arm(q)
+            rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
+            error = w * np.r_[rotation.angle() * rotation.axis(), target - X.multiply(self.centre)]
+            J = w[:, None] * self.plant.CalcJacobianSpatialVelocity(
+                self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
+            )[:, self.q_index[: self.n_arm]]
+            free, dq = np.ones(self.n_arm, dtype=bool), np.zeros(self.n_arm)
+            while free.any():
+                Jf = J[:, free]
+                dq[:] = 0.0
+                dq[free] = np.linalg.solve(Jf.T @ Jf + self.script.ik_damping**2 * np.eye(int(free.sum())), Jf.T @ error)
+                blocked = free & ((q + dq < lo) | (q + dq > hi))
+                if not blocked.any():
+                    break
+                free &= ~blocked
+            q = np.clip(q + dq, lo, hi)
+        return q
 
-    @staticmethod
-    def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
-        """Yaw (about world z) that turns the fingers across the object's shorter horizontal
-        axis; square footprints have a quarter-turn symmetry, others a half turn. (Round
-        footprints, whose yaw a policy cannot see, are not turned; see `_plan`.)"""
-        ex, ey = extents[0], extents[1]
-        short_axis = R_obj[:, 1] if ex >= ey else R_obj[:, 0]
-        period = np.pi / 2 if abs(ex - ey) < 0.15 * max(ex, ey) else np.pi
-        f = R_start[:, 2]
-        yaw = np.arctan2(short_axis[1], short_axis[0]) - np.arctan2(f[1], f[0])
-        return float((yaw + period / 2) % period - period / 2)
+    def _plan(self, env) -> None:
+        self.q_start_arm = env.scene.hand_positions(env.plant_context)[: self.n_arm]
+        self._choose_grasp(env)
+        self.q_above = self.solve_arm(self.plan.above, self.R_grasp, self.q_start_arm)
+        self.q_grasp = self.solve_arm(self.plan.grasp, self.R_grasp, self.q_above)
+        self.q_lift = self.solve_arm(self.plan.lift, self.R_grasp, self.q_grasp)
+
+    def _choose_grasp(self, env) -> None:
+        """The grasp plan for the object where it is now (the palm's pre-grasp rotation as reference)."""
+        R_pregrasp = self._palm_pose(self.q_open[: self.n_arm])[1]
+        self.plan = plan_grasp(self.script, env.scene.object_info, env.scene.object_pose(env.plant_context), R_pregrasp)
+        self.R_grasp = self.plan.R
 
     def __call__(self, env) -> np.ndarray:
         t, s = env.context.get_time(), self.script

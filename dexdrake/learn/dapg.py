@@ -37,7 +37,7 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.learn.baseline import MLPBaseline
 from dexdrake.eval.seeds import TRAINING_SEEDS
 from dexdrake.learn.curves import plot_curves, write_csv
-from dexdrake.learn.demo_dataset import DemoDataset
+from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset
 from dexdrake.learn.gae import discounted_returns, gae_advantages
 from dexdrake.learn.npg import flat_grad, natural_gradient_step
 from dexdrake.learn.policy import DEMO_STD_FRACTION, DexRepNetPolicy, policy_payload, save_payload, save_policy
@@ -362,6 +362,49 @@ class DAPGTrainer:
         tmp = self.manifest_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(manifest, indent=1, default=str) + "\n")
         tmp.replace(self.manifest_path)
+
+
+def load_demo_term(
+    path: str | Path, obs_dim: int, action_dim: int, max_samples: int | None = None, seed: int = 0
+) -> DemoDataset:
+    """The demonstration term's (observation, action) pairs from a demo dataset .npz or from a
+    DAgger output folder (every data_XX.npz; the expert's labels are the actions), at most
+    `max_samples` of them, drawn uniformly without replacement (seeded)."""
+    from dexdrake.learn.dagger import DaggerData
+
+    path = Path(path)
+    if not path.is_dir():
+        data = load_demo_dataset(path, obs_dim, action_dim)
+        if max_samples is None or len(data) <= max_samples:
+            return data
+        idx = np.sort(np.random.default_rng(seed).choice(len(data), max_samples, replace=False))
+        return DemoDataset(data.observations[idx], data.actions[idx], None, data.metadata)
+    files = sorted(path.glob("data_*.npz"))
+    if not files:
+        raise DexdrakeError(f"{path} holds no DAgger data (data_XX.npz files)")
+    sizes = []
+    for f in files:
+        with np.load(f, allow_pickle=False) as d:
+            sizes.append(int(d["labels"].shape[0]))
+    total = sum(sizes)
+    keep = total if max_samples is None else min(max_samples, total)
+    rng = np.random.default_rng(seed)
+    chosen = np.sort(rng.choice(total, keep, replace=False))
+    offsets = np.cumsum([0, *sizes])
+    obs, act = [], []
+    for f, lo, hi in zip(files, offsets[:-1], offsets[1:]):
+        idx = chosen[(chosen >= lo) & (chosen < hi)] - lo
+        if len(idx) == 0:
+            continue
+        part = DaggerData.load(f)
+        if part.observations.shape[1] != obs_dim or part.labels.shape[1] != action_dim:
+            raise DexdrakeError(f"{f}: observations/labels have {part.observations.shape[1]}/{part.labels.shape[1]} "
+                                f"columns, the policy expects {obs_dim}/{action_dim}")
+        obs.append(part.observations[idx])
+        act.append(part.labels[idx])
+    meta = {"source": "dagger", "folder": str(path), "files": [f.name for f in files], "pairs_total": total,
+            "pairs_used": keep}
+    return DemoDataset(np.concatenate(obs), np.concatenate(act), None, meta)
 
 
 def train_dapg(

@@ -170,6 +170,7 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
 def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.eval.envs import env_factory_for_policy, resolve_objects
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
+    from dexdrake.objects.library import get_object
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
 
@@ -180,6 +181,9 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     if args.objects in ("unseen", "seen"):
         raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
     _, objects = resolve_objects(args.objects)
+    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    if held_out:
+        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
     demos = load_demo_term(args.demos, policy.config.obs_dim, policy.config.action_dim, args.demo_samples, args.seed)
     factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True)
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),

@@ -28,9 +28,11 @@ import sys
 import time
 from pathlib import Path
 
+from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
-EVAL_SEED = 900  # evaluation seeds 900.. are disjoint from DAgger's training seeds i * 10**4 + k
+EVAL_SEED = FIRST_EVALUATION_SEED  # the range reserved for evaluation, disjoint from every training seed
 DATA_SOURCE = ("DAgger on the training objects: states visited by the state-driven expert (iteration 0) and by "
                "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
                "not the human-demo replay")

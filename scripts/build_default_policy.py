@@ -95,8 +95,8 @@ def main() -> None:
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
         metrics[label] = {k: report[k] for k in ("average_pct", "per_object", "episodes_per_object", "seed", "horizon",
                                                   "command", "wall_s", "workers")}
-        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt"
-                                                                         f" (copied from {policy})")
+        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
+        text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
         (weights / f"{tables}_{label}.md").write_text(text)
 
     import torch

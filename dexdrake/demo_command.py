@@ -54,8 +54,8 @@ def measured_rates(manifest_path: Path) -> str:
             parts.append(f"{label} not measured")
             continue
         text = f"{label} {m['average_pct']:.1f} %"
-        if "ci95_pct" in m:
-            text += f" (95 % CI {m['ci95_pct'][0]:.1f}-{m['ci95_pct'][1]:.1f})"
+        if "average_ci95_pct" in m:
+            text += f" (95 % CI {m['average_ci95_pct'][0]:.1f}-{m['average_ci95_pct'][1]:.1f})"
         if "per_object" in m and "episodes_per_object" in m:
             text += f" over {len(m['per_object'])} objects x {m['episodes_per_object']} episodes"
         if "seed" in m:

@@ -93,8 +93,9 @@ def main() -> None:
     metrics = {}
     for label in ("seen", "unseen"):
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
-        metrics[label] = {k: report[k] for k in ("average_pct", "per_object", "episodes_per_object", "seed", "horizon",
-                                                  "command", "wall_s", "workers")}
+        metrics[label] = {k: report[k] for k in ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object",
+                                                  "seed", "seeds_reserved_for_evaluation", "horizon", "command",
+                                                  "wall_s", "workers")}
         text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
         text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
         (weights / f"{tables}_{label}.md").write_text(text)

@@ -108,7 +108,7 @@ def test_demo_runs_any_object_and_prints_the_measured_rates(tmp_path, env_blocks
     assert main(["demo", "--policy", str(path), "--object", UNSEEN_OBJECT, "--seed", "12", "--steps", "2", "--rrd", rrd]) == 0
     out = capsys.readouterr().out
     assert f"object={UNSEEN_OBJECT} (unseen) seed=12" in out and "measured rates: none" in out
-    metrics = {"seen": {"average_pct": 41.5, "ci95_pct": [38.0, 45.1], "per_object": {"x": {}, "y": {}},
+    metrics = {"seen": {"average_pct": 41.5, "average_ci95_pct": [38.0, 45.1], "per_object": {"x": {}, "y": {}},
                         "episodes_per_object": 10, "seed": FIRST_EVALUATION_SEED},
                "unseen": {"average_pct": 7.7, "per_object": {"x": {}}, "episodes_per_object": 10}}
     path.with_suffix(".json").write_text(json.dumps({"metrics": metrics}))

@@ -170,9 +170,9 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
 def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.eval.envs import env_factory_for_policy, resolve_objects
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
-    from dexdrake.objects.library import get_object
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
+    from dexdrake.objects.library import get_object
 
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION

@@ -173,7 +173,8 @@ class DAPGTrainer:
         self.best_return = -float("inf")
         self.rows: list[dict[str, float]] = []  # every iteration's log row, since iteration 0
         self.env_steps = 0
-        self.cpu_s = 0.0
+        self.cpu_s = 0.0  # this process since the last iteration (sampling aside) + every rollout's own CPU
+        self._cpu_mark = time.process_time()
         self.sessions: list[dict[str, Any]] = []  # one entry per start or resume
         self.saved_config: dict[str, Any] = {}  # the config a loaded state was made with
         self.rng = np.random.default_rng(config.seed)
@@ -236,10 +237,10 @@ class DAPGTrainer:
         """Run one DAPG iteration (sample, NPG step, baseline refit); returns its log row."""
         cfg, t0, k = self.config, time.perf_counter(), self.iteration
         seeds = rollout_seeds(cfg.seed, k, cfg.rollouts_per_iteration, cfg.seed_groups)
-        rollout_cpu = self.sampler.episode_cpu_s
+        sample_start, rollout_cpu = time.process_time(), self.sampler.episode_cpu_s
         trajs: list[Trajectory] = self.sampler.sample(self.policy, seeds)
-        rollout_cpu = self.sampler.episode_cpu_s - rollout_cpu  # the workers' own CPU seconds
-        cpu0 = time.process_time()  # learner CPU from here on
+        sample_cpu = time.process_time() - sample_start  # in this process (all of it for a sequential sampler)
+        rollout_cpu = self.sampler.episode_cpu_s - rollout_cpu  # the CPU seconds the rollouts took where they ran
         if not trajs or any(len(tr) == 0 for tr in trajs):
             raise DexdrakeError(f"iteration {k}: the sampler returned an empty trajectory")
         obs = np.concatenate([tr.observations for tr in trajs])
@@ -279,7 +280,9 @@ class DAPGTrainer:
         )
         self.iteration = k + 1
         self.env_steps += len(obs)
-        self.cpu_s += time.process_time() - cpu0 + rollout_cpu
+        now = time.process_time()
+        self.cpu_s += now - self._cpu_mark - sample_cpu + rollout_cpu
+        self._cpu_mark = now
         return {
             "iteration": k,
             "mean_return": float(np.mean([tr.total_reward for tr in trajs])),
@@ -310,6 +313,7 @@ class DAPGTrainer:
             name = "dapg.rrd" if self.iteration == 0 else f"dapg_from_{self.iteration:04d}.rrd"
             self._rerun = _RerunCurves(self.out_dir / name)
         bar = tqdm(range(self.iteration, cfg.iterations), desc="DAPG", unit="it", disable=not cfg.progress)
+        self._cpu_mark = time.process_time()
         for _ in bar:
             row = self.step()
             self.rows.append(row)
@@ -348,7 +352,8 @@ class DAPGTrainer:
             "iterations_done": self.iteration,
             "env_steps": self.env_steps,
             "cpu_hours": round(self.cpu_s / 3600, 4),
-            "cpu_note": "process CPU time of every rollout (in its worker) plus the learner's CPU time outside sampling",
+            "cpu_note": "the sampler's worker CPU seconds (episode_cpu_s) plus the learner's CPU time outside "
+                        "sampling; process start-up (imports, first env builds) excluded",
             "seeds": f"rollout seeds of iteration k: rollout_seeds({self.config.seed}, k, "
                      f"{self.config.rollouts_per_iteration}, {self.config.seed_groups}) in dexdrake.learn.dapg, "
                      f"inside the training range [{TRAINING_SEEDS.start}, {TRAINING_SEEDS.stop})",

@@ -1,7 +1,10 @@
-"""CLI `dexdrake demo`: the shipped policy tries to grasp an unseen object in simulation, recorded to rerun.
+"""CLI `dexdrake demo`: the shipped policy tries to grasp an object in simulation, recorded to rerun.
 
 Needs nothing but the repository: the policy file `models/weights/adroit_dexrep_policy.pt`
-and its manifest (`.json`, whose unseen evaluation picks the default object).
+and its manifest (`.json`, whose unseen evaluation picks the default object). Any object
+(training, unseen or user-imported) can be chosen with --object and any placement with
+--seed. Next to the episode's result it prints the policy's measured seen/unseen success
+rates from the manifest, so one episode is never mistaken for the policy's rate.
 """
 
 from __future__ import annotations
@@ -38,9 +41,33 @@ def best_unseen_object(manifest_path: Path) -> str:
     return min(per_object, key=lambda n: (-per_object[n]["success_pct"], -per_object[n]["mean_max_lift"], n))
 
 
+def measured_rates(manifest_path: Path) -> str:
+    """One line with the seen/unseen success rates the policy's manifest records."""
+    try:
+        metrics = json.loads(manifest_path.read_text())["metrics"]
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        return f"measured rates: none (no readable metrics in {manifest_path})"
+    parts = []
+    for label in ("seen", "unseen"):
+        m = metrics.get(label) if isinstance(metrics, dict) else None
+        if not isinstance(m, dict) or "average_pct" not in m:
+            parts.append(f"{label} not measured")
+            continue
+        text = f"{label} {m['average_pct']:.1f} %"
+        if "average_ci95_pct" in m:
+            text += f" (95 % CI {m['average_ci95_pct'][0]:.1f}-{m['average_ci95_pct'][1]:.1f})"
+        if "per_object" in m and "episodes_per_object" in m:
+            text += f" over {len(m['per_object'])} objects x {m['episodes_per_object']} episodes"
+        if "seed" in m:
+            text += f" from seed {m['seed']}"
+        parts.append(text)
+    return f"measured rates of this policy ({manifest_path.name}): " + "; ".join(parts)
+
+
 def add_parser(subparsers) -> None:
-    demo = subparsers.add_parser("demo", help="the shipped policy tries to grasp an unseen object (writes a rerun recording)")
-    demo.add_argument("--object", help="object name (default: the unseen object the shipped policy grasps best)")
+    demo = subparsers.add_parser("demo", help="the shipped policy tries to grasp an object (writes a rerun recording)")
+    demo.add_argument("--object", help="any object name: training, unseen or user-imported "
+                                       "(default: the unseen object the shipped policy grasps best)")
     demo.add_argument("--seed", type=argtypes.seed, default=0, help="placement seed")
     demo.add_argument("--rrd", type=argtypes.output_file(".rrd"), default=Path("demo.rrd"), help="rerun recording to write")
     demo.add_argument("--policy", type=Path, help="policy checkpoint (default: the shipped one)")
@@ -66,7 +93,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from dexdrake.systems.rerun_logger import RerunEpisodeLogger
 
     torch.set_num_threads(1)
-    name = args.object or best_unseen_object(Path(policy_path).with_suffix(".json"))
+    manifest = Path(policy_path).with_suffix(".json")
+    name = args.object or best_unseen_object(manifest)
     info = get_object(name)
     policy, _ = load_policy(policy_path)
     env = env_factory_for_policy(policy.config, [name], args.steps)()
@@ -80,6 +108,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - start
     print(f"object={name} ({info.split}) seed={args.seed} success={success} max_lift={lift:.3f}m "
           f"steps={steps} reward={reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
+    print(measured_rates(manifest))
     return 0
 
 

@@ -28,9 +28,11 @@ import sys
 import time
 from pathlib import Path
 
+from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
-EVAL_SEED = 900  # evaluation seeds 900.. are disjoint from DAgger's training seeds i * 10**4 + k
+EVAL_SEED = FIRST_EVALUATION_SEED  # the range reserved for evaluation, disjoint from every training seed
 DATA_SOURCE = ("DAgger on the training objects: states visited by the state-driven expert (iteration 0) and by "
                "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
                "not the human-demo replay")
@@ -91,10 +93,11 @@ def main() -> None:
     metrics = {}
     for label in ("seen", "unseen"):
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
-        metrics[label] = {k: report[k] for k in ("average_pct", "per_object", "episodes_per_object", "seed", "horizon",
-                                                  "command", "wall_s", "workers")}
-        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt"
-                                                                         f" (copied from {policy})")
+        metrics[label] = {k: report[k] for k in ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object",
+                                                  "seed", "seeds_reserved_for_evaluation", "horizon", "command",
+                                                  "wall_s", "workers")}
+        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
+        text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
         (weights / f"{tables}_{label}.md").write_text(text)
 
     import torch

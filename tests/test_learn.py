@@ -324,7 +324,9 @@ def test_dapg_iteration_with_two_workers(tmp_path):
     assert meta["updates"] == 1 and torch.equal(flat_params(list(reloaded.parameters())), flat_params(list(policy.parameters())))
     best, meta = load_policy(tmp_path / "dapg_policy_best.pt")  # the sampled (pre-update) weights
     assert meta["updates"] == 0 and meta["mean_return"] == pytest.approx(row["mean_return"])
-    assert torch.equal(flat_params([p for n, p in best.named_parameters() if not n.startswith("encoders")]), head_before)
+    head = [p for n, p in best.named_parameters() if not n.startswith("encoders") and n != "log_std"]
+    assert torch.equal(flat_params(head), head_before[2:])  # head_before starts with the 2 log-std entries
+    assert torch.allclose(best.log_std, torch.log(0.5 * torch.as_tensor(demos.actions).std(0, correction=0)))
 
 
 def test_dapg_resume_continues_and_matches_uninterrupted_run(tmp_path):

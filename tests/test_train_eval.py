@@ -149,7 +149,7 @@ def test_table_has_paper_column_and_average():
     assert "| mug | 3/3 | 100.0 | 100.0 |" in md
     assert "ours 50.0 %, paper 51.6 %" in md  # mug + pyramid_small, the objects with a paper number
     lines = csv_table(report).strip().splitlines()
-    assert lines[0] == "object,successes,ours_pct,paper_pct,mean_max_lift_m" and lines[-1].startswith("average,4/9,44.4,83.9")
+    assert lines[0] == "object,successes,ours_pct,paper_pct,mean_max_lift_m,ci95_pct" and lines[-1].startswith("average,4/9,44.4,83.9")
 
 
 def test_seen_table_uses_the_seen_average_only(tmp_path):

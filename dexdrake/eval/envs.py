@@ -44,6 +44,7 @@ class GraspEnvFactory:
     feature_set: str | None
     objects: tuple[str, ...]
     horizon: int = 200
+    object_from_seed: bool = False  # reset(seed) runs objects[seed % len(objects)] (balanced training batches)
 
     def __post_init__(self) -> None:
         if not self.objects:
@@ -56,10 +57,26 @@ class GraspEnvFactory:
         from dexdrake.systems.scene import SceneConfig
 
         config = SceneConfig(hand=self.hand, object=self.objects[0])
-        return GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, objects=list(self.objects))
+        env = GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, objects=list(self.objects))
+        return ObjectFromSeed(env) if self.object_from_seed else env
 
 
-def env_factory_for_policy(policy_config, objects: list[str], horizon: int) -> GraspEnvFactory:
+class ObjectFromSeed:
+    """A GraspEnv whose `reset(seed)` runs object seed % len(objects) (placement still from the seed)."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def reset(self, seed: int):
+        return self.env.reset(seed, object_name=self.env.objects[seed % len(self.env.objects)])
+
+    def __getattr__(self, name: str):
+        return getattr(self.env, name)
+
+
+def env_factory_for_policy(
+    policy_config, objects: list[str], horizon: int, object_from_seed: bool = False
+) -> GraspEnvFactory:
     """The factory matching a policy's hand and feature set (both must be recorded)."""
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
     from dexdrake.hands.description import hand_names
@@ -69,4 +86,4 @@ def env_factory_for_policy(policy_config, objects: list[str], horizon: int) -> G
         raise DexdrakeError(f"policy records hand {hand!r}, not one of {hand_names()}")
     if feature_set not in FEATURE_SETS:
         raise DexdrakeError(f"policy records feature set {feature_set!r}, not one of {list(FEATURE_SETS)}")
-    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon)
+    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed)

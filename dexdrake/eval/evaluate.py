@@ -1,10 +1,12 @@
 """Per-object success of a policy checkpoint, in the layout of the paper's Table I.
 
-Each object is run for N episodes with seeds S..S+N-1 (the seed drives the paper's
-placement randomisation through `GraspEnv.reset`), deterministic mean actions and the
-paper's evaluation length of 100 control steps. Episodes run in worker processes
-(spawn/forkserver: a script calling `evaluate_policy` with workers > 1 needs a
-`if __name__ == "__main__":` guard).
+The protocol: every object of the split (seen = every training object, unseen = all unseen
+objects), N >= 10 episodes each with seeds S..S+N-1 taken from the range reserved for
+evaluation (`eval.seeds.EVALUATION_SEEDS`, disjoint from every training seed; the report
+says when they are not), deterministic mean actions and the paper's evaluation length of
+100 control steps. The hand and feature set come from the policy. Rates carry 95 % Wilson
+intervals. Episodes run in worker processes (spawn/forkserver: a script calling
+`evaluate_policy` with workers > 1 needs a `if __name__ == "__main__":` guard).
 """
 
 from __future__ import annotations
@@ -22,9 +24,22 @@ from tqdm.auto import tqdm
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.envs import GraspEnvFactory, env_factory_for_policy
+from dexdrake.eval.seeds import evaluation_seeds_reserved
 from dexdrake.eval.tables import PAPER_AVERAGE
 
 EVAL_HORIZON = 100  # control steps per evaluation episode (paper)
+Z_95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
+
+
+def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
+    """The Wilson score interval (low, high) for a binomial proportion, as fractions in [0, 1]."""
+    if trials < 1 or not 0 <= successes <= trials:
+        raise DexdrakeError(f"need 0 <= successes <= trials and trials >= 1, got {successes}/{trials}")
+    p = successes / trials
+    denom = 1 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denom
+    half = z * ((p * (1 - p) / trials + z * z / (4 * trials * trials)) ** 0.5) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 @dataclass(frozen=True)
@@ -50,10 +65,12 @@ class EvalReport:
     command: str = ""
     wall_s: float = 0.0
     workers: int = 1
+    hand: str = ""  # from the policy
+    feature_set: str = ""  # from the policy
     episodes: list[EpisodeResult] = field(default_factory=list)
 
     def per_object(self) -> dict[str, dict[str, float]]:
-        """{object: {"successes", "episodes", "success_pct", "mean_max_lift"}} in object order."""
+        """{object: {"successes", "episodes", "success_pct", "ci95_pct", "mean_max_lift"}} in object order."""
         out: dict[str, dict[str, float]] = {}
         for name in self.objects:
             eps = [e for e in self.episodes if e.object == name]
@@ -64,6 +81,7 @@ class EvalReport:
                 "successes": wins,
                 "episodes": len(eps),
                 "success_pct": 100.0 * wins / len(eps),
+                "ci95_pct": [100.0 * x for x in wilson_interval(wins, len(eps))],
                 "mean_max_lift": float(np.mean([e.max_lift for e in eps])),
             }
         return out
@@ -72,8 +90,17 @@ class EvalReport:
         """Mean over objects of the per-object success rate (%), as in the paper's tables."""
         return float(np.mean([row["success_pct"] for row in self.per_object().values()]))
 
+    def average_ci95_pct(self) -> tuple[float, float]:
+        """95 % Wilson interval (%) of the average: all episodes pooled (equal episodes per object)."""
+        low, high = wilson_interval(sum(e.success for e in self.episodes), len(self.episodes))
+        return 100.0 * low, 100.0 * high
+
     def seeds_text(self) -> str:
         return f"{self.seed}..{self.seed + self.episodes_per_object - 1}"
+
+    def seeds_reserved(self) -> bool:
+        """The seeds lie in the range reserved for evaluation (disjoint from training seeds)."""
+        return evaluation_seeds_reserved(self.seed, self.episodes_per_object)
 
     def paper_average(self) -> float | None:
         return PAPER_AVERAGE.get(self.label)
@@ -82,6 +109,8 @@ class EvalReport:
         d = asdict(self)
         d["per_object"] = self.per_object()
         d["average_pct"] = self.average_pct()
+        d["average_ci95_pct"] = list(self.average_ci95_pct())
+        d["seeds_reserved_for_evaluation"] = self.seeds_reserved()
         return d
 
 
@@ -160,7 +189,8 @@ def evaluate_policy(
     policy, _ = load_policy(policy_path)  # fail early, in this process, on a bad checkpoint
     env_factory_for_policy(policy.config, objects, horizon)
     jobs = [(name, seed + i) for name in objects for i in range(episodes)]
-    report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers)
+    report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers,
+                        hand=policy.config.hand, feature_set=policy.config.feature_set)
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
     if workers == 1:

@@ -1,4 +1,9 @@
-"""Result tables in the layout of the paper's Table I (markdown and CSV) and the paper's numbers."""
+"""Result tables in the layout of the paper's Table I (markdown and CSV) and the paper's numbers.
+
+One row per object (successes, our rate, the paper's DexRep rate where it has one, mean
+lift, 95 % Wilson interval) and an average row; the markdown header names the command that
+made the table, runnable as written, and the seeds.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +12,8 @@ import io
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from dexdrake.eval.seeds import EVALUATION_SEEDS
 
 if TYPE_CHECKING:
     from dexdrake.eval.evaluate import EvalReport
@@ -42,8 +49,12 @@ def _fmt(value: float | None) -> str:
     return "" if value is None else f"{value:.1f}"
 
 
+def _fmt_ci(ci: tuple[float, float] | list[float]) -> str:
+    return f"{ci[0]:.1f}-{ci[1]:.1f}"
+
+
 def table_rows(report: EvalReport) -> list[dict[str, str]]:
-    """One row per object plus an 'average' row: object, successes, ours %, paper %, lift."""
+    """One row per object plus an 'average' row: object, successes, ours %, paper %, lift, 95 % CI."""
     rows = []
     for name, r in report.per_object().items():
         paper = PAPER_UNSEEN.get(name) if report.label != "seen" else None
@@ -53,6 +64,7 @@ def table_rows(report: EvalReport) -> list[dict[str, str]]:
             "ours_pct": _fmt(r["success_pct"]),
             "paper_pct": _fmt(paper),
             "mean_max_lift_m": f"{r['mean_max_lift']:.3f}",
+            "ci95_pct": _fmt_ci(r["ci95_pct"]),
         })
     total = sum(int(r["successes"]) for r in report.per_object().values())
     rows.append({
@@ -61,6 +73,7 @@ def table_rows(report: EvalReport) -> list[dict[str, str]]:
         "ours_pct": _fmt(report.average_pct()),
         "paper_pct": _fmt(report.paper_average()),
         "mean_max_lift_m": f"{sum(e.max_lift for e in report.episodes) / len(report.episodes):.3f}",
+        "ci95_pct": _fmt_ci(report.average_ci95_pct()),
     })
     return rows
 
@@ -80,22 +93,29 @@ def paper_subset_average(report: EvalReport) -> tuple[float, float, int] | None:
 
 def markdown_table(report: EvalReport) -> str:
     """The report as markdown: a header naming command, policy and seeds, then the table."""
+    seeds = (f"reserved for evaluation, disjoint from every training seed (range [{EVALUATION_SEEDS.start}, "
+             f"{EVALUATION_SEEDS.stop}))" if report.seeds_reserved()
+             else "NOT in the range reserved for evaluation: they may repeat training episodes")
+    low, high = report.average_ci95_pct()
     lines = [
         f"# Evaluation on {report.label} objects",
         "",
         f"- command: `{report.command}`" if report.command else "- command: (API call)",
-        f"- policy: `{report.policy}`",
-        f"- seeds {report.seeds_text()} per object ({report.episodes_per_object} episodes), "
+        f"- policy: `{report.policy}`" + (f" (hand {report.hand}, features {report.feature_set})" if report.hand else ""),
+        f"- seeds {report.seeds_text()} per object ({report.episodes_per_object} episodes), {seeds}; "
         f"{report.horizon} control steps (50 Hz), deterministic mean actions",
         "- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
+        f"- average {report.average_pct():.1f} % over {len(report.objects)} objects, 95 % Wilson interval "
+        f"{low:.1f}-{high:.1f} % ({len(report.episodes)} episodes pooled)",
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s)",
         "",
-        "| object | successes | ours (%) | paper DexRep (%) | mean max lift (m) |",
-        "|---|---|---|---|---|",
+        "| object | successes | ours (%) | paper DexRep (%) | mean max lift (m) | 95 % CI (%) |",
+        "|---|---|---|---|---|---|",
     ]
     for row in table_rows(report):
         name = f"**{row['object']}**" if row["object"] == "average" else row["object"]
-        lines.append(f"| {name} | {row['successes']} | {row['ours_pct']} | {row['paper_pct']} | {row['mean_max_lift_m']} |")
+        lines.append(f"| {name} | {row['successes']} | {row['ours_pct']} | {row['paper_pct']} | "
+                     f"{row['mean_max_lift_m']} | {row['ci95_pct']} |")
     sub = paper_subset_average(report)
     if sub is not None:
         lines += ["", f"Average over the {sub[2]} objects with a paper number: ours {sub[0]:.1f} %, paper {sub[1]:.1f} %."]

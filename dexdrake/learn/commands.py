@@ -13,6 +13,7 @@ from typing import Any
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
 
 
 def _positive_int(text: str) -> int:
@@ -68,18 +69,23 @@ def add_parser(subparsers) -> None:
     bc.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads")
     bc.set_defaults(func=cmd_train_bc)
 
-    dapg = train_sub.add_parser("dapg", help="DAPG fine-tuning of a BC checkpoint in the Drake grasp env")
-    dapg.add_argument("--init", required=True, type=Path, help="policy checkpoint to start from (e.g. bc_best.pt)")
-    dapg.add_argument("--demos", required=True, type=Path, help="demo dataset .npz for the augmented gradient")
+    dapg = train_sub.add_parser("dapg", help="DAPG fine-tuning of a BC or DAgger policy in the Drake grasp env")
+    dapg.add_argument("--init", required=True, type=Path, help="policy checkpoint to start from (e.g. dagger_policy.pt)")
+    dapg.add_argument("--demos", required=True, type=Path,
+                      help="demonstration term: a demo dataset .npz or a DAgger output folder (its data_XX.npz)")
+    dapg.add_argument("--demo-samples", type=_positive_int, default=50000,
+                      help="demonstration pairs kept (uniform, seeded), all used every iteration")
+    dapg.add_argument("--demo-std-fraction", type=_positive_float,
+                      help="fresh start: exploration std = this x the demo actions' std, per dimension "
+                           "(default: dexdrake.learn.policy.DEMO_STD_FRACTION)")
     dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=_positive_int, default=500)
-    dapg.add_argument("--per-object", type=_positive_int, default=10, help="trajectories per object per iteration (K x objects in all; "
-                      "each trajectory's object is drawn from its seed)")
+    dapg.add_argument("--per-object", type=_positive_int, default=10, help="trajectories per object per iteration")
     dapg.add_argument("--objects", default="train", help="'train' or comma-separated object names")
     dapg.add_argument("--horizon", type=_positive_int, default=200, help="control steps per trajectory")
     dapg.add_argument("--workers", type=_positive_int, default=2)
     _add_backend_options(dapg)
-    dapg.add_argument("--resume", action="store_true", help="continue from OUT/dapg_state.pt")
+    dapg.add_argument("--resume", action="store_true", help="continue the run in OUT (dapg_state.pt) where it stopped")
     dapg.add_argument("--seed", type=argtypes.seed, default=0)
     dapg.set_defaults(func=cmd_train_dapg)
 
@@ -103,7 +109,9 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
     ev.add_argument("--episodes", type=_positive_int, default=10, help="episodes per object (seeds S..S+N-1)")
-    ev.add_argument("--seed", type=argtypes.seed, default=0, help="first episode seed S")
+    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_EVALUATION_SEED,
+                    help="first episode seed S; seeds must lie in the range reserved for evaluation "
+                         f"[{EVALUATION_SEEDS.start}, {EVALUATION_SEEDS.stop}), disjoint from every training seed")
     ev.add_argument("--workers", type=_positive_int, default=1, help="worker processes")
     ev.add_argument("--horizon", type=_positive_int, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
@@ -130,7 +138,7 @@ def policy_config_from_metadata(metadata: dict[str, Any], action_dim: int, obs_d
 def dataset_summary(metadata: dict[str, Any]) -> dict[str, Any]:
     """The small, JSON-friendly part of a dataset's metadata (drops per-demo records)."""
     keep = ("format", "source", "hand", "feature_set", "observation_blocks", "objects", "counts", "seed",
-            "command", "success_rates", "script")
+            "command", "success_rates", "script", "folder", "pairs_total", "pairs_used")
     out = {k: metadata[k] for k in keep if k in metadata}
     if isinstance(out.get("success_rates"), dict) and "overall" in out["success_rates"]:
         out["success_rates"] = {"overall": out["success_rates"]["overall"]}
@@ -148,6 +156,7 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     data = load_demo_dataset(args.data)
     config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])
     policy = DexRepNetPolicy(config)
+    policy.set_log_std_from_actions(data.actions)  # BC fits the mean only; RL explores at the demos' spread
     bc_config = BCConfig(epochs=args.epochs, batch_size=args.batch, lr=args.lr, seed=args.seed)
     command = command_line(["train", "bc"], args, ["data", "out", "epochs", "batch", "lr", "seed", "threads"])
     meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata)}
@@ -160,35 +169,45 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
 
 def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.eval.envs import env_factory_for_policy, resolve_objects
-    from dexdrake.learn.dapg import DAPGConfig, train_dapg
-    from dexdrake.learn.demo_dataset import load_demo_dataset
-    from dexdrake.learn.policy import load_policy
+    from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
+    from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
+    from dexdrake.objects.library import get_object
 
+    if args.demo_std_fraction is None:
+        args.demo_std_fraction = DEMO_STD_FRACTION
     policy, init_meta = load_policy(args.init)
     policy.train()
-    demos = load_demo_dataset(args.demos, policy.config.obs_dim, policy.config.action_dim)
     if args.objects in ("unseen", "seen"):
         raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
     _, objects = resolve_objects(args.objects)
-    factory = env_factory_for_policy(policy.config, objects, args.horizon)
+    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    if held_out:
+        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+    demos = load_demo_term(args.demos, policy.config.obs_dim, policy.config.action_dim, args.demo_samples, args.seed)
+    factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True)
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
-                        time_scale=args.horizon, seed=args.seed)
-    command = command_line(["train", "dapg"], args, ["init", "demos", "out", "iterations", "per-object", "objects",
-                                                      "horizon", "workers", "backend", "address", "resume", "seed"])
+                        seed_groups=len(objects), time_scale=args.horizon, seed=args.seed,
+                        demo_std_fraction=args.demo_std_fraction)
+    command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "out",
+                                                      "iterations", "per-object", "objects", "horizon", "workers",
+                                                      "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
-            "dataset_metadata": dataset_summary(demos.metadata), "objects": objects,
-            "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch")}}
+            "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
+            "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")}}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
-          f"{args.iterations} iterations, backend {args.backend} with {args.workers} worker(s)")
+          f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
+          f"{args.workers} worker(s)")
     sampler = make_sampler(factory, args.backend, args.workers, args.address)
     try:
         result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
     finally:
         sampler.close()
     last = result.rows[-1] if result.rows else None
-    summary = f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}" if last else ""
-    print(f"DAPG done at iteration {result.iterations_done}{summary}; artefacts in {args.out}")
+    summary = (f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}, "
+               f"{last['env_steps']} env steps, {last['cpu_s'] / 3600:.3f} CPU-hours in all") if last else ""
+    print(f"DAPG done at iteration {result.iterations_done}{summary}; curves {result.plot_png}, "
+          f"manifest {args.out / 'dapg_manifest.json'}")
     return 0
 
 
@@ -223,6 +242,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     label, objects = resolve_objects(args.objects)
     label = args.label or label
+    check_evaluation_seeds(args.seed, args.episodes)
     report = evaluate_policy(args.policy, objects, args.episodes, args.seed, args.workers, args.horizon,
                              label=label, command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
                                                                                  "workers", "horizon", "out", "label"]))
@@ -230,5 +250,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.out:
         paths = write_report(report, args.out)
         print("wrote " + ", ".join(str(p) for p in paths.values()))
-    print(json.dumps({"average_pct": round(report.average_pct(), 2), "episodes": len(report.episodes)}))
+    low, high = report.average_ci95_pct()
+    print(json.dumps({"average_pct": round(report.average_pct(), 2), "ci95_pct": [round(low, 2), round(high, 2)],
+                      "episodes": len(report.episodes)}))
     return 0

@@ -38,32 +38,53 @@ class CsvLog:
             csv.DictWriter(f, fieldnames=self.columns).writerow(dict(row))
 
 
+def write_csv(path: str | Path, columns: Sequence[str], rows: Sequence[Mapping[str, float | int | str]]) -> Path:
+    """Write all rows to a CSV file atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.csv")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)
+    return path
+
+
 def read_csv(path: str | Path) -> list[dict[str, str]]:
     """All rows of a CSV file as dicts of strings."""
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
 
-def plot_curves(csv_path: str | Path, png_path: str | Path, x: str, ys: Sequence[str], title: str = "") -> Path:
-    """Plot columns `ys` of a CSV log against column `x`, one panel each, to a PNG."""
+def plot_curves(
+    csv_path: str | Path, png_path: str | Path, x: str | Sequence[str], ys: Sequence[str], title: str = ""
+) -> Path:
+    """Plot columns `ys` of a CSV log against column `x` (or each of several x columns, one
+    panel column per x), one panel row per y, to a PNG written atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = read_csv(csv_path)
-    xs = [float(r[x]) for r in rows]
-    fig, axes = plt.subplots(len(ys), 1, figsize=(6, 2.2 * len(ys)), sharex=True, squeeze=False)
-    for ax, col in zip(axes[:, 0], ys):
-        vals = [float(r[col]) if r.get(col, "") != "" else float("nan") for r in rows]
-        ax.plot(xs, vals, marker="." if len(xs) < 50 else None)
-        ax.set_ylabel(col)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel(x)
-    if title:
-        axes[0, 0].set_title(title)
+    xs_names = [x] if isinstance(x, str) else list(x)
+    fig, axes = plt.subplots(len(ys), len(xs_names), figsize=(6 * len(xs_names), 2.2 * len(ys)), sharex="col",
+                             squeeze=False)
+    for j, x_name in enumerate(xs_names):
+        xs = [float(r[x_name]) for r in rows]
+        for ax, col in zip(axes[:, j], ys):
+            vals = [float(r[col]) if r.get(col, "") != "" else float("nan") for r in rows]
+            ax.plot(xs, vals, marker="." if len(xs) < 50 else None)
+            ax.set_ylabel(col)
+            ax.grid(alpha=0.3)
+        axes[-1, j].set_xlabel(x_name)
+        if title:
+            axes[0, j].set_title(title)
     fig.tight_layout()
     png_path = Path(png_path)
-    fig.savefig(png_path, dpi=100)
+    tmp = png_path.with_name(png_path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
     plt.close(fig)
+    tmp.replace(png_path)
     return png_path

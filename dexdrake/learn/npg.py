@@ -1,13 +1,19 @@
 """Natural policy gradient pieces: flat parameters, Fisher-vector products, CG, the step.
 
-The Fisher matrix is the Hessian of the mean KL(pi_old || pi_theta) at theta = theta_old,
+The Fisher matrix F is the Hessian of the mean KL(pi_old || pi_theta) at theta = theta_old,
 applied to a vector by double back-propagation (never formed). The step solves F x = g by
-conjugate gradient and scales it so that the quadratic KL model equals the normalised step
-size delta: theta += sqrt(delta / (g^T F^-1 g)) * F^-1 g  (mjrl's NPG).
+conjugate gradient and takes theta += alpha x with alpha = sqrt(delta / (g^T F^-1 g)), as
+mjrl's NPG does with its "normalised step size" delta. The KL's quadratic model is then
+KL ~ 1/2 dtheta^T F dtheta = 1/2 alpha^2 g^T F^-1 g = delta / 2: the target KL is delta / 2.
+Because the quadratic model can be far off (far from a BC optimum, or with a nearly singular
+F), the step measures the real KL afterwards and halves alpha while it exceeds
+`max_kl_ratio` times the target (a backtracking safeguard; the step is undone if no
+halving helps). The log-std parameter is clamped into its bounds after every trial step.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -97,10 +103,13 @@ def fisher_vector_product(
 
 @dataclass(frozen=True)
 class NPGStep:
-    alpha: float  # step length applied to the natural gradient
+    alpha: float  # step length applied to the natural gradient (0 when the step was undone)
     grad_norm: float
     natural_grad_dot: float  # g^T F^-1 g
     step_norm: float
+    kl: float  # measured mean KL(pi_old || pi_new) after the step
+    kl_target: float  # step_size / 2, the quadratic model's KL for the full step
+    backtracks: int  # halvings of alpha applied
 
 
 def natural_gradient_step(
@@ -110,15 +119,45 @@ def natural_gradient_step(
     step_size: float = 0.05,
     cg_iters: int = 10,
     damping: float = 1e-4,
+    kl_obs: torch.Tensor | None = None,
+    max_kl_ratio: float = 1.5,
+    max_backtracks: int = 10,
 ) -> NPGStep:
-    """Ascend `grad` (flat, over trainable parameters) along the natural gradient in place."""
+    """Ascend `grad` (flat, over trainable parameters) along the natural gradient in place.
+
+    The KL is measured on `kl_obs` (default `fisher_obs`); alpha is halved up to
+    `max_backtracks` times while it exceeds max_kl_ratio * step_size / 2.
+    """
     params = list(policy.trainable_parameters())
     if not params:
         raise DexdrakeError("policy has no trainable parameters")
+    if step_size <= 0 or max_kl_ratio < 1 or max_backtracks < 0:
+        raise DexdrakeError(f"need step_size > 0, max_kl_ratio >= 1, max_backtracks >= 0 "
+                            f"(got {step_size}, {max_kl_ratio}, {max_backtracks})")
+    kl_obs = fisher_obs if kl_obs is None else kl_obs
+    policy.clamp_log_std_()
+    with torch.no_grad():
+        mean_old, log_std_old = policy(kl_obs), policy.clamped_log_std().clone()
     matvec = fisher_vector_product(policy, fisher_obs, damping)
     nat = conjugate_gradient(matvec, grad, iters=cg_iters)
     ngd = float(torch.dot(grad, nat))
+    theta_old = flat_params(params)
+    kl_target = step_size / 2
     alpha = (step_size / (abs(ngd) + 1e-20)) ** 0.5
-    step = alpha * nat
-    set_flat_params(params, flat_params(params) + step)
-    return NPGStep(alpha=alpha, grad_norm=float(grad.norm()), natural_grad_dot=ngd, step_norm=float(step.norm()))
+    backtracks = 0
+    while True:
+        set_flat_params(params, theta_old + alpha * nat)
+        policy.clamp_log_std_()
+        with torch.no_grad():
+            kl = float(policy_kl(policy, kl_obs, mean_old, log_std_old))
+        if math.isfinite(kl) and kl <= max_kl_ratio * kl_target:
+            break
+        if backtracks == max_backtracks:  # no halving helped: undo the step
+            set_flat_params(params, theta_old)
+            alpha, kl = 0.0, 0.0
+            break
+        alpha *= 0.5
+        backtracks += 1
+    step_norm = float((flat_params(params) - theta_old).norm())
+    return NPGStep(alpha=alpha, grad_norm=float(grad.norm()), natural_grad_dot=ngd, step_norm=step_norm, kl=kl,
+                   kl_target=kl_target, backtracks=backtracks)

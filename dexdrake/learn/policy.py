@@ -6,7 +6,11 @@ encoder with a ReLU (`encoder_activation="relu"`, the default; "none" keeps it p
 linear, which would compose with the first MLP layer into one low-rank linear map). The
 features are concatenated and fed to an MLP with hidden sizes [512, 128] and ReLU whose
 output is the action mean (no tanh; the env clips actions to [-1, 1]). For RL the policy is
-a diagonal Gaussian around that mean with a learned, state-independent log-std.
+a diagonal Gaussian around that mean with a learned, state-independent log-std, kept in
+[min_log_std, max_log_std] by clamping the parameter itself after each update
+(`clamp_log_std_`), so its gradient never vanishes. Before RL the log-std is set from the
+spread of the demonstration actions (`set_log_std_from_actions`), as mjrl's behaviour cloning
+does for the DAPG hand tasks, instead of std 1 over the whole [-1, 1] action range.
 
 Observations are normalised inside the module with stored (mean, std) buffers, so a
 checkpoint carries everything needed to run the policy on raw env observations.
@@ -28,6 +32,7 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import observation_dim
 
 CHECKPOINT_FORMAT = "dexdrake.policy/1"
+DEMO_STD_FRACTION = 0.5  # exploration std = this fraction of the demo actions' std, per dimension
 ENCODER_ACTIVATIONS = ("relu", "none")
 
 
@@ -44,6 +49,7 @@ class PolicyConfig:
     encoder_activation: str = "relu"
     init_log_std: float = 0.0
     min_log_std: float = -3.0
+    max_log_std: float = 0.0  # std 1: the half-width of the normalised action range
 
     @classmethod
     def from_blocks(cls, blocks: Mapping[str, int], action_dim: int, **kwargs: Any) -> PolicyConfig:
@@ -76,6 +82,9 @@ class DexRepNetPolicy(nn.Module):
         obs_dim = config.obs_dim  # validates the blocks
         if config.action_dim <= 0:
             raise DexdrakeError(f"action_dim must be positive, got {config.action_dim}")
+        if not config.min_log_std <= config.init_log_std <= config.max_log_std:
+            raise DexdrakeError(f"need min_log_std <= init_log_std <= max_log_std, got {config.min_log_std}, "
+                                f"{config.init_log_std}, {config.max_log_std}")
         if config.encoder_activation not in ENCODER_ACTIVATIONS:
             raise DexdrakeError(
                 f"encoder_activation {config.encoder_activation!r} not in {ENCODER_ACTIVATIONS}"
@@ -109,7 +118,27 @@ class DexRepNetPolicy(nn.Module):
         return self.mlp(torch.cat(feats, dim=-1))
 
     def clamped_log_std(self) -> torch.Tensor:
-        return torch.clamp(self.log_std, min=self.config.min_log_std)
+        """The log-std in use (equal to the parameter once `clamp_log_std_` has run)."""
+        return torch.clamp(self.log_std, self.config.min_log_std, self.config.max_log_std)
+
+    def clamp_log_std_(self) -> None:
+        """Clamp the log-std parameter itself into [min_log_std, max_log_std] (after each update)."""
+        with torch.no_grad():
+            self.log_std.clamp_(self.config.min_log_std, self.config.max_log_std)
+
+    def set_log_std_from_actions(self, actions: np.ndarray, fraction: float = DEMO_STD_FRACTION) -> np.ndarray:
+        """Set the log-std to log(fraction * per-dimension std of `actions` (N, A)), clamped
+        into [min_log_std, max_log_std]; returns the std set."""
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.ndim != 2 or actions.shape[1] != self.config.action_dim or actions.shape[0] < 2:
+            raise DexdrakeError(f"need >= 2 actions of size {self.config.action_dim}, got shape {actions.shape}")
+        if not fraction > 0 or not np.all(np.isfinite(actions)):
+            raise DexdrakeError(f"fraction must be positive and actions finite (fraction {fraction})")
+        log_std = np.log(fraction * actions.std(axis=0) + 1e-12)
+        with torch.no_grad():
+            self.log_std.copy_(torch.as_tensor(log_std, dtype=torch.float32))
+        self.clamp_log_std_()
+        return np.exp(self.log_std.detach().numpy().astype(np.float64))
 
     def log_prob(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Gaussian log-likelihood of `actions` (N, A) under the policy at `obs` (N, D)."""

@@ -361,12 +361,10 @@ def test_dexrep_system_outputs_extractor_features(hand_scene, geometries):
     np.testing.assert_allclose(out, system.extractor(pctx, X_WO), atol=1e-12)
 
 
-def test_manifest_of_shipped_encoder_if_present():
+def test_manifest_of_shipped_encoder():
     from dexdrake.dexrep.pointnet import default_encoder_path, load_encoder
 
     path = default_encoder_path()
-    if not path.exists():
-        pytest.skip("no shipped encoder yet")
     manifest = json.loads(path.with_suffix(".json").read_text())
     assert {"command", "data", "chamfer_train", "chamfer_unseen", "date", "torch"} <= set(manifest)
     assert isinstance(load_encoder(), PointNetEncoder)

@@ -5,6 +5,7 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from dexdrake.cli import main as cli_main
+from rrd_content import logged_rows
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.scene import ObjectPlacement, SceneConfig, build_grasp_scene
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, closed_pose
@@ -28,9 +29,11 @@ def test_placement_follows_paper_ranges():
     rng = np.random.default_rng(0)
     samples = [ObjectPlacement.sample(rng) for _ in range(500)]
     xs, ys, yaws = (np.array([getattr(s, k) for s in samples]) for k in ("x", "y", "yaw"))
-    assert xs.min() >= -0.05 and xs.max() <= 0.05 and np.ptp(xs) > 0.08
-    assert ys.min() >= -0.05 and ys.max() <= 0.0
-    assert yaws.min() >= -np.pi and yaws.max() <= np.pi
+    # Each coordinate stays in its range and spreads over all of it (every tenth of it is hit).
+    for values, lo, hi in [(xs, -0.05, 0.05), (ys, -0.05, 0.0), (yaws, -np.pi, np.pi)]:
+        assert values.min() >= lo and values.max() <= hi
+        counts, _ = np.histogram(values, bins=10, range=(lo, hi))
+        assert counts.min() >= 25, counts
 
 
 def test_reset_places_object_at_rest_on_table(sphere_env):
@@ -71,7 +74,18 @@ def test_fingertip_distances_shrink_when_hand_closes_on_object(sphere_env):
     env = sphere_env
     env.reset(0)
     far = env.fingertip_distances()
-    assert np.all(far > 0.01) and np.all(np.isfinite(far))
+    assert np.all(far > 0.1) and np.all(np.isfinite(far))
+    plan = ScriptedGrasp(env)  # its grasp pose for the arm, the fingers open then closed
+    q_open, q_closed = plan.q_open.copy(), plan.q_closed.copy()
+    q_open[: plan.n_arm] = q_closed[: plan.n_arm] = plan.q_grasp
+    for _ in range(20):
+        env.step_positions(q_open)
+    around = env.fingertip_distances()
+    for _ in range(20):
+        env.step_positions(q_closed)
+    closed = env.fingertip_distances()
+    assert np.all(around > 0.015) and np.all(around < far)
+    assert np.sum(closed < 0.01) >= 3 and closed.sum() < 0.75 * around.sum(), (around, closed)
 
 
 def test_closed_pose_moves_finger_joints_toward_their_limits():
@@ -117,7 +131,14 @@ def test_rerun_recording_is_written(tmp_path, sphere_env):
     logger = RerunEpisodeLogger(path)
     env.rollout(ScriptedGrasp, seed=0, logger=logger)
     logger.close()
-    assert path.stat().st_size > 10_000
+    rows = logged_rows(path)
+    # The scene once (static), then every step: the object, joints, reward terms, task state.
+    assert rows["/world/table"] == 0 and rows["/world/object/mesh"] == 0 and "/world/hand/palm" in rows
+    for entity in ("/reward/total", "/reward/r_d", "/task/lift", "/task/success"):
+        assert rows[entity] == 5, entity
+    assert rows["/world/object"] >= 5 and rows["/world/fingertips"] >= 5
+    joints = [e for e in rows if e.startswith("/joints/q/")]
+    assert len(joints) == 30 and all(rows[e] >= 5 for e in joints)
 
 
 def test_cli_unknown_names_list_valid_ones(capsys):

@@ -7,13 +7,15 @@ import json
 import numpy as np
 import pytest
 import torch
+from rrd_content import logged_rows
 
 from dexdrake.cli import main
 from dexdrake.eval.envs import GraspEnvFactory, resolve_objects
-from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy
+from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy, run_episode
 from dexdrake.eval.tables import PAPER_UNSEEN, csv_table, markdown_table, table_rows, write_report
 from dexdrake.learn.demo_dataset import save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
 OBJECT = "sphere_small"
 
@@ -185,6 +187,39 @@ def test_evaluate_policy_runs_seeded_episodes(tmp_path, env_blocks):
     assert [e.total_reward for e in again.episodes] == [e.total_reward for e in report.episodes]
 
 
+class _ScriptedAsPolicy:
+    """The scripted grasp as a policy for `run_episode`: planned on the first step after reset."""
+
+    def __init__(self, env):
+        self.env, self.controller = env, None
+
+    def act(self, obs):
+        self.controller = self.controller or ScriptedGrasp(self.env)
+        return self.env.normalise(self.controller(self.env)), None
+
+
+class _HoldStill:
+    def __init__(self, env):
+        self.action = env.normalise(env.scene.hand.pregrasp_vector())
+
+    def act(self, obs):
+        return self.action, None
+
+
+def test_success_is_counted_on_a_real_grasp():
+    env = GraspEnvFactory("adroit", "Hand2obj", ("sphere_medium",), horizon=150)()
+    grasp = run_episode(env, _ScriptedAsPolicy(env), seed=0, horizon=150)
+    still = run_episode(env, _HoldStill(env), seed=1, horizon=150)
+    assert grasp[0] and grasp[1] > 0.1, grasp  # success, max lift
+    assert not still[0] and abs(still[1]) < 0.01, still
+    report = EvalReport("scripted", "selected", ["sphere_medium", "sphere_small"], 2, 0, 150, "")
+    report.episodes = [EpisodeResult("sphere_medium", 0, *grasp), EpisodeResult("sphere_medium", 1, *still),
+                       EpisodeResult("sphere_small", 0, *still), EpisodeResult("sphere_small", 1, *still)]
+    rows = report.per_object()
+    assert rows["sphere_medium"]["successes"] == 1 and rows["sphere_medium"]["success_pct"] == 50.0
+    assert rows["sphere_small"]["successes"] == 0 and report.average_pct() == 25.0
+
+
 @pytest.mark.slow
 def test_evaluate_policy_workers_match_in_process(tmp_path, env_blocks):
     blocks, a = env_blocks
@@ -208,7 +243,9 @@ def test_demo_runs_a_policy_and_writes_a_recording(tmp_path, env_blocks, capsys)
     assert main(["demo", "--policy", str(path), "--object", OBJECT, "--steps", "3", "--rrd", str(rrd)]) == 0
     out = capsys.readouterr().out
     assert f"object={OBJECT}" in out and "steps=3" in out and "success=False" in out
-    assert rrd.is_file() and rrd.stat().st_size > 0
+    rows = logged_rows(rrd)
+    assert all(rows[e] == 3 for e in ("/reward/total", "/task/lift", "/task/success")), rows
+    assert rows["/world/object"] >= 3 and "/world/object/mesh" in rows and "/world/hand/palm" in rows
 
 
 # -- scripted demos, re-featurised -------------------------------------------------------------

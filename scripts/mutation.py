@@ -31,7 +31,7 @@ ALSO_COPY = ["tests", "configs", "scripts", "README.md"]
 
 # Module -> the test files that cover it (the only tests run against its mutants).
 TARGETS: dict[str, list[str]] = {
-    "dexdrake/task.py": ["tests/test_task.py"],
+    "dexdrake/task.py": ["tests/test_task.py", "tests/test_task_boundaries.py"],
     "dexdrake/dexrep/occupancy.py": ["tests/test_dexrep.py"],
     "dexdrake/dexrep/features.py": ["tests/test_dexrep.py"],
     "dexdrake/dexrep/geometry.py": ["tests/test_dexrep.py"],
@@ -86,11 +86,15 @@ def stage(module: str, tests: list[str], stage_dir: Path) -> None:
     (stage_dir / "mutants").mkdir()
 
 
-def mutmut(stage_dir: Path, *args: str) -> subprocess.CompletedProcess:
+def mutmut(stage_dir: Path, *args: str, log: Path | None = None) -> subprocess.CompletedProcess:
+    """Run mutmut in `stage_dir`; its output is returned, or written to `log` as it comes."""
     # Subprocesses see the mutants too; one OpenMP thread keeps torch safe in mutmut's forks.
     env = dict(os.environ, PYTHONPATH=str(stage_dir / "mutants"), OMP_NUM_THREADS="1")
-    exe = Path(sys.executable).with_name("mutmut")
-    return subprocess.run([str(exe), *args], cwd=stage_dir, env=env, text=True, capture_output=True)
+    cmd = [str(Path(sys.executable).with_name("mutmut")), *args]
+    if log is None:
+        return subprocess.run(cmd, cwd=stage_dir, env=env, text=True, capture_output=True)
+    with log.open("w") as out:
+        return subprocess.run(cmd, cwd=stage_dir, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
 def score(stage_dir: Path) -> tuple[dict[str, int], list[str]]:
@@ -118,8 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"no default tests for {module}; pass --tests")
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
         stage(module, tests, stage_dir)
-        run = mutmut(stage_dir, "run", "--max-children", str(args.max_children))
-        (stage_dir / "mutmut-run.log").write_text(run.stdout + run.stderr)
+        run = mutmut(stage_dir, "run", "--max-children", str(args.max_children), log=stage_dir / "mutmut-run.log")
         if not (stage_dir / "mutants" / "mutmut-stats.json").exists() and run.returncode:
             print(f"{module}: mutmut failed, see {stage_dir / 'mutmut-run.log'}", file=sys.stderr)
             return 1

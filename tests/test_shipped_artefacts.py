@@ -1,0 +1,131 @@
+"""The shipped tables agree with each other and with the weights they describe: each policy's
+manifest, its evaluation tables and the README give the same numbers, the ablation table's
+markdown and csv hold the same rows, and every command a table names parses as written."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import importlib.util
+import json
+import re
+import shlex
+import sys
+from pathlib import Path
+
+import pytest
+
+from dexdrake.cli import build_parser
+from dexdrake.paths import models_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+WEIGHTS = models_dir() / "weights"
+POLICIES = {"adroit_dexrep_policy": "eval", "allegro_z1_dexrep_policy": "eval_allegro_z1"}
+
+
+def _table_rows(md: str) -> list[list[str]]:
+    """The cells of a markdown table's body rows (header and rule skipped)."""
+    lines = [line for line in md.splitlines() if line.startswith("|")]
+    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[2:]]
+
+
+def _manifest(name: str) -> dict:
+    return json.loads((WEIGHTS / f"{name}.json").read_text())
+
+
+@pytest.mark.parametrize("name", POLICIES)
+def test_manifest_names_the_shipped_weights(name):
+    manifest = _manifest(name)
+    assert manifest["policy"] == f"models/weights/{name}.pt"
+    assert manifest["sha256"] == hashlib.sha256((WEIGHTS / f"{name}.pt").read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("name", POLICIES)
+@pytest.mark.parametrize("label", ["seen", "unseen"])
+def test_eval_table_matches_the_manifest(name, label):
+    metrics = _manifest(name)["metrics"][label]
+    per_object = metrics["per_object"]
+    rows = {r[0]: r for r in _table_rows((WEIGHTS / f"{POLICIES[name]}_{label}.md").read_text())}
+    average = rows.pop("**average**")
+    assert list(rows) == list(per_object)
+    for obj, m in per_object.items():
+        _, successes, pct, _, lift = rows[obj]
+        assert successes == f"{m['successes']}/{m['episodes']}", obj
+        assert pct == f"{m['success_pct']:.1f}" and lift == f"{m['mean_max_lift']:.3f}", obj
+    wins = sum(m["successes"] for m in per_object.values())
+    episodes = sum(m["episodes"] for m in per_object.values())
+    assert average[1] == f"{wins}/{episodes}" and average[2] == f"{metrics['average_pct']:.1f}"
+
+
+@pytest.mark.parametrize("name", POLICIES)
+def test_readme_quotes_the_manifest(name):
+    metrics = _manifest(name)["metrics"]
+    row = next(line for line in (ROOT / "README.md").read_text().splitlines() if line.startswith(f"| `{name}.pt`"))
+    quoted = re.findall(r"([\d.]+) % \((\d+)/(\d+)\)", row)
+    assert len(quoted) == 2, row
+    for (pct, wins, episodes), label in zip(quoted, ("seen", "unseen")):
+        per_object = metrics[label]["per_object"].values()
+        assert float(pct) == pytest.approx(metrics[label]["average_pct"], abs=0.05), (label, row)
+        assert (int(wins), int(episodes)) == (sum(m["successes"] for m in per_object),
+                                              sum(m["episodes"] for m in per_object)), (label, row)
+
+
+def test_ablation_markdown_and_csv_hold_the_same_rows():
+    md_rows = _table_rows((WEIGHTS / "eval_ablations.md").read_text())
+    with open(WEIGHTS / "eval_ablations.csv", newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader)
+        csv_rows = list(reader)
+    spec = importlib.util.spec_from_file_location("ablations", ROOT / "scripts" / "ablations.py")
+    ablations = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ablations)
+    assert tuple(header) == ablations.COLUMNS
+    assert csv_rows == md_rows
+
+
+def _commands() -> list[str]:
+    """Every command a shipped table or manifest says made it."""
+    found = []
+    for md in sorted(WEIGHTS.glob("*.md")):
+        found += re.findall(r"^[-\s]*command: `([^`]+)`", md.read_text(), flags=re.MULTILINE | re.IGNORECASE)
+    for manifest in sorted(WEIGHTS.glob("*.json")):
+        text = manifest.read_text()
+        found += [c for c in re.findall(r'"command": "([^"]+)"', text) if c.startswith(("dexdrake ", "python "))]
+    return found
+
+
+class _Parsed(Exception):
+    pass
+
+
+def _parse_script(argv: list[str], monkeypatch) -> None:
+    """Parse `python scripts/x.py ARGS` with the script's own parser, stopping right after."""
+    original = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        original(self, args, namespace)
+        raise _Parsed
+
+    spec = importlib.util.spec_from_file_location(Path(argv[0]).stem, ROOT / argv[0])
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with monkeypatch.context() as patch, pytest.raises(_Parsed):
+        patch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+        patch.setattr(sys, "argv", argv)
+        module.main()
+
+
+def test_every_command_in_a_table_parses_as_written(monkeypatch):
+    commands = _commands()
+    assert len(commands) >= 8
+    for command in commands:
+        argv = shlex.split(command)
+        assert not any(a.startswith("(") or a.endswith(")") for a in argv), command  # no prose in arguments
+        if argv[0] == "dexdrake":
+            args = build_parser().parse_args(argv[1:])
+            if getattr(args, "policy", None) and str(args.policy).startswith("models/"):
+                assert (ROOT / str(args.policy)).is_file(), command
+        else:
+            assert argv[0] == "python" and argv[1].startswith("scripts/"), command
+            _parse_script(argv[1:], monkeypatch)

@@ -220,15 +220,6 @@ def test_success_is_counted_on_a_real_grasp():
     assert rows["sphere_small"]["successes"] == 0 and report.average_pct() == 25.0
 
 
-@pytest.mark.slow
-def test_evaluate_policy_workers_match_in_process(tmp_path, env_blocks):
-    blocks, a = env_blocks
-    path = _random_policy(tmp_path / "p.pt", blocks, a)
-    one = evaluate_policy(path, [OBJECT], episodes=2, seed=0, horizon=3, progress=False)
-    two = evaluate_policy(path, [OBJECT], episodes=2, seed=0, horizon=3, workers=2, progress=False)
-    assert [e.total_reward for e in one.episodes] == pytest.approx([e.total_reward for e in two.episodes])
-
-
 # -- demo -------------------------------------------------------------------------------------
 def test_demo_says_clearly_when_the_policy_file_is_missing(tmp_path, capsys):
     assert main(["demo", "--policy", str(tmp_path / "missing.pt")]) == 2

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from dexdrake import argtypes
@@ -34,10 +33,13 @@ def _show(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from dexdrake.dexrep.train_encoder import TrainConfig, train
+    from dexdrake.learn.commands import command_line
 
     config = TrainConfig(meshes=args.meshes, epochs=args.epochs, steps_per_epoch=args.steps_per_epoch,
                          batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
-    m = train(config, Path(args.out), command="dexdrake " + " ".join(sys.argv[1:]))
+    command = command_line(["encoder", "train"], args, ["meshes", "epochs", "steps-per-epoch", "batch-size", "lr",
+                                                        "seed", "threads", "out"])
+    m = train(config, Path(args.out), command=command)
     print(f"wrote {args.out}: Chamfer train {m['chamfer_train']:.4f}, unseen {m['chamfer_unseen']:.4f}")
     return 0
 

@@ -1,0 +1,127 @@
+"""Every user-facing command once, end to end, on small inputs, through `dexdrake.cli.main`."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from dexdrake.cli import main
+from dexdrake.demos.format import load_demo
+from dexdrake.dexrep.pointnet import PointNetEncoder, load_encoder
+from dexdrake.eval.envs import GraspEnvFactory
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from rrd_content import logged_rows
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _summary(out: str) -> dict[str, str]:
+    """The `key=value` pairs of a command's one-line summary."""
+    return dict(re.findall(r"(\w+)=(\S+)", out))
+
+
+def test_default_demo_grasps_with_the_shipped_dexrep_policy(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the default recording, demo.rrd, lands here
+    assert main(["demo"]) == 0
+    line = _summary(capsys.readouterr().out)
+    # The shipped manifest's best unseen object, grasped on the default seed in 100 steps.
+    assert (line["object"], line["seed"], line["success"], line["steps"]) == ("apple", "0", "True", "100")
+    assert float(line["max_lift"].rstrip("m")) > 0.1
+    policy, _ = load_policy(_shipped("adroit"))
+    assert policy.config.feature_set == "DexRep"
+    assert logged_rows(tmp_path / "demo.rrd")["/task/success"] == 100
+
+
+def _shipped(hand: str):
+    from dexdrake.paths import models_dir
+
+    return models_dir() / "weights" / f"{hand}_dexrep_policy.pt"
+
+
+def test_eval_with_two_workers_matches_one(tmp_path, capsys):
+    common = ["eval", "--policy", str(_shipped("adroit")), "--objects", "apple", "--episodes", "3", "--seed", "7",
+              "--horizon", "4"]
+    assert main([*common, "--workers", "1", "--out", str(tmp_path / "one")]) == 0
+    assert main([*common, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
+    assert '"episodes": 3' in capsys.readouterr().out
+    one, two = (json.loads((tmp_path / d / "eval_selected.json").read_text()) for d in ("one", "two"))
+    assert [(e["object"], e["seed"], e["steps"]) for e in two["episodes"]] == [("apple", s, 4) for s in (7, 8, 9)]
+    for a, b in zip(one["episodes"], two["episodes"]):
+        assert (a["object"], a["seed"], a["success"]) == (b["object"], b["seed"], b["success"])
+        assert a["total_reward"] == pytest.approx(b["total_reward"], rel=1e-9)
+        assert a["max_lift"] == pytest.approx(b["max_lift"], abs=1e-12)
+    assert (one["workers"], two["workers"]) == (1, 2)
+    for d in ("one", "two"):
+        assert (tmp_path / d / "eval_selected.md").read_text().count("| apple |") == 1
+        assert (tmp_path / d / "eval_selected.csv").is_file()
+
+
+def test_sim_with_allegro_on_z1_lifts_the_sphere(tmp_path, capsys):
+    rrd = tmp_path / "sim.rrd"
+    assert main(["sim", "--hand", "allegro_z1", "--object", "sphere_medium", "--steps", "150", "--rrd", str(rrd)]) == 0
+    line = _summary(capsys.readouterr().out)
+    assert line["success"] == "True" and float(line["max_lift"].rstrip("m")) > 0.1
+    joints = [e for e in logged_rows(rrd) if e.startswith("/joints/q/")]
+    assert len(joints) == 6 + 16  # the Z1 arm and the Allegro hand
+
+
+def test_train_dagger_on_allegro_z1(tmp_path):
+    out = tmp_path / "dagger"
+    assert main(["train", "dagger", "--out", str(out), "--hand", "allegro_z1", "--objects", "sphere_small",
+                 "--iterations", "1", "--per-object", "1", "--horizon", "5", "--epochs", "1", "--workers", "1",
+                 "--threads", "1"]) == 0
+    policy, meta = load_policy(out / "dagger_policy.pt")
+    assert policy.config.hand == "allegro_z1" and policy.config.feature_set == "DexRep"
+    assert policy.config.action_dim == 6 + 16
+    assert meta["command"].startswith("dexdrake train dagger")
+
+
+def test_demos_synth_writes_loadable_demos(tmp_path, capsys):
+    out = tmp_path / "demos"
+    assert main(["demos", "synth", "--objects", "sphere_small,box_cube", "--out", str(out), "--per-object", "1"]) == 0
+    assert "wrote 2 demos" in capsys.readouterr().out
+    files = sorted(out.glob("*.npz"))
+    assert [f.name.split("_00_")[0] for f in files] == ["box_cube", "sphere_small"]
+    for f in files:
+        demo = load_demo(f)
+        assert demo.num_frames > 10 and np.all(np.isfinite(demo.time))
+
+
+def test_encoder_train_for_one_step(tmp_path, capsys):
+    meshes, out = tmp_path / "meshes", tmp_path / "enc.pt"
+    meshes.mkdir()
+    trimesh.creation.box((0.05, 0.03, 0.02)).export(meshes / "box.stl")
+    trimesh.creation.icosphere(2, 0.03).export(meshes / "ball.obj")
+    assert main(["encoder", "train", "--meshes", str(meshes), "--epochs", "1", "--steps-per-epoch", "1",
+                 "--batch-size", "2", "--threads", "1", "--out", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert isinstance(load_encoder(out), PointNetEncoder)
+    manifest = json.loads(out.with_suffix(".json").read_text())
+    # The manifest names the command as given (also when called in-process, not from sys.argv).
+    assert manifest["command"].startswith(f"dexdrake encoder train --meshes {meshes} --epochs 1 --steps-per-epoch 1")
+    assert manifest["command"].endswith(f"--out {out}") and manifest["chamfer_train"] > 0
+
+
+def test_imported_object_in_sim_and_eval(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DEXDRAKE_CACHE", str(tmp_path / "cache"))  # keep the user object to this test
+    mesh = tmp_path / "mug_like.stl"
+    trimesh.creation.cylinder(radius=0.03, height=0.09, sections=24).export(mesh)
+    assert main(["objects", "import", str(mesh), "--name", "test_cylinder"]) == 0
+    assert "imported test_cylinder" in capsys.readouterr().out
+    assert main(["sim", "--object", "test_cylinder", "--steps", "5"]) == 0
+    assert _summary(capsys.readouterr().out)["object"] == "test_cylinder"
+
+    env = GraspEnvFactory("adroit", "Hand2obj", ("test_cylinder",), horizon=3)()
+    torch.manual_seed(0)
+    config = PolicyConfig.from_blocks(dict(env.observation_blocks), env.action_dim, feature_set="Hand2obj",
+                                      hand="adroit")
+    policy = save_policy(tmp_path / "p.pt", DexRepNetPolicy(config))
+    assert main(["eval", "--policy", str(policy), "--objects", "test_cylinder", "--episodes", "1", "--horizon", "3",
+                 "--out", str(tmp_path / "eval")]) == 0
+    report = json.loads((tmp_path / "eval" / "eval_selected.json").read_text())
+    assert [(e["object"], e["steps"]) for e in report["episodes"]] == [("test_cylinder", 3)]

@@ -38,14 +38,21 @@ class Target:
     functions: list[str] = field(default_factory=lambda: ["*"])  # globs of the functions to mutate
 
 
+# The feature maths' own tests (not the Drake-system and rerun ones, which call the same code).
+DEXREP = ["tests/test_dexrep.py::" + t for t in (
+    "test_occupancy_matches_brute_force", "test_fast_occupancy_applies_the_rule_of_occupancy_in_frame",
+    "test_occupancy_cull_keeps_objects_at_the_grid_corner", "test_occupancy_order_is_x_major",
+    "test_surface_on_sphere", "test_closest_points_match_analytic_sd", "test_local_geo_is_feature_of_nearest_sample",
+    "test_hand_state_layout", "test_bad_meshes_are_refused", "test_cache_round_trip")]
 LEARN = "tests/test_learn.py::"
 CAN = "tests/test_allegro_can.py::"
 TARGETS: dict[str, Target] = {
     "dexdrake/task.py": Target(["tests/test_task.py", "tests/test_task_boundaries.py"]),
-    "dexdrake/dexrep/occupancy.py": Target(["tests/test_dexrep.py"]),
-    "dexdrake/dexrep/features.py": Target(["tests/test_dexrep.py"]),
-    "dexdrake/dexrep/geometry.py": Target(["tests/test_dexrep.py"], ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*", "x_check_mesh*"]),
-    "dexdrake/retarget/kinematics.py": Target(["tests/test_retarget.py"]),
+    "dexdrake/dexrep/occupancy.py": Target(DEXREP),
+    "dexdrake/dexrep/features.py": Target(DEXREP),
+    "dexdrake/dexrep/geometry.py": Target(DEXREP, ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*", "x_check_mesh*"]),
+    "dexdrake/retarget/kinematics.py": Target(["tests/test_retarget.py::" + t for t in (
+        "test_casadi_fk_matches_drake", "test_extract_tree_refuses_floating_base", "test_retarget_recovers_own_fk")]),
     "dexdrake/learn/gae.py": Target([LEARN + "test_gae_hand_computed"]),
     "dexdrake/learn/npg.py": Target([LEARN + t for t in ("test_cg_solves_spd_system",
                                                          "test_fisher_vector_product_matches_analytic",
@@ -56,7 +63,8 @@ TARGETS: dict[str, Target] = {
         [CAN + t for t in ("test_codec_round_trip", "test_ids_match_spec_table", "test_spec_real_frames",
                            "test_decode_rejects_with_specific_kind", "test_encode_rejects_bad_frames",
                            "test_decode_fuzz_only_raises_frame_error",
-                           "test_default_limits_come_from_hand_description_in_bus_order")],
+                           "test_default_limits_come_from_hand_description_in_bus_order")]
+        + ["tests/test_allegro_codec_edges.py"],
         ["x_can_id*", "x__check_*", "x__int16x4*", "x__message*", "x_encode*", "x__split_id*", "x_decode*",
          "xǁFrameErrorǁ*", "x_default_joint_limits*"]),
 }

@@ -215,7 +215,6 @@ def test_cli_registers_demos_replay():
                                   "--seed 0 --horizon 200 --workers 2")
 
 
-@pytest.mark.slow
 def test_parallel_workers_match_serial(demo_dir, tmp_path):
     from dexdrake.demos.replay_commands import run_replay
     from dexdrake.learn.demo_dataset import load_demo_dataset

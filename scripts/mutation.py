@@ -56,8 +56,10 @@ TARGETS: dict[str, Target] = {
     "dexdrake/learn/gae.py": Target([LEARN + "test_gae_hand_computed"]),
     "dexdrake/learn/npg.py": Target([LEARN + t for t in ("test_cg_solves_spd_system",
                                                          "test_fisher_vector_product_matches_analytic",
-                                                         "test_dapg_improves_toy_return")]),
-    "dexdrake/learn/dapg.py": Target([LEARN + "test_demo_weight_and_seeds"], ["x_demo_weight*", "x_rollout_seeds*"]),
+                                                         "test_dapg_improves_toy_return")]
+                                    + ["tests/test_learn_maths.py"]),
+    "dexdrake/learn/dapg.py": Target([LEARN + "test_demo_weight_and_seeds", "tests/test_learn_maths.py"],
+                                     ["x_demo_weight*", "x_rollout_seeds*"]),
     # The CAN codec only (the driver loop has its own tests, with threads and timing).
     "hardware/allegro_can.py": Target(
         [CAN + t for t in ("test_codec_round_trip", "test_ids_match_spec_table", "test_spec_real_frames",
@@ -144,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tests", nargs="+", help="test files to run (default: the module's own)")
     parser.add_argument("--workdir", type=Path, default=ROOT / ".mutation")
     parser.add_argument("--max-children", type=int, default=1, help="parallel test processes")
+    parser.add_argument("--recheck", action="store_true",
+                        help="re-run only the mutants the last run in --workdir left alive (after adding tests)")
     args = parser.parse_args(argv)
     rows = []
     for module in args.modules:
@@ -152,14 +156,20 @@ def main(argv: list[str] | None = None) -> int:
         if not tests:
             parser.error(f"no default tests for {module}; pass --tests")
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
-        stage(module, tests, stage_dir)
         names = [module_prefix(module) + f for f in target.functions]
+        before: dict[str, int | None] = {}
+        if args.recheck:  # killed mutants stay killed when tests are only added: re-run the others
+            before = verdicts(stage_dir, module, target.functions)
+            names = [name for name, code in before.items() if code not in KILLED]
+        stage(module, tests, stage_dir)
         log = stage_dir / "mutmut-run.log"
-        mutmut(stage_dir, "run", "--max-children", str(args.max_children), *names, log=log)
-        if not (stage_dir / "mutants" / "mutmut-stats.json").exists():
-            print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
-            return 1
-        codes = verdicts(stage_dir, module, target.functions)
+        if names:
+            mutmut(stage_dir, "run", "--max-children", str(args.max_children), *names, log=log)
+            if not (stage_dir / "mutants" / "mutmut-stats.json").exists():
+                print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
+                return 1
+        rerun = verdicts(stage_dir, module, target.functions) if names else {}
+        codes = before | {name: code for name, code in rerun.items() if name in names}
         killed = sum(code in KILLED for code in codes.values())
         rows.append((module, killed, len(codes)))
         print(f"{module}: {killed}/{len(codes)} killed = {100 * killed / max(len(codes), 1):.1f} %", flush=True)

@@ -118,3 +118,17 @@ def test_decode_refusals_name_kind_and_cause(msg, kind, text):
     with pytest.raises(FrameError, match=text) as err:
         decode(msg)
     assert err.value.kind == kind
+
+
+def test_decoded_values_keep_their_exact_ranges():
+    for text in ("MAX", " A B", "~~~~~~~~"):  # trailing letters survive, space and tilde are printable
+        assert decode(encode(Serial(text))) == Serial(text)
+    with pytest.raises(FrameError, match="serial is not printable ASCII") as err:
+        decode(_std(can_id(Msg.SERIAL), b"AB\x7f\0\0\0\0\0"))
+    assert err.value.kind == "range"
+    assert decode(encode(Temperature(2, (-40, 125, 0, 0)))) == Temperature(2, (-40, 125, 0, 0))
+    for temps in ((-41, 0, 0, 0), (0, 126, 0, 0)):
+        with pytest.raises(FrameError, match=r"temperatures .* outside -40\.\.125 C"):
+            decode(encode(Temperature(0, temps)))
+    with pytest.raises(FrameError, match="status reserved bits set: 0x20"):
+        decode(_std(can_id(Msg.STATUS), b"\x20"))

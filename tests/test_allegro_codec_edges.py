@@ -109,7 +109,7 @@ def _std(arb_id: int, data: bytes = b"", **kw) -> can.Message:
     (_std(0x800), "id", "out-of-range id 0x800"),
     (_std(can_id(Msg.POSITION) + (4 << 2), bytes(8)), "unknown_id", "message 0x24"),  # one past finger 3
     (_std(can_id(Msg.TORQUE) + (4 << 2), bytes(8)), "unknown_id", "message 0x64"),
-    (_std(can_id(Msg.STATUS), b"\x00", is_error_frame=True), "error_frame", "CAN error frame"),
+    (_std(can_id(Msg.STATUS), b"\x00", is_error_frame=True), "error_frame", r"\(error_frame\): CAN error frame$"),
     (_std(can_id(Msg.STATUS, 1), b"\x00"), "device", "device 1, expected 0"),
     (_std(can_id(Msg.TORQUE), is_remote_frame=True, dlc=8), "rtr", "TORQUE cannot be requested by RTR"),
     (_std(can_id(Msg.INFO), bytes.fromhex("0100020002001f")), "range", "info hand type 2 / status 0x1f"),

@@ -108,7 +108,8 @@ def test_encoder_train_for_one_step(tmp_path, capsys):
 
 
 def test_imported_object_in_sim_and_eval(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("DEXDRAKE_CACHE", str(tmp_path / "cache"))  # keep the user object to this test
+    monkeypatch.setenv("DEXDRAKE_DATA", str(tmp_path / "data"))  # keep the user object to this test
+    monkeypatch.setenv("DEXDRAKE_CACHE", str(tmp_path / "cache"))
     mesh = tmp_path / "mug_like.stl"
     trimesh.creation.cylinder(radius=0.03, height=0.09, sections=24).export(mesh)
     assert main(["objects", "import", str(mesh), "--name", "test_cylinder"]) == 0

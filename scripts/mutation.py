@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
                 return 1
         rerun = verdicts(stage_dir, module, target.functions) if names else {}
-        codes = before | {name: code for name, code in rerun.items() if name in names}
+        codes = before | ({name: rerun[name] for name in names} if args.recheck else rerun)
         killed = sum(code in KILLED for code in codes.values())
         rows.append((module, killed, len(codes)))
         print(f"{module}: {killed}/{len(codes)} killed = {100 * killed / max(len(codes), 1):.1f} %", flush=True)

@@ -68,9 +68,10 @@ def test_fisher_vector_product_is_linear_reusable_and_damped_by_default():
 
 
 def test_flat_params_round_trip_in_order_and_refuse_a_wrong_size():
-    params = [torch.nn.Parameter(torch.tensor([1.0, 2.0])), torch.nn.Parameter(torch.tensor([[3.0], [4.0]]))]
-    assert flat_params(params).tolist() == [1.0, 2.0, 3.0, 4.0]
-    set_flat_params(params, torch.tensor([5.0, 6.0, 7.0, 8.0]))
-    assert params[0].tolist() == [5.0, 6.0] and params[1].tolist() == [[7.0], [8.0]]
-    with pytest.raises(DexdrakeError, match="flat vector has 3 entries, parameters need 4"):
+    params = [torch.nn.Parameter(torch.tensor([1.0, 2.0])), torch.nn.Parameter(torch.tensor([[3.0], [4.0]])),
+              torch.nn.Parameter(torch.tensor([0.5]))]
+    assert flat_params(params).tolist() == [1.0, 2.0, 3.0, 4.0, 0.5]
+    set_flat_params(params, torch.tensor([5.0, 6.0, 7.0, 8.0, 9.0]))
+    assert [p.tolist() for p in params] == [[5.0, 6.0], [[7.0], [8.0]], [9.0]]
+    with pytest.raises(DexdrakeError, match="flat vector has 3 entries, parameters need 5"):
         set_flat_params(params, torch.zeros(3))

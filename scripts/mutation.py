@@ -160,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
         names = [module_prefix(module) + f for f in target.functions]
         before: dict[str, int | None] = {}
+        saved = stage_dir / "verdicts.json"  # every verdict so far (a recheck's mutmut run holds only its own)
         if args.recheck:  # killed mutants stay killed when tests are only added: re-run the others
-            before = verdicts(stage_dir, module, target.functions)
+            before = json.loads(saved.read_text())
             names = [name for name, code in before.items() if code not in KILLED]
         stage(module, tests, stage_dir)
         log = stage_dir / "mutmut-run.log"
@@ -172,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
         rerun = verdicts(stage_dir, module, target.functions) if names else {}
         codes = before | ({name: rerun[name] for name in names} if args.recheck else rerun)
+        saved.write_text(json.dumps(codes, indent=0))
         killed = sum(code in KILLED for code in codes.values())
         rows.append((module, killed, len(codes)))
         print(f"{module}: {killed}/{len(codes)} killed = {100 * killed / max(len(codes), 1):.1f} %", flush=True)

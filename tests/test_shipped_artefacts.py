@@ -24,10 +24,20 @@ WEIGHTS = models_dir() / "weights"
 POLICIES = {"adroit_dexrep_policy": "eval", "allegro_z1_dexrep_policy": "eval_allegro_z1"}
 
 
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
 def _table_rows(md: str) -> list[list[str]]:
     """The cells of a markdown table's body rows (header and rule skipped)."""
     lines = [line for line in md.splitlines() if line.startswith("|")]
-    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[2:]]
+    return [_cells(line) for line in lines[2:]]
+
+
+def _table_dicts(md: str) -> dict[str, dict[str, str]]:
+    """First cell -> {column header: cell} for each body row of a markdown table."""
+    header = _cells(next(line for line in md.splitlines() if line.startswith("|")))
+    return {row[0]: dict(zip(header, row)) for row in _table_rows(md)}
 
 
 def _manifest(name: str) -> dict:
@@ -46,16 +56,16 @@ def test_manifest_names_the_shipped_weights(name):
 def test_eval_table_matches_the_manifest(name, label):
     metrics = _manifest(name)["metrics"][label]
     per_object = metrics["per_object"]
-    rows = {r[0]: r for r in _table_rows((WEIGHTS / f"{POLICIES[name]}_{label}.md").read_text())}
+    rows = _table_dicts((WEIGHTS / f"{POLICIES[name]}_{label}.md").read_text())
     average = rows.pop("**average**")
     assert list(rows) == list(per_object)
     for obj, m in per_object.items():
-        _, successes, pct, _, lift = rows[obj]
-        assert successes == f"{m['successes']}/{m['episodes']}", obj
-        assert pct == f"{m['success_pct']:.1f}" and lift == f"{m['mean_max_lift']:.3f}", obj
+        assert rows[obj]["successes"] == f"{m['successes']}/{m['episodes']}", obj
+        assert rows[obj]["ours (%)"] == f"{m['success_pct']:.1f}", obj
+        assert rows[obj]["mean max lift (m)"] == f"{m['mean_max_lift']:.3f}", obj
     wins = sum(m["successes"] for m in per_object.values())
     episodes = sum(m["episodes"] for m in per_object.values())
-    assert average[1] == f"{wins}/{episodes}" and average[2] == f"{metrics['average_pct']:.1f}"
+    assert average["successes"] == f"{wins}/{episodes}" and average["ours (%)"] == f"{metrics['average_pct']:.1f}"
 
 
 @pytest.mark.parametrize("name", POLICIES)

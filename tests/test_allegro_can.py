@@ -364,11 +364,22 @@ FAULTS = {
 }
 
 
+class _Blocked:
+    """Joints held where they are (the fingers closed on an object): the PD pushes hard."""
+
+    def __init__(self, q: np.ndarray):
+        self.q = np.asarray(q, float)
+
+    def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return self.q.copy(), np.zeros_like(self.q)
+
+
 @pytest.mark.parametrize("fault", list(FAULTS))
 def test_host_stops_the_hand_on_every_fault_path(rig, fault):
     """With the spec's firmware (the last PWM stays applied), each fault ends with the host
     sending zero torque and servo off, while the hand was pushing hard before it."""
     hand, emu, _ = rig
+    emu.dynamics = _Blocked(emu.q)
     inject, reason = FAULTS[fault]
     with hand:
         assert wait_for(lambda: hand.stats()["cycles"] > 3, 1.0)

@@ -300,12 +300,21 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
     with make_station(scenario) as station:
         logger = StationRerunLogger(str(rrd), station)
         p0 = station.world.object_pose().translation()
+        estimates = []  # positions from every successful registration, in order
+        log_to_rerun = station.perception.on_result
+
+        def on_result(log):
+            log_to_rerun(log)
+            if log.result["success"]:
+                estimates.append(np.asarray(log.result["X_WO"])[:3, 3].copy())
+
+        station.perception.on_result = on_result
         result = run_episode(station, controller, steps=150, logger=logger)
         logger.close()
-        assert station.perception.log.successes >= 1
-        est = station.perception.pose[:3]
     assert result.fault is None
-    assert np.linalg.norm(est - p0) < 0.03  # registration found the object
+    assert estimates
+    # the first frame is taken before the hand reaches the object; later ones see it move
+    assert np.linalg.norm(estimates[0] - p0) < 0.03  # registration found the object
     assert rrd.stat().st_size > 10_000
 
 

@@ -62,7 +62,6 @@ class GraspEnv:
         self.scene, self.simulator, self.geometry, self._features = self._scenes[name]
         self.context = self.simulator.get_mutable_context()
         self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
-        self.sg_context = self.scene.scene_graph.GetMyContextFromRoot(self.context)
         self._command_port = self.scene.diagram.get_input_port(0)
         self._tip_bodies = [self.scene.plant.GetBodyByName(p.body, self.scene.hand_instance)
                             for p in self.scene.hand.fingertips]

@@ -97,6 +97,9 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--iterations", type=_positive_int, default=6)
     dagger.add_argument("--per-object", type=_positive_int, default=2, help="episodes per object per iteration")
     dagger.add_argument("--horizon", type=_positive_int, default=100)
+    dagger.add_argument("--expert-noise", type=argtypes.float_in(0.0, 1.0, low_open=False), default=0.0,
+                        help="DART-style correlated (OU) action-noise std on the expert's iteration 0 "
+                             "(normalised action units; the labels stay clean)")
     dagger.add_argument("--epochs", type=_positive_int, default=20, help="BC epochs after each iteration")
     dagger.add_argument("--lr", type=_positive_float, default=1e-4)
     dagger.add_argument("--workers", type=_positive_int, default=2)
@@ -225,10 +228,11 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
-                          episodes_per_object=args.per_object, horizon=args.horizon, epochs=args.epochs, lr=args.lr,
+                          episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
+                          epochs=args.epochs, lr=args.lr,
                           workers=args.workers, backend=args.backend, seed=args.seed)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
-                                                        "horizon", "epochs", "lr", "workers", "backend", "address",
+                                                        "horizon", "expert-noise", "epochs", "lr", "workers", "backend", "address",
                                                         "threads", "seed"])
     final = train_dagger(objects, args.out, config, {"command": command}, args.address)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")

@@ -117,7 +117,8 @@ BAD = [
     (["real", "--config", "bad.yaml"], "bad.yaml"),
     (["hil", "--config", "missing.yaml"], "missing.yaml"),
     (["eval", "--policy", "missing.pt"], "missing.pt"),
-    (["train", "dagger", "--out", "o", "--hand", "nohand", "--objects", "mug"], "unknown hand"),
+    (["train", "dagger", "--out", "o", "--hand", "nohand", "--objects", "can_soda"], "unknown hand"),
+    (["train", "dagger", "--out", "o", "--objects", "can_soda,mug"], "unseen objects, kept for evaluation"),
     (["features", "describe", "--hand", "nohand"], "unknown hand"),
 ]
 
@@ -145,8 +146,8 @@ def test_dagger_refuses_to_resume_a_folder_made_with_other_arguments(tmp_path, c
 
     out = tmp_path / "run"
     out.mkdir()
-    meta = {"format": "x", "objects": ["mug", "mug"], "config": asdict(DaggerConfig(hand="adroit"))}
+    meta = {"format": "x", "objects": ["can_soda", "can_soda"], "config": asdict(DaggerConfig(hand="adroit"))}
     np.savez(out / "data_00.npz", metadata=np.array(json.dumps(meta)))
     err = _run(["train", "dagger", "--out", str(out), "--hand", "allegro", "--objects",
-                "mug,apple", "--iterations", "5"], capsys)
-    assert "hand 'adroit' (now 'allegro')" in err and "objects mug (now apple,mug)" in err
+                "can_soda,banana", "--iterations", "5"], capsys)
+    assert "hand 'adroit' (now 'allegro')" in err and "objects can_soda (now banana,can_soda)" in err

@@ -170,23 +170,31 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     return 0
 
 
+def training_objects(spec: str) -> list[str]:
+    """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
+    from dexdrake.eval.envs import resolve_objects
+    from dexdrake.objects.library import get_object
+
+    if spec in ("unseen", "seen"):
+        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    _, objects = resolve_objects(spec)
+    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    if held_out:
+        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+    return objects
+
+
 def cmd_train_dapg(args: argparse.Namespace) -> int:
-    from dexdrake.eval.envs import env_factory_for_policy, resolve_objects
+    from dexdrake.eval.envs import env_factory_for_policy
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
-    from dexdrake.objects.library import get_object
 
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
     policy, init_meta = load_policy(args.init)
     policy.train()
-    if args.objects in ("unseen", "seen"):
-        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
-    _, objects = resolve_objects(args.objects)
-    held_out = [n for n in objects if get_object(n).split == "unseen"]
-    if held_out:
-        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+    objects = training_objects(args.objects)
     demos = load_demo_term(args.demos, policy.config.obs_dim, policy.config.action_dim, args.demo_samples, args.seed)
     factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True)
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
@@ -217,12 +225,9 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
 def cmd_train_dagger(args: argparse.Namespace) -> int:
     import torch
 
-    from dexdrake.eval.envs import resolve_objects
     from dexdrake.learn.dagger import DaggerConfig, train_dagger
 
-    if args.objects in ("unseen", "seen"):
-        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
-    _, objects = resolve_objects(args.objects)
+    objects = training_objects(args.objects)
     from dexdrake.hands.description import load_hand
 
     load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback

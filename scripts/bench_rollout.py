@@ -78,7 +78,7 @@ class Sections:
 def instrument(sections: Sections, sample_every: int = 5):
     """Patch the env, expert and policy classes so their work is timed by `sections`; every
     `sample_every`-th plant advance is also re-run on a copy without the object to split off
-    the contact work. Returns a function that undoes the patches."""
+    the contact work. Returns (the sampled split's sums, a function that undoes the patches)."""
     from pydrake.math import RigidTransform
     from pydrake.systems.analysis import Simulator
 

@@ -16,26 +16,6 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
-    return value
-
-
 def command_line(words: list[str], args: argparse.Namespace, options: list[str]) -> str:
     """The command with every option's effective value (for result tables and manifests)."""
     parts = ["dexdrake", *words]
@@ -62,28 +42,28 @@ def add_parser(subparsers) -> None:
     bc = train_sub.add_parser("bc", help="behaviour cloning from a demo dataset (.npz)")
     bc.add_argument("--data", required=True, type=Path, help="demo dataset .npz (metadata: hand, feature_set, observation_blocks)")
     bc.add_argument("--out", required=True, type=Path, help="output folder (checkpoints, bc_log.csv/png)")
-    bc.add_argument("--epochs", type=_positive_int, default=150)
-    bc.add_argument("--batch", type=_positive_int, default=64)
-    bc.add_argument("--lr", type=_positive_float, default=1e-5)
+    bc.add_argument("--epochs", type=argtypes.count, default=150)
+    bc.add_argument("--batch", type=argtypes.count, default=64)
+    bc.add_argument("--lr", type=argtypes.positive, default=1e-5)
     bc.add_argument("--seed", type=argtypes.seed, default=0)
-    bc.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads")
+    bc.add_argument("--threads", type=argtypes.count, default=1, help="torch CPU threads")
     bc.set_defaults(func=cmd_train_bc)
 
     dapg = train_sub.add_parser("dapg", help="DAPG fine-tuning of a BC or DAgger policy in the Drake grasp env")
     dapg.add_argument("--init", required=True, type=Path, help="policy checkpoint to start from (e.g. dagger_policy.pt)")
     dapg.add_argument("--demos", required=True, type=Path,
                       help="demonstration term: a demo dataset .npz or a DAgger output folder (its data_XX.npz)")
-    dapg.add_argument("--demo-samples", type=_positive_int, default=50000,
+    dapg.add_argument("--demo-samples", type=argtypes.count, default=50000,
                       help="demonstration pairs kept (uniform, seeded), all used every iteration")
-    dapg.add_argument("--demo-std-fraction", type=_positive_float,
+    dapg.add_argument("--demo-std-fraction", type=argtypes.positive,
                       help="fresh start: exploration std = this x the demo actions' std, per dimension "
                            "(default: dexdrake.learn.policy.DEMO_STD_FRACTION)")
     dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
-    dapg.add_argument("--iterations", type=_positive_int, default=500)
-    dapg.add_argument("--per-object", type=_positive_int, default=10, help="trajectories per object per iteration")
+    dapg.add_argument("--iterations", type=argtypes.count, default=500)
+    dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
     dapg.add_argument("--objects", default="train", help="'train' or comma-separated object names")
-    dapg.add_argument("--horizon", type=_positive_int, default=200, help="control steps per trajectory")
-    dapg.add_argument("--workers", type=_positive_int, default=2)
+    dapg.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per trajectory")
+    dapg.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dapg)
     dapg.add_argument("--resume", action="store_true", help="continue the run in OUT (dapg_state.pt) where it stopped")
     dapg.add_argument("--seed", type=argtypes.seed, default=0)
@@ -94,29 +74,29 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--hand", default="adroit")
     dagger.add_argument("--feature-set", default="DexRep")
     dagger.add_argument("--objects", default="train", help="'train' or comma-separated object names")
-    dagger.add_argument("--iterations", type=_positive_int, default=6)
-    dagger.add_argument("--per-object", type=_positive_int, default=2, help="episodes per object per iteration")
-    dagger.add_argument("--horizon", type=_positive_int, default=100)
+    dagger.add_argument("--iterations", type=argtypes.count, default=6)
+    dagger.add_argument("--per-object", type=argtypes.count, default=2, help="episodes per object per iteration")
+    dagger.add_argument("--horizon", type=argtypes.count, default=100)
     dagger.add_argument("--expert-noise", type=argtypes.float_in(0.0, 1.0, low_open=False), default=0.0,
                         help="DART-style correlated (OU) action-noise std on the expert's iteration 0 "
                              "(normalised action units; the labels stay clean)")
-    dagger.add_argument("--epochs", type=_positive_int, default=20, help="BC epochs after each iteration")
-    dagger.add_argument("--lr", type=_positive_float, default=1e-4)
-    dagger.add_argument("--workers", type=_positive_int, default=2)
+    dagger.add_argument("--epochs", type=argtypes.count, default=20, help="BC epochs after each iteration")
+    dagger.add_argument("--lr", type=argtypes.positive, default=1e-4)
+    dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dagger)
-    dagger.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads for the BC fits")
+    dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
     dagger.add_argument("--seed", type=argtypes.seed, default=0)
     dagger.set_defaults(func=cmd_train_dagger)
 
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
-    ev.add_argument("--episodes", type=_positive_int, default=10, help="episodes per object (seeds S..S+N-1)")
+    ev.add_argument("--episodes", type=argtypes.count, default=10, help="episodes per object (seeds S..S+N-1)")
     ev.add_argument("--seed", type=argtypes.seed, default=FIRST_EVALUATION_SEED,
                     help="first episode seed S; seeds must lie in the range reserved for evaluation "
                          f"[{EVALUATION_SEEDS.start}, {EVALUATION_SEEDS.stop}), disjoint from every training seed")
-    ev.add_argument("--workers", type=_positive_int, default=1, help="worker processes")
-    ev.add_argument("--horizon", type=_positive_int, default=100, help="control steps per episode (paper: 100)")
+    ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
+    ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
     ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
     ev.set_defaults(func=cmd_eval)

@@ -112,7 +112,7 @@ def main() -> int:
     parser.add_argument("--sample-s", type=float, default=5.0)
     args = parser.parse_args()
 
-    from dexdrake.station_commands import make_controller, run_episode
+    from dexdrake.cli.station import make_controller, run_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 

@@ -248,7 +248,7 @@ def test_pointnet_shapes_and_chamfer():
 
 
 def test_feature_sizes_and_describe(capsys):
-    from dexdrake.dexrep.commands import add_parser
+    from dexdrake.cli.dexrep import add_parser
     from dexdrake.dexrep.feature_sets import FEATURE_SETS, observation_blocks
     from dexdrake.hands.description import load_hand
 
@@ -385,7 +385,7 @@ class _Recorder:
 
 
 def test_features_show_logs_dexrep_each_step(tmp_path):
-    from dexdrake.dexrep.commands import add_parser
+    from dexdrake.cli.dexrep import add_parser
     from dexdrake.dexrep.rerun_view import DexRepEpisodeLogger
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.scene import SceneConfig

@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from dexdrake.errors import DexdrakeError, UnknownNameError
-from dexdrake.objects import commands, convex, importer, shapes, store
+from dexdrake.cli import objects as commands
+from dexdrake.objects import convex, importer, shapes, store
 from dexdrake.objects.library import (
     DISTANCE_GEOMETRY_NAME,
     add_object,

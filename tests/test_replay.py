@@ -143,7 +143,7 @@ def demo_dir(tmp_path_factory):
 
 
 def test_short_replay_writes_a_dataset_the_bc_loader_reads(demo_dir, tmp_path):
-    from dexdrake.demos.replay_commands import run_replay
+    from dexdrake.cli.replay import run_replay
     from dexdrake.learn.demo_dataset import load_demo_dataset
 
     # a lenient task so a 12-step episode can succeed: the test is about the pipeline
@@ -191,7 +191,7 @@ def test_replayer_tracks_the_demo_and_samples_after_a_failure(demo_dir):
 
 
 def test_run_replay_errors_clearly(tmp_path, demo_dir):
-    from dexdrake.demos.replay_commands import find_demos, run_replay
+    from dexdrake.cli.replay import find_demos, run_replay
 
     with pytest.raises(DexdrakeError, match="does not exist"):
         find_demos(tmp_path / "missing")
@@ -208,7 +208,7 @@ def test_cli_registers_demos_replay():
 
     args = build_parser().parse_args(["demos", "replay", "--hand", "adroit", "--demos", "d", "--out", "o.npz",
                                       "--attempts", "3", "--workers", "2"])
-    from dexdrake.demos.replay_commands import cmd_replay, command_line
+    from dexdrake.cli.replay import cmd_replay, command_line
 
     assert args.func is cmd_replay
     assert command_line(args) == ("dexdrake demos replay --hand adroit --demos d --out o.npz --attempts 3 "
@@ -216,7 +216,7 @@ def test_cli_registers_demos_replay():
 
 
 def test_parallel_workers_match_serial(demo_dir, tmp_path):
-    from dexdrake.demos.replay_commands import run_replay
+    from dexdrake.cli.replay import run_replay
     from dexdrake.learn.demo_dataset import load_demo_dataset
 
     config = ReplayConfig(horizon=8, attempts=0, task=TaskSpec(success_radius=0.5, success_steps=3))
@@ -229,7 +229,7 @@ def test_parallel_workers_match_serial(demo_dir, tmp_path):
 
 def test_demos_made_for_an_episode_are_replayed_at_its_placement(demo_dir):
     from dexdrake.demos.format import load_demo
-    from dexdrake.demos.replay_commands import _find_demos
+    from dexdrake.cli.replay import _find_demos
     from dexdrake.systems.demo_replay import DemoReplayer
 
     ((path, name, made_for),) = _find_demos(demo_dir, None)

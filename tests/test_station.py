@@ -85,7 +85,7 @@ FINGER_OFFSETS = {"joint_0.0": 0.2, "joint_5.0": 0.5, "joint_10.0": 0.4, "joint_
 def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | None = None):
     """Command FINGER_OFFSETS from the start pose; (start q, end q, offsets, result).
     `world_minus_control` collects world time - control time at every controller call."""
-    from dexdrake.station_commands import run_episode
+    from dexdrake.cli.station import run_episode
 
     hand = station.hand
     offset = np.zeros(hand.num_actuators)
@@ -177,7 +177,7 @@ def test_hil_episode_driven_by_the_shipped_policy():
     and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
     centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
     0.6 m away)."""
-    from dexdrake.station_commands import PolicyController, make_controller, run_episode
+    from dexdrake.cli.station import PolicyController, make_controller, run_episode
     from dexdrake.systems.station import make_station
 
     scenario = hil_scenario()
@@ -197,7 +197,7 @@ def test_hil_episode_driven_by_the_shipped_policy():
 
 
 def test_nan_command_holds_and_is_never_sent():
-    from dexdrake.station_commands import run_episode
+    from dexdrake.cli.station import run_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
@@ -216,7 +216,7 @@ def test_nan_command_holds_and_is_never_sent():
 @pytest.mark.parametrize("device", ["allegro", "z1"])
 def test_stalled_emulator_stream_ends_in_safe_state(device):
     from dexdrake.hardware.z1_udp import ArmFSMState
-    from dexdrake.station_commands import run_episode
+    from dexdrake.cli.station import run_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
@@ -291,7 +291,7 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
-    from dexdrake.station_commands import make_controller, run_episode
+    from dexdrake.cli.station import make_controller, run_episode
     from dexdrake.systems.station import StationRerunLogger, make_station
 
     scenario = hil_scenario("rendered")
@@ -366,7 +366,7 @@ def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_se
 
 
 def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
-    from dexdrake.station_commands import PolicyController, ScriptedGraspController, make_controller
+    from dexdrake.cli.station import PolicyController, ScriptedGraspController, make_controller
 
     controller, description = make_controller(load_scenario(_hil_config(tmp_path, None)))
     assert isinstance(controller, ScriptedGraspController) and "no policy in the scenario" in description

@@ -142,6 +142,13 @@ def list_objects(split: str | None = None) -> list[ObjectInfo]:
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
+def object_names(spec: str) -> list[str]:
+    """The names an `--objects` value selects: a split ("train" | "unseen") or comma-separated names."""
+    if spec in ("train", "unseen"):
+        return [o.name for o in list_objects(spec)]
+    return [s for s in spec.split(",") if s]
+
+
 def get_object(name: str) -> ObjectInfo:
     """The object called `name`; UnknownNameError lists the valid names."""
     if importer.NAME_PATTERN.match(name):

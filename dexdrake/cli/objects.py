@@ -1,4 +1,4 @@
-"""`dexdrake objects ...` command-line commands (wired into dexdrake/cli.py).
+"""`dexdrake objects ...` command-line commands (wired into dexdrake/cli/__init__.py).
 
 The library (trimesh, scipy) is imported inside the commands so `dexdrake --help` stays quick.
 """

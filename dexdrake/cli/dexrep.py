@@ -33,7 +33,7 @@ def _show(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from dexdrake.dexrep.train_encoder import TrainConfig, train
-    from dexdrake.learn.commands import command_line
+    from dexdrake.cli.learn import command_line
 
     config = TrainConfig(meshes=args.meshes, epochs=args.epochs, steps_per_epoch=args.steps_per_epoch,
                          batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)

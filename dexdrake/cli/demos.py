@@ -1,5 +1,5 @@
 """CLI: `demos synth` (synthetic human grasps), `demos import` (keypoint files -> demo files),
-`demos replay` (see replay_commands) and `retarget` (demo or keypoint file -> robot joint
+`demos replay` (see cli/replay.py) and `retarget` (demo or keypoint file -> robot joint
 angles)."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from dexdrake import argtypes
+from dexdrake.cli import replay
 from dexdrake.errors import DexdrakeError
 
 # MediaPipe skeleton: each finger's chain from the wrist
@@ -55,9 +56,7 @@ def add_parser(subparsers) -> None:
                      help="demo file to write (.npz)")
     _keypoint_flags(imp, "--hand", "--side")
     imp.set_defaults(func=cmd_import)
-    from dexdrake.demos import replay_commands
-
-    replay_commands.add_parser(sub)
+    replay.add_parser(sub)
 
     rt = subparsers.add_parser("retarget", help="retarget a human demo or keypoint file to a "
                                "robot hand", description=RETARGET_HELP)
@@ -127,21 +126,14 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def _object_names(spec: str) -> list[str]:
-    if spec in ("train", "unseen"):
-        from dexdrake.objects.library import list_objects
-
-        return [o.name for o in list_objects(spec)]
-    return [s for s in spec.split(",") if s]
-
-
 def cmd_synth(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dexdrake.demos.format import save_demo
     from dexdrake.demos.synthetic import synthesize_object_demos
+    from dexdrake.objects.library import object_names
 
-    names = _object_names(args.objects)
+    names = object_names(args.objects)
     written = 0
     for i, name in enumerate(tqdm(names, desc="synthesize", unit="object")):
         for k, demo in enumerate(synthesize_object_demos(name, args.per_object,

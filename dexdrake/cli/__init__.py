@@ -1,7 +1,9 @@
 """The `dexdrake` command line: one sub-command per workflow.
 
-Each area of the package contributes its sub-commands through an `add_parser(subparsers)`
-function; heavy imports (pydrake, torch) happen inside the commands, so `--help` is quick.
+The command line is the top layer: only this package (in `dexdrake/`) imports `systems/`
+and `hardware/`. Each module here contributes its sub-commands through an
+`add_parser(subparsers)` function; heavy imports (pydrake, torch) happen inside the
+commands, so `--help` is quick.
 """
 
 from __future__ import annotations
@@ -16,12 +18,12 @@ from dexdrake.errors import DexdrakeError, DexdrakeWarning
 
 # Modules that contribute sub-commands with `add_parser(subparsers)`.
 COMMAND_MODULES = [
-    "dexdrake.sim_commands",
-    "dexdrake.objects.commands",
-    "dexdrake.demos.commands",
-    "dexdrake.dexrep.commands",
-    "dexdrake.station_commands",
-    "dexdrake.learn.commands", "dexdrake.demo_command",
+    "dexdrake.cli.sim",
+    "dexdrake.cli.objects",
+    "dexdrake.cli.demos",
+    "dexdrake.cli.dexrep",
+    "dexdrake.cli.station",
+    "dexdrake.cli.learn", "dexdrake.cli.demo",
 ]
 
 

@@ -8,7 +8,7 @@ Host silence does not stop it: nothing documents a firmware timeout (specs/alleg
 so by default the last PWM stays applied; `torque_timeout_s` adds such a cut-off only
 when a test asks for one. `power_cycle()` emulates a power loss (servo off, no streams). The default, `PwmJointDynamics`, is a per-joint double integrator:
     ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits.
-A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
+A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
 Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature,
 never report temperatures, lose power.

@@ -15,7 +15,7 @@ I * ddq = clip(tau, +-effort) - g(q) - b * dq inside hard joint stops, where g i
 gravity load of the arm and its payload from the model (the real arm is not gravity
 compensated in LOWCMD: the client must feed it forward), with
 LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff (PASSIVE: damping only).
-A hardware-in-the-loop world plugs its plant in instead (hardware/hil_world.py).
+A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or `open()` it and call `poll(now)` from yours.
 Fault injection: stall replies, corrupt replies, report a motor error.
 """

@@ -104,7 +104,7 @@ class Drivers:
 class HilWorldConfig:
     """How the co-simulated world turns bus commands into plant torques (hil only).
     Its timing (one simulated clock, lockstep with the hand's PD loop, never faster than
-    real time) is described in hardware/hil_world.py.
+    real time) is described in systems/hil_world.py.
 
     A finger joint gets tau = pwm * pwm_torque_scale * NM_PER_PWM (the one PWM -> N*m
     assumption, dexdrake/hands/allegro_units.py, which the simulated hand's gains use too);

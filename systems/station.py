@@ -9,7 +9,7 @@ hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus,
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
       every device and the control loop run on its simulated clock, in lockstep with the
-      hand's PD loop and never faster than real time: see hardware/hil_world.py); object
+      hand's PD loop and never faster than real time: see systems/hil_world.py); object
       pose from PerceptionSystem (rendered RGB-D of the world -> segmentation ->
       registration, in a worker process; it paces itself on the wall clock) or, with
       camera kind "sim", straight from the world.
@@ -413,7 +413,7 @@ def open_can_bus(scenario: Scenario):
 
 def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
     """hil: the world plant with the CAN firmware emulator and the loopback Z1 emulator."""
-    from dexdrake.hardware.hil_world import HilWorld
+    from dexdrake.systems.hil_world import HilWorld
     from dexdrake.systems.scene import ObjectPlacement
 
     placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))

@@ -134,7 +134,7 @@ def test_hil_outcome_does_not_depend_on_host_speed(monkeypatch):
     tracks exactly as well: the drivers' PD, rate limits and watchdogs run on its clock."""
     import time
 
-    from dexdrake.hardware.hil_world import HilWorld
+    from dexdrake.systems.hil_world import HilWorld
     from dexdrake.systems.station import make_station
 
     step = HilWorld.step

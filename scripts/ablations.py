@@ -36,7 +36,7 @@ COLUMNS = ("feature_set", "obs_dim", "train_mse", "unseen_open_loop_mse", "ours_
 
 def as_raw(data, hand: str):
     """DAgger data as the RawEpisodes that `featurise` re-featurises (labels as actions)."""
-    from dexdrake.eval.scripted_data import RawEpisodes
+    from dexdrake.systems.scripted_data import RawEpisodes
 
     return RawEpisodes(hand, data.objects, data.seeds, data.success, data.episode_starts, data.positions, data.labels)
 
@@ -53,11 +53,12 @@ def every_nth_step(data, stride: int):
 
 def expert_episodes(hand: str, objects: list[str], seeds: list[int]):
     """The expert's own episodes on `objects` (positions and labels)."""
-    from dexdrake.eval.envs import GraspEnvFactory
     from dexdrake.learn.dagger import DaggerData, run_episode
+    from dexdrake.systems.env_factory import GraspEnvFactory
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     env = GraspEnvFactory(hand, None, tuple(objects), 100)()
-    return DaggerData.concat([run_episode(env, name, s, None, 0.0) for name in objects for s in seeds])
+    return DaggerData.concat([run_episode(env, name, s, None, 0.0, ReactiveGrasp) for name in objects for s in seeds])
 
 
 def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict[str, object]:
@@ -65,11 +66,12 @@ def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict
     import torch
 
     from dexdrake.eval.evaluate import evaluate_policy
-    from dexdrake.eval.scripted_data import featurise
-    from dexdrake.eval.tables import PAPER_ABLATIONS, PAPER_UNSEEN
+    from dexdrake.eval.paper import PAPER_ABLATIONS, PAPER_UNSEEN
     from dexdrake.learn.bc import BCConfig, train_bc
     from dexdrake.learn.demo_dataset import DemoDataset
     from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
+    from dexdrake.systems.env_factory import env_factory_for_policy
+    from dexdrake.systems.scripted_data import featurise
 
     slug = feature_set.replace("+", "_").replace("-", "_").lower()
     folder = args.out / slug
@@ -84,7 +86,7 @@ def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict
     with torch.no_grad():
         pred = policy(torch.as_tensor(held_obs)).numpy()
     open_loop = float(np.mean(np.sum((pred - held_out.actions) ** 2, axis=1)))
-    report = evaluate_policy(bc.last_checkpoint, objects, args.episodes, args.eval_seed, args.workers,
+    report = evaluate_policy(bc.last_checkpoint, env_factory_for_policy, objects, args.episodes, args.eval_seed, args.workers,
                              label="unseen", command=shlex.join(["python", *sys.argv]))
     per = report.per_object()
     paper_objs = [n for n in per if n in PAPER_UNSEEN]
@@ -147,8 +149,8 @@ def main() -> None:
     import torch
 
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
-    from dexdrake.eval.envs import resolve_objects
-    from dexdrake.eval.tables import PAPER_UNSEEN
+    from dexdrake.objects.library import resolve_objects
+    from dexdrake.eval.paper import PAPER_UNSEEN
     from dexdrake.learn.dagger import DaggerData
     from dexdrake.learn.policy import load_policy
 

@@ -42,7 +42,7 @@ import torch  # noqa: E402
 STARTUP_SNIPPET = """
 import time
 t0 = time.process_time()
-from dexdrake.eval.envs import GraspEnvFactory
+from dexdrake.systems.env_factory import GraspEnvFactory
 env = GraspEnvFactory("adroit", "DexRep", ({obj!r},), 10)()
 env.reset(0)
 print(time.process_time() - t0)
@@ -151,11 +151,12 @@ def instrument(sections: Sections, sample_every: int = 5):
 def collect(env, objects, episodes: int, policy, seed0: int) -> tuple[int, float]:
     """(labelled steps, CPU seconds) of DAgger episodes: the expert acts if `policy` is None."""
     from dexdrake.learn.dagger import run_episode
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     steps, start = 0, time.process_time()
     for k in range(episodes):
         for name in objects:
-            steps += len(run_episode(env, name, seed0 + k, policy, 0.0).labels)
+            steps += len(run_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
     return steps, time.process_time() - start
 
 
@@ -222,8 +223,8 @@ def main() -> None:
 
     import mujoco_peer
 
-    from dexdrake.eval.envs import GraspEnvFactory
     from dexdrake.learn.policy import load_policy
+    from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.paths import models_dir
     from dexdrake.systems.scene import SceneConfig
 

@@ -28,9 +28,10 @@ from functools import partial
 def measure_scaling(objects: list[str], episodes: int = 8, horizon: int = 50, backends=("process", "ray"),
                     worker_counts=(1, 2), hand: str = "adroit", feature_set: str = "DexRep") -> list[dict]:
     """One row per (backend, workers): expert-driven DAgger episodes timed after a warm-up."""
-    from dexdrake.eval.envs import GraspEnvFactory
     from dexdrake.learn.dagger import DaggerData, dagger_job
     from dexdrake.learn.samplers import make_sampler
+    from dexdrake.systems.env_factory import GraspEnvFactory
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     factory = GraspEnvFactory(hand, feature_set, tuple(objects), horizon)
     jobs = [(objects[k % len(objects)], 1000 + k) for k in range(episodes)]
@@ -38,9 +39,9 @@ def measure_scaling(objects: list[str], episodes: int = 8, horizon: int = 50, ba
     for backend in backends:
         for workers in worker_counts:
             with make_sampler(factory, backend, workers) as sampler:
-                sampler.map(partial(dagger_job, 0.0), None, [(objects[0], k) for k in range(workers)])  # env builds
+                sampler.map(partial(dagger_job, ReactiveGrasp, 0.0), None, [(objects[0], k) for k in range(workers)])  # env builds
                 cpu0, driver0, wall0 = sampler.episode_cpu_s, time.process_time(), time.perf_counter()
-                data = DaggerData.concat(sampler.map(partial(dagger_job, 0.0), None, jobs))
+                data = DaggerData.concat(sampler.map(partial(dagger_job, ReactiveGrasp, 0.0), None, jobs))
                 wall = time.perf_counter() - wall0
                 rows.append({"backend": backend, "workers": workers, "steps": len(data.labels), "wall_s": wall,
                              "worker_cpu_s": sampler.episode_cpu_s - cpu0, "driver_cpu_s": time.process_time() - driver0,

@@ -27,16 +27,16 @@ from tqdm import tqdm
 
 
 def _record(job: tuple[str, str, list[int], int, str, float, int]):
-    from dexdrake.eval.scripted_data import record_object, timing_named
+    from dexdrake.systems.scripted_data import record_object, timing_named
 
     hand, name, seeds, horizon, timing, noise, noise_seed = job
     return record_object(hand, name, seeds, horizon, timing_named(timing), noise=noise, noise_seed=noise_seed)
 
 
 def cmd_record(args: argparse.Namespace) -> None:
-    from dexdrake.eval.envs import resolve_objects
     from dexdrake.eval.action_noise import DEFAULT_RHO
-    from dexdrake.eval.scripted_data import concat, save_raw, timing_named
+    from dexdrake.objects.library import resolve_objects
+    from dexdrake.systems.scripted_data import concat, save_raw, timing_named
 
     if args.noise < 0:
         raise SystemExit(f"--noise must be >= 0, got {args.noise}")
@@ -59,8 +59,8 @@ def cmd_record(args: argparse.Namespace) -> None:
 
 
 def cmd_featurise(args: argparse.Namespace) -> None:
-    from dexdrake.eval.scripted_data import dataset_metadata, featurise, load_raw
     from dexdrake.learn.demo_dataset import save_demo_dataset
+    from dexdrake.systems.scripted_data import dataset_metadata, featurise, load_raw
 
     recorded, meta = load_raw(args.raw)
     kept = recorded.select_successful()
@@ -74,7 +74,7 @@ def cmd_featurise(args: argparse.Namespace) -> None:
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
-    from dexdrake.eval.scripted_data import concat, load_raw, save_raw
+    from dexdrake.systems.scripted_data import concat, load_raw, save_raw
 
     loaded = [load_raw(p) for p in args.inputs]
     raw = concat([r for r, _ in loaded])
@@ -88,7 +88,7 @@ def cmd_merge(args: argparse.Namespace) -> None:
 
 
 def main() -> None:
-    from dexdrake.eval.scripted_data import TIMINGS
+    from dexdrake.systems.scripted_data import TIMINGS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -100,7 +100,7 @@ def main() -> None:
     rec.add_argument("--horizon", type=int, default=100)
     rec.add_argument("--workers", type=int, default=2)
     rec.add_argument("--timing", default="fast", choices=sorted(TIMINGS),
-                     help="script phase timing (dexdrake.eval.scripted_data.TIMINGS)")
+                     help="script phase timing (dexdrake.systems.scripted_data.TIMINGS)")
     rec.add_argument("--noise", type=float, default=0.0, help="OU noise std on executed actions (0: off)")
     rec.add_argument("--noise-seed", type=int, default=0)
     rec.add_argument("--out", type=Path, required=True)

@@ -13,8 +13,8 @@ import trimesh
 from dexdrake.cli import main
 from dexdrake.demos.format import load_demo
 from dexdrake.dexrep.pointnet import PointNetEncoder, load_encoder
-from dexdrake.eval.envs import GraspEnvFactory
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.systems.env_factory import GraspEnvFactory
 from rrd_content import logged_rows
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -7,10 +7,10 @@ import pytest
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.envs import GraspEnvFactory
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.dagger import DaggerConfig, DaggerData, run_episode, train_dagger
 from dexdrake.learn.policy import load_policy
+from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
 OBJECT = "sphere_small"
@@ -70,7 +70,7 @@ def test_reset_refuses_an_object_outside_the_env(env):
 
 
 def test_run_episode_records_states_and_expert_labels(env):
-    data = run_episode(env, OBJECT, 0, None, noise=0.0)
+    data = run_episode(env, OBJECT, 0, None, 0.0, ReactiveGrasp)
     assert data.objects == [OBJECT] and data.success.tolist() == [True]
     n = env.horizon
     assert data.labels.shape == (n, env.action_dim) and data.observations.shape == (n, 2 * env.action_dim)
@@ -80,7 +80,7 @@ def test_run_episode_records_states_and_expert_labels(env):
 
 
 def test_dagger_data_round_trip_and_format_check(tmp_path, env):
-    data = run_episode(env, OBJECT, 1, None, noise=0.0)
+    data = run_episode(env, OBJECT, 1, None, 0.0, ReactiveGrasp)
     data.save(tmp_path / "d.npz", {"iteration": 0})
     back = DaggerData.load(tmp_path / "d.npz")
     assert back.objects == data.objects and np.array_equal(back.labels, data.labels)
@@ -91,7 +91,7 @@ def test_dagger_data_round_trip_and_format_check(tmp_path, env):
 
 def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     config = DaggerConfig(feature_set="Hand2obj", iterations=2, episodes_per_object=1, epochs=1, workers=1)
-    final = train_dagger([OBJECT], tmp_path / "d", config)
+    final = train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config)
     rows = read_csv(tmp_path / "d" / "dagger_log.csv")
     assert [r["driver"] for r in rows] == ["expert", "policy"]
     assert [int(r["samples_total"]) for r in rows] == [100, 200]  # aggregated
@@ -99,7 +99,7 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     policy, meta = load_policy(final)
     assert policy.config.feature_set == "Hand2obj" and meta["iteration"] == 0  # the only measured policy
     before = (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns
-    train_dagger([OBJECT], tmp_path / "d", config)  # finished iterations are not redone
+    train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config)  # finished iterations are not redone
     assert (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns == before
     assert len(read_csv(tmp_path / "d" / "dagger_log.csv")) == 2
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--iterations", "1",

@@ -143,7 +143,8 @@ def test_object_demos_head_where_the_arm_reaches_after_placement():
     from dexdrake.demos.synthetic import ADROIT_HEADING, HEADING_SPREAD, synthesize_object_demos
     from dexdrake.systems.demo_replay import episode_placement
 
-    for demo in synthesize_object_demos("sphere_small", 2, seed=3):
+    for demo in synthesize_object_demos("sphere_small", 2, seed=3,
+                                        placement_yaw=lambda s: episode_placement(s).yaw):
         extra = demo.meta.extra
         assert extra["grasp"] != "side" and extra["episode_seed"] == extra["seed"]
         psi = episode_placement(extra["episode_seed"]).yaw

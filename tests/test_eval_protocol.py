@@ -11,13 +11,13 @@ import torch
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.envs import GraspEnvFactory
 from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy, wilson_interval
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, TRAINING_SEEDS, check_evaluation_seeds
 from dexdrake.eval.tables import csv_table, markdown_table
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.dagger import DaggerData
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -96,7 +96,7 @@ def test_eval_cli_defaults_to_reserved_seeds_and_refuses_others(tmp_path, env_bl
 def test_api_evaluation_reports_the_hand_of_the_policy(tmp_path, env_blocks):
     blocks, a = env_blocks
     path = _policy(tmp_path / "p.pt", blocks, a)
-    report = evaluate_policy(path, [TRAIN_OBJECTS[0]], episodes=1, seed=7, horizon=2, progress=False)
+    report = evaluate_policy(path, env_factory_for_policy, [TRAIN_OBJECTS[0]], episodes=1, seed=7, horizon=2, progress=False)
     assert (report.hand, report.feature_set) == ("adroit", "Hand2obj") and not report.seeds_reserved()
 
 

@@ -19,10 +19,11 @@ from ray.cluster_utils import Cluster
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.envs import GraspEnvFactory
 from dexdrake.learn.dagger import collect
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
 from dexdrake.learn.samplers import ProcessSampler, RaySampler, rollout
+from dexdrake.systems.env_factory import GraspEnvFactory
+from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
 OBJECT = "sphere_medium"
 FACTORY = GraspEnvFactory("adroit", "DexRep", (OBJECT,), horizon=6)
@@ -82,8 +83,8 @@ def test_dapg_sampling_on_ray_matches_processes(ray_sampler, process_sampler, po
 
 def test_dagger_collection_on_ray_matches_processes(ray_sampler, process_sampler, policy):
     for driver, jobs, noise in ((None, [(OBJECT, 10), (OBJECT, 11)], 0.3), (policy, [(OBJECT, 12)], 0.0)):
-        a = collect(ray_sampler, driver, jobs, noise, "ray")
-        b = collect(process_sampler, driver, jobs, noise, "processes")
+        a = collect(ray_sampler, driver, jobs, noise, "ray", ReactiveGrasp)
+        b = collect(process_sampler, driver, jobs, noise, "processes", ReactiveGrasp)
         assert a.objects == b.objects and a.seeds.tolist() == [s for _, s in jobs]
         assert np.array_equal(a.success, b.success) and np.array_equal(a.episode_starts, b.episode_starts)
         for field in ("positions", "observations", "labels"):

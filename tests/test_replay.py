@@ -136,7 +136,8 @@ def demo_dir(tmp_path_factory):
     from dexdrake.demos.synthetic import synthesize_object_demos
 
     folder = tmp_path_factory.mktemp("demos")
-    (demo,) = synthesize_object_demos("sphere_small", 1, seed=0)
+    (demo,) = synthesize_object_demos("sphere_small", 1, seed=0,
+                                      placement_yaw=lambda s: episode_placement(s).yaw)
     save_demo(demo, folder / "sphere_small_00_top.npz")
     np.savez(folder / "sphere_small_00_top.adroit.npz", q=np.zeros((3, 30)))  # not a demo: skipped
     return folder

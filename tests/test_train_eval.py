@@ -10,11 +10,13 @@ import torch
 from rrd_content import logged_rows
 
 from dexdrake.cli import main
-from dexdrake.eval.envs import GraspEnvFactory, resolve_objects
 from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy, run_episode
-from dexdrake.eval.tables import PAPER_UNSEEN, csv_table, markdown_table, table_rows, write_report
+from dexdrake.eval.paper import PAPER_UNSEEN
+from dexdrake.eval.tables import csv_table, markdown_table, table_rows, write_report
 from dexdrake.learn.demo_dataset import save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.objects.library import resolve_objects
+from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
 from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
 OBJECT = "sphere_small"
@@ -180,10 +182,10 @@ def test_resolve_objects():
 def test_evaluate_policy_runs_seeded_episodes(tmp_path, env_blocks):
     blocks, a = env_blocks
     path = _random_policy(tmp_path / "p.pt", blocks, a)
-    report = evaluate_policy(path, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
+    report = evaluate_policy(path, env_factory_for_policy, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
     assert [(e.object, e.seed, e.steps) for e in report.episodes] == [(OBJECT, 5, 3), (OBJECT, 6, 3)]
     assert report.average_pct() == 0.0  # 3 steps cannot hold the object for 50
-    again = evaluate_policy(path, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
+    again = evaluate_policy(path, env_factory_for_policy, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
     assert [e.total_reward for e in again.episodes] == [e.total_reward for e in report.episodes]
 
 
@@ -241,7 +243,7 @@ def test_demo_runs_a_policy_and_writes_a_recording(tmp_path, env_blocks, capsys)
 
 # -- scripted demos, re-featurised -------------------------------------------------------------
 def test_refeaturised_scripted_states_match_online_observations(tmp_path):
-    from dexdrake.eval.scripted_data import featurise, load_raw, record_object, save_raw
+    from dexdrake.systems.scripted_data import featurise, load_raw, record_object, save_raw
 
     raw = record_object("adroit", OBJECT, [7], horizon=4)
     assert raw.positions.shape[0] == 4 and raw.episode_starts.tolist() == [True, False, False, False]
@@ -272,7 +274,7 @@ def test_ou_action_noise_is_stationary_correlated_and_seeded():
 
 
 def test_noisy_recording_executes_noise_but_labels_clean_expert_actions():
-    from dexdrake.eval.scripted_data import record_object
+    from dexdrake.systems.scripted_data import record_object
 
     clean = record_object("adroit", OBJECT, [7], horizon=5)
     noisy = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=1)
@@ -290,7 +292,7 @@ def test_noisy_recording_executes_noise_but_labels_clean_expert_actions():
 
 
 def test_early_lift_timing_grasps_within_the_evaluation_episode():
-    from dexdrake.eval.scripted_data import EARLY_LIFT, record_object, timing_named
+    from dexdrake.systems.scripted_data import EARLY_LIFT, record_object, timing_named
 
     assert timing_named("early_lift") == EARLY_LIFT
     with pytest.raises(Exception, match="early_lift"):

@@ -85,11 +85,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise DexdrakeError(f"policy file {policy_path} not found: {hint}")
     import torch
 
-    from dexdrake.eval.envs import env_factory_for_policy
     from dexdrake.eval.evaluate import run_episode
     from dexdrake.learn.policy import load_policy
     from dexdrake.learn.samplers import check_env_matches
     from dexdrake.objects.library import get_object
+    from dexdrake.systems.env_factory import env_factory_for_policy
     from dexdrake.systems.rerun_logger import RerunEpisodeLogger
 
     torch.set_num_threads(1)

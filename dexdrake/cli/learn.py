@@ -152,8 +152,7 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
 
 def training_objects(spec: str) -> list[str]:
     """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
-    from dexdrake.eval.envs import resolve_objects
-    from dexdrake.objects.library import get_object
+    from dexdrake.objects.library import get_object, resolve_objects
 
     if spec in ("unseen", "seen"):
         raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
@@ -165,10 +164,10 @@ def training_objects(spec: str) -> list[str]:
 
 
 def cmd_train_dapg(args: argparse.Namespace) -> int:
-    from dexdrake.eval.envs import env_factory_for_policy
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
+    from dexdrake.systems.env_factory import env_factory_for_policy
 
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
@@ -205,10 +204,12 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
 def cmd_train_dagger(args: argparse.Namespace) -> int:
     import torch
 
+    from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import DaggerConfig, train_dagger
+    from dexdrake.systems.env_factory import GraspEnvFactory
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     objects = training_objects(args.objects)
-    from dexdrake.hands.description import load_hand
 
     load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback
     torch.set_num_threads(args.threads)
@@ -219,20 +220,22 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "workers", "backend", "address",
                                                         "threads", "seed"])
-    final = train_dagger(objects, args.out, config, {"command": command}, args.address)
+    final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
+                         args.address)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from dexdrake.eval.envs import resolve_objects
     from dexdrake.eval.evaluate import evaluate_policy
     from dexdrake.eval.tables import markdown_table, write_report
+    from dexdrake.objects.library import resolve_objects
+    from dexdrake.systems.env_factory import env_factory_for_policy
 
     label, objects = resolve_objects(args.objects)
     label = args.label or label
     check_evaluation_seeds(args.seed, args.episodes)
-    report = evaluate_policy(args.policy, objects, args.episodes, args.seed, args.workers, args.horizon,
+    report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers, args.horizon,
                              label=label, command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
                                                                                  "workers", "horizon", "out", "label"]))
     print(markdown_table(report))

@@ -245,11 +245,11 @@ def run_replay(demos_dir: Path, out: Path, hand: str, config, feature_set: str |
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from dexdrake.objects.library import object_names
+    from dexdrake.objects.library import resolve_objects
     from dexdrake.systems.demo_replay import ReplayConfig
 
     config = ReplayConfig(horizon=args.horizon, attempts=args.attempts)
-    objects = None if args.objects is None else object_names(args.objects)
+    objects = None if args.objects is None else resolve_objects(args.objects)[1]
     run_replay(args.demos, args.out, args.hand, config, args.feature_set, args.seed, objects,
                args.workers, command_line(args))
     return 0

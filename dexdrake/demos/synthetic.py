@@ -18,6 +18,7 @@ direction for top/pinch grasps and the approach direction (palm normal) for side
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -222,18 +223,22 @@ def synthesize_demo(mesh: trimesh.Trimesh, object_name: str, grasp: str, seed: i
 
 
 def synthesize_object_demos(object_name: str, count: int, seed: int = 0,
-                            heading: float | None = ADROIT_HEADING) -> list[HumanDemo]:
+                            heading: float | None = ADROIT_HEADING,
+                            placement_yaw: Callable[[int], float] | None = None) -> list[HumanDemo]:
     """`count` demos of a library object.
 
     With a world `heading` (default: the Adroit's), demo i is made for the replay episode
     whose seed is its own seed (seed * 1000 + i): the hand heads along `heading` in the
-    world once the object is placed at that episode's yaw; meta.extra records
+    world once the object is placed at that episode's yaw, `placement_yaw(episode_seed)`
+    (the replay's placement rule, passed in by the caller); meta.extra records
     "episode_seed" and "placement_yaw", and the grasp types are the palm-down ones (top,
     and pinch for small objects), which a hand on an arm reaching from above can make.
     With heading None: uniform headings, cycling over every grasp type that suits the object.
     """
     from dexdrake.objects.library import get_object
 
+    if heading is not None and placement_yaw is None:
+        raise ValueError("synthesize_object_demos: a world heading needs placement_yaw")
     info = get_object(object_name)
     mesh = trimesh.load(info.mesh_path, force="mesh")
     types = grasp_types_for(mesh)
@@ -243,9 +248,7 @@ def synthesize_object_demos(object_name: str, count: int, seed: int = 0,
     for i in range(count):
         s, psi = seed * 1000 + i, None
         if heading is not None:
-            from dexdrake.systems.demo_replay import episode_placement
-
-            psi = float(episode_placement(s).yaw)
+            psi = float(placement_yaw(s))
         demo = synthesize_demo(mesh, object_name, types[i % len(types)], s,
                                rest_height=float(info.rest_height),
                                heading=None if psi is None else heading - psi)

@@ -23,9 +23,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.envs import GraspEnvFactory, env_factory_for_policy
+from dexdrake.eval.paper import PAPER_AVERAGE
 from dexdrake.eval.seeds import evaluation_seeds_reserved
-from dexdrake.eval.tables import PAPER_AVERAGE
+from dexdrake.learn.env_protocol import PolicyEnvFactory
 
 EVAL_HORIZON = 100  # control steps per evaluation episode (paper)
 Z_95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
@@ -132,7 +132,7 @@ def run_episode(env, policy, seed: int, horizon: int) -> tuple[bool, float, int,
 class _EpisodeRunner:
     """Holds the policy and one single-object env per object name (built on first use)."""
 
-    def __init__(self, policy_path: str, horizon: int):
+    def __init__(self, policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory):
         import torch
 
         from dexdrake.learn.policy import load_policy
@@ -140,14 +140,14 @@ class _EpisodeRunner:
         torch.set_num_threads(1)
         self.policy, _ = load_policy(policy_path)
         self.horizon = horizon
+        self.env_factory_for = env_factory_for
         self._envs: dict[str, Any] = {}
 
     def __call__(self, name: str, seed: int) -> EpisodeResult:
         if name not in self._envs:
             from dexdrake.learn.samplers import check_env_matches
 
-            factory: GraspEnvFactory = env_factory_for_policy(self.policy.config, [name], self.horizon)
-            env = factory()
+            env = self.env_factory_for(self.policy.config, [name], self.horizon)()
             check_env_matches(env, self.policy)
             self._envs[name] = env
         success, lift, steps, reward = run_episode(self._envs[name], self.policy, seed, self.horizon)
@@ -157,9 +157,9 @@ class _EpisodeRunner:
 _RUNNER: _EpisodeRunner | None = None
 
 
-def _init_worker(policy_path: str, horizon: int) -> None:
+def _init_worker(policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory) -> None:
     global _RUNNER
-    _RUNNER = _EpisodeRunner(policy_path, horizon)
+    _RUNNER = _EpisodeRunner(policy_path, horizon, env_factory_for)
 
 
 def _run_in_worker(name: str, seed: int) -> EpisodeResult:
@@ -170,6 +170,7 @@ def _run_in_worker(name: str, seed: int) -> EpisodeResult:
 
 def evaluate_policy(
     policy_path: str | Path,
+    env_factory_for: PolicyEnvFactory,
     objects: list[str],
     episodes: int,
     seed: int = 0,
@@ -179,7 +180,8 @@ def evaluate_policy(
     command: str = "",
     progress: bool = True,
 ) -> EvalReport:
-    """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint."""
+    """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint,
+    in envs from `env_factory_for` (picklable: worker processes call it too)."""
     from dexdrake.learn.policy import load_policy
 
     if episodes < 1 or workers < 1 or horizon < 1:
@@ -187,21 +189,21 @@ def evaluate_policy(
     if not objects:
         raise DexdrakeError("no objects to evaluate")
     policy, _ = load_policy(policy_path)  # fail early, in this process, on a bad checkpoint
-    env_factory_for_policy(policy.config, objects, horizon)
+    env_factory_for(policy.config, objects, horizon)
     jobs = [(name, seed + i) for name in objects for i in range(episodes)]
     report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers,
                         hand=policy.config.hand, feature_set=policy.config.feature_set)
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
     if workers == 1:
-        runner = _EpisodeRunner(str(policy_path), horizon)
+        runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for)
         for name, s in jobs:
             report.episodes.append(runner(name, s))
             bar.update()
     else:
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         with ProcessPoolExecutor(workers, mp.get_context(method), initializer=_init_worker,
-                                 initargs=(str(policy_path), horizon)) as pool:
+                                 initargs=(str(policy_path), horizon, env_factory_for)) as pool:
             futures = [pool.submit(_run_in_worker, name, s) for name, s in jobs]
             try:
                 for fut in as_completed(futures):

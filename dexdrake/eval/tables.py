@@ -1,4 +1,4 @@
-"""Result tables in the layout of the paper's Table I (markdown and CSV) and the paper's numbers.
+"""Result tables in the layout of the paper's Table I (markdown and CSV).
 
 One row per object (successes, our rate, the paper's DexRep rate where it has one, mean
 lift, 95 % Wilson interval) and an average row; the markdown header names the command that
@@ -13,36 +13,11 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dexdrake.eval.paper import PAPER_AVERAGE, PAPER_UNSEEN
 from dexdrake.eval.seeds import EVALUATION_SEEDS
 
 if TYPE_CHECKING:
     from dexdrake.eval.evaluate import EvalReport
-
-# DexRepNet Table I, success % of DexRep on unseen GRAB objects (library names).
-PAPER_UNSEEN: dict[str, float] = {
-    "mug": 100.0,
-    "camera": 99.0,
-    "binoculars": 97.3,
-    "apple": 100.0,
-    "toothpaste": 94.0,
-    "frying_pan": 81.3,
-    "toothbrush": 64.0,
-    "elephant": 100.0,
-    "hand": 100.0,
-    "pyramid_small": 3.3,
-}
-PAPER_AVERAGE: dict[str, float] = {"seen": 93.0, "unseen": 83.9}
-# Ablations on the 10 unseen GRAB objects (average success %).
-PAPER_ABLATIONS: dict[str, float] = {
-    "Hand2obj": 23.8,
-    "pGlo": 32.1,
-    "Loc-Geo": 68.0,
-    "Surf": 53.3,
-    "Occ+Surf": 63.2,
-    "Occ+Surf+pGlo": 64.2,
-    "DexRep+pGlo": 76.2,
-    "DexRep": 83.9,
-}
 
 
 def _fmt(value: float | None) -> str:

@@ -1,4 +1,5 @@
-"""DAgger with the state-driven grasp expert (`systems.reactive_grasp.ReactiveGrasp`).
+"""DAgger with a state-driven grasp expert (the command line passes in
+`systems.reactive_grasp.ReactiveGrasp`).
 
 Iteration 0 runs the expert itself (optionally with DART-style correlated action noise);
 every later iteration runs the current policy, and the expert labels every state the
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -30,6 +32,7 @@ from dexdrake.hands.description import load_hand
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
+from dexdrake.learn.env_protocol import MakeEnvFactory
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
 
@@ -89,14 +92,19 @@ class DaggerData:
                               d["positions"], d["observations"], d["labels"])
 
 
-def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise: float) -> DaggerData:
+MakeExpert = Callable[[Any], Callable[[Any], np.ndarray]]
+"""env -> the expert for its current episode: called with the env, it returns the action in
+joint units. Picklable (systems.reactive_grasp.ReactiveGrasp), as sampler workers call it."""
+
+
+def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise: float,
+                make_expert: MakeExpert) -> DaggerData:
     """One episode on object `name`: the policy acts (the expert if `policy` is None, with OU
     noise of std `noise` seeded by `seed`), the expert labels every visited state."""
     from dexdrake.eval.action_noise import OUActionNoise
-    from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     obs = env.reset(seed, object_name=name)
-    expert = ReactiveGrasp(env)
+    expert = make_expert(env)
     perturb = OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
     positions, observations, labels = [], [], []
     success = False
@@ -118,17 +126,19 @@ def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise
                       np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
 
 
-def dagger_job(noise: float, env, policy: DexRepNetPolicy | None, job: tuple[str, int]) -> DaggerData:
-    """`run_episode` as a sampler Episode (job = (object, seed)), with `noise` bound first."""
+def dagger_job(make_expert: MakeExpert, noise: float, env, policy: DexRepNetPolicy | None,
+               job: tuple[str, int]) -> DaggerData:
+    """`run_episode` as a sampler Episode (job = (object, seed)), with the expert and `noise`
+    bound first."""
     name, seed = job
-    return run_episode(env, name, seed, policy, noise)
+    return run_episode(env, name, seed, policy, noise, make_expert)
 
 
 def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,
-            desc: str) -> DaggerData:
+            desc: str, make_expert: MakeExpert) -> DaggerData:
     """Run `jobs` (object, seed) on the sampler's workers; results in job order (a job whose
     worker died is left out, with a warning)."""
-    return DaggerData.concat(sampler.map(partial(dagger_job, noise), policy, jobs, desc))
+    return DaggerData.concat(sampler.map(partial(dagger_job, make_expert, noise), policy, jobs, desc))
 
 
 RESUMABLE = ("iterations", "workers", "backend")  # DaggerConfig fields a resumed run may change
@@ -153,17 +163,16 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
                             f"{'; '.join(diff)}; use another --out or delete that folder")
 
 
-def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = DaggerConfig(),
-                 metadata: dict[str, Any] | None = None, address: str | None = None) -> Path:
+def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, make_expert: MakeExpert,
+                 config: DaggerConfig = DaggerConfig(), metadata: dict[str, Any] | None = None,
+                 address: str | None = None) -> Path:
     """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
-    see SELECTION). Episodes run on `config.workers` workers of `config.backend` (`address`:
-    a Ray cluster to join).
+    see SELECTION). Episodes run in envs from `make_env` on `config.workers` workers of
+    `config.backend` (`address`: a Ray cluster to join), labelled by `make_expert`'s expert.
 
     Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
     success rate (iteration 0: the expert; later: the previous iteration's policy).
     """
-    from dexdrake.eval.envs import GraspEnvFactory
-
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
     check_backend(config.backend, address)
@@ -178,7 +187,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     parts: list[DaggerData] = []
     policy: DexRepNetPolicy | None = None
-    factory = GraspEnvFactory(config.hand, config.feature_set, tuple(objects), config.horizon)
+    factory = make_env(config.hand, config.feature_set, tuple(objects), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
         for it in range(config.iterations):
@@ -191,7 +200,7 @@ def train_dagger(objects: list[str], out_dir: Path, config: DaggerConfig = Dagge
                 jobs = [(name, s) for s in seeds for name in objects]
                 driver = "expert" if policy is None else "policy"
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
-                               f"DAgger {it} ({driver})")
+                               f"DAgger {it} ({driver})", make_expert)
                 data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
             collect_s = time.perf_counter() - t0
             parts.append(data)

@@ -336,9 +336,10 @@ def _process_worker_main(conn: Connection, env_factory: EnvFactory) -> None:
             conn.send((False, DexdrakeError(f"rollout worker process {os.getpid()}:\n{traceback.format_exc()}")))
 
 
-# Imported once by the forkserver, before any thread starts, so each worker starts in a
-# fraction of a second instead of importing torch, Drake and Open3D itself (~3 CPU-s).
-PRELOAD = ("torch", "pydrake.all", "open3d", "dexdrake.eval.envs")
+# Imported once by the forkserver (with the module of the env factory's class), before any
+# thread starts, so each worker starts in a fraction of a second instead of importing torch,
+# Drake and Open3D itself (~3 CPU-s).
+PRELOAD = ("torch", "pydrake.all", "open3d")
 
 
 class ProcessSampler(_WorkerPool):
@@ -350,7 +351,7 @@ class ProcessSampler(_WorkerPool):
             raise DexdrakeError(f"start_method must be 'forkserver' or 'spawn' (Drake and torch are not fork-safe), got {method!r}")
         self._ctx = mp.get_context(method)
         if method == "forkserver":  # workers fork from a server that has imported the stack once
-            self._ctx.set_forkserver_preload(list(PRELOAD))
+            self._ctx.set_forkserver_preload([*PRELOAD, type(env_factory).__module__])
         self._factory = env_factory
         super().__init__(num_workers)
 

@@ -142,11 +142,28 @@ def list_objects(split: str | None = None) -> list[ObjectInfo]:
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
-def object_names(spec: str) -> list[str]:
-    """The names an `--objects` value selects: a split ("train" | "unseen") or comma-separated names."""
-    if spec in ("train", "unseen"):
-        return [o.name for o in list_objects(spec)]
-    return [s for s in spec.split(",") if s]
+SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
+
+
+def resolve_objects(spec: str) -> tuple[str, list[str]]:
+    """(label, object names) for 'seen' / 'train', 'unseen' or a comma-separated name list.
+
+    Names are checked against the object library (UnknownNameError lists the valid ones).
+    """
+    spec = spec.strip()
+    if not spec:
+        raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
+    if spec in SPLIT_ALIASES:
+        names = [o.name for o in list_objects(SPLIT_ALIASES[spec])]
+        if not names:
+            raise DexdrakeError(f"the object library has no {SPLIT_ALIASES[spec]!r} objects")
+        return ("seen" if SPLIT_ALIASES[spec] == "train" else "unseen"), names
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    if len(set(names)) != len(names):
+        raise DexdrakeError(f"object list {spec!r} repeats a name")
+    for n in names:
+        get_object(n)
+    return "selected", names
 
 
 def get_object(name: str) -> ObjectInfo:

@@ -1,4 +1,4 @@
-"""GraspEnv factories and object selections shared by training, evaluation and the demo.
+"""GraspEnv factories shared by training, evaluation and the demo.
 
 `GraspEnvFactory` is a picklable callable (a frozen dataclass), so worker processes of the
 rollout samplers and of the evaluator can rebuild the same env.
@@ -9,31 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dexdrake.errors import DexdrakeError
-
-SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
-
-
-def resolve_objects(spec: str) -> tuple[str, list[str]]:
-    """(label, object names) for 'seen' / 'train', 'unseen' or a comma-separated name list.
-
-    Names are checked against the object library (UnknownNameError lists the valid ones).
-    """
-    from dexdrake.objects.library import get_object, list_objects
-
-    spec = spec.strip()
-    if not spec:
-        raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
-    if spec in SPLIT_ALIASES:
-        names = [o.name for o in list_objects(SPLIT_ALIASES[spec])]
-        if not names:
-            raise DexdrakeError(f"the object library has no {SPLIT_ALIASES[spec]!r} objects")
-        return ("seen" if SPLIT_ALIASES[spec] == "train" else "unseen"), names
-    names = [n.strip() for n in spec.split(",") if n.strip()]
-    if len(set(names)) != len(names):
-        raise DexdrakeError(f"object list {spec!r} repeats a name")
-    for n in names:
-        get_object(n)
-    return "selected", names
 
 
 @dataclass(frozen=True)

@@ -616,8 +616,8 @@ class OfficialZ1:
              tau: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Send one clamped LOWCMD command and return the measured (q, dq)."""
         q_safe = self.limits.apply(q)
-        self.arm.setArmCmd(q_safe, np.zeros(6) if dq is None else _vec6(dq, "dq"),
-                           np.zeros(6) if tau is None else _vec6(tau, "tau"))
+        self.arm.setArmCmd(q_safe, np.zeros(NUM_ARM_JOINTS) if dq is None else _vec6(dq, "dq"),
+                           np.zeros(NUM_ARM_JOINTS) if tau is None else _vec6(tau, "tau"))
         self.arm.sendRecv()
         return (np.asarray(self.arm.lowstate.getQ(), dtype=float),
                 np.asarray(self.arm.lowstate.getQd(), dtype=float))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from pydrake.geometry import (
     AddContactMaterial,
@@ -30,7 +31,7 @@ from pydrake.systems.framework import DiagramBuilder
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands import allegro_units as au
-from dexdrake.hands.description import load_hand
+from dexdrake.hands.description import _read, load_hand
 from dexdrake.paths import models_dir
 
 # ------------------------------------------------------------------ spec tables
@@ -269,6 +270,30 @@ def test_hand_descriptions_load_and_name_existing_frames(name, arm):
     q = np.array([hand.pregrasp.get(j, 0.0) for j in hand.policy_joints])
     np.testing.assert_array_equal(hand.pregrasp_vector(), q)
     assert hand.pregrasp["joint_12.0"] > 1.2  # thumb rotated to oppose
+
+
+def test_allegro_descriptions_write_the_hand_once():
+    """The hand part lives in one shared file; each description adds only its arm."""
+    shared = yaml.safe_load((models_dir() / "allegro" / "allegro_v4_hand.yaml").read_text())
+    arms = {"allegro": "ARTz", "allegro_z1": "joint2"}
+    for name, arm_joint in arms.items():
+        own = yaml.safe_load((models_dir() / "allegro" / f"{name}.hand.yaml").read_text())
+        assert own["include"] == "allegro_v4_hand.yaml"
+        assert set(own) & set(shared) == {"pregrasp"}  # nothing repeated but the merged pose
+        assert not set(own["pregrasp"]) & set(shared["pregrasp"])
+        hand = load_hand(name)
+        assert hand.pregrasp == {**shared["pregrasp"], **own["pregrasp"]} and arm_joint in hand.pregrasp
+        assert [p.body for p in hand.fingertips] == [p["body"] for p in shared["fingertips"]]
+
+
+def test_an_included_part_is_laid_under_the_description(tmp_path):
+    (tmp_path / "part.yaml").write_text("wrist_body: w\npalm: {body: p, normal: [1, 0, 0]}\n"
+                                        "pregrasp: {a: 1, b: 2}\n")
+    (tmp_path / "h.hand.yaml").write_text("include: part.yaml\nname: h\npalm: {body: q}\n"
+                                          "pregrasp: {b: 3, c: 4}\n")
+    assert _read(tmp_path / "h.hand.yaml") == {
+        "wrist_body": "w", "name": "h", "palm": {"body": "q", "normal": [1, 0, 0]},
+        "pregrasp": {"a": 1, "b": 3, "c": 4}}
 
 
 @pytest.mark.parametrize("name", ["allegro", "allegro_z1"])

@@ -27,7 +27,7 @@ def _run(site: Path, code: str) -> str:
 
 
 def test_installed_package_maps_top_level_folders(installed):
-    out = _run(installed, "import dexdrake.systems, dexdrake.hardware, dexdrake.models as m; print(m.__file__)")
+    out = _run(installed, "import dexdrake.cli, dexdrake.systems, dexdrake.hardware, dexdrake.models as m; print(m.__file__)")
     assert out.strip().startswith(str(installed))
 
 

@@ -187,7 +187,7 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
     elif station.world is None:  # real: the devices run on the wall clock
         simulator.set_target_realtime_rate(1.0)
         object_pose = lambda: None  # noqa: E731
-    else:  # hil: the control loop follows the world's simulated clock (hardware/hil_world.py)
+    else:  # hil: the control loop follows the world's simulated clock (systems/hil_world.py)
         object_pose = lambda: station.world.object_pose().translation()  # noqa: E731
     if station.perception is not None:
         _await_first_pose(station)
@@ -307,7 +307,7 @@ def dry_run(scenario) -> int:
     from dexdrake.hands.description import load_hand
     from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, check_allegro_config, decode, encode
     from dexdrake.hardware.safety import HardwareError
-    from dexdrake.hardware.z1_model import z1_model
+    from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, z1_model
     from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
     from dexdrake.systems.scenario import driver_configs
     from dexdrake.systems.station import open_can_bus
@@ -372,7 +372,7 @@ def dry_run(scenario) -> int:
         data = sock.recv(4096)
         st = RecvState.unpack(data)
         print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: OK, state {st.state.name}, q = "
-              f"{np.round([j.Pos for j in st.joints[:6]], 3).tolist()}")
+              f"{np.round([j.Pos for j in st.joints[:NUM_ARM_JOINTS]], 3).tolist()}")
     except (OSError, HardwareError) as err:
         ok = False
         print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: FAILED: {err} "

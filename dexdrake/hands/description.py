@@ -21,6 +21,9 @@ Schema (YAML):
     closing: {JOINT: 1 | -1, ...}    # direction each finger joint moves to close the hand
     grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
     grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
+    include: FILE                    # optional: a part shared by several descriptions (beside
+                                     # this file, not itself a hand); this file's keys are laid
+                                     # over it, mappings (pregrasp, ...) merged key by key
 """
 
 from __future__ import annotations
@@ -150,7 +153,19 @@ def load_hand(name: str) -> HandDescription:
     reg = _registry()
     if name not in reg:
         raise UnknownNameError("hand", name, reg)
-    return _from_dict(yaml.safe_load(reg[name].read_text()))
+    return _from_dict(_read(reg[name]))
+
+
+def _read(path: Path) -> dict:
+    """A description file as a mapping, over the shared part it names in `include`."""
+    d = yaml.safe_load(path.read_text())
+    if "include" not in d:
+        return d
+    merged = yaml.safe_load((path.parent / d.pop("include")).read_text())
+    for key, value in d.items():
+        base = merged.get(key)
+        merged[key] = {**base, **value} if isinstance(base, dict) and isinstance(value, dict) else value
+    return merged
 
 
 @cache

@@ -67,7 +67,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dexdrake {name}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

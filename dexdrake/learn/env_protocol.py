@@ -36,7 +36,7 @@ class Env(Protocol):
 EnvFactory = Callable[[], Env]
 """Builds an Env; must be picklable (a top-level function or functools.partial)."""
 
-MakeEnvFactory = Callable[[str, "str | None", "tuple[str, ...]", int], EnvFactory]
+MakeEnvFactory = Callable[[str, str | None, tuple[str, ...], int], EnvFactory]
 """(hand, feature set, object names, horizon) -> EnvFactory; picklable. The layers above
 pass one in (systems.env_factory.GraspEnvFactory), so the core never imports them."""
 

@@ -495,6 +495,9 @@ def _flow(items) -> str:
     return "[" + ", ".join(items) + "]"
 
 
+THUMB_OPPOSE = {"THJ4": 0.0, "THJ3": 1.31, "THJ1": -0.52, "THJ0": -1.05}  # rad: see build_hand_yaml
+
+
 def closing_directions(fingers: tuple[str, ...]) -> dict[str, float]:
     """Sign of each joint's motion when the hand closes into a power grasp."""
     closing = {f"{f.upper()}J{j}": 1.0 for f in fingers if f != "th" for j in (2, 1, 0)}
@@ -556,9 +559,15 @@ def build_hand_yaml(name: str, fingers: tuple[str, ...]) -> str:
         "# Closing directions (scripted power grasp): finger flexion J2..J0 and the thumb's",
         "# opposition (THJ4) and flexion (THJ3, THJ1) are positive.",
         "closing: {" + ", ".join(f"{k}: {_f(v)}" for k, v in closing_directions(fingers).items()) + "}",
-        "",
     ]
-    return "\n".join(lines)
+    if "th" in fingers:
+        lines += [
+            "# Named closed poses the expert may choose per object (GraspScript.closed_pose): 'oppose'",
+            "# swings the thumb tip under the palm against the object's near side instead of across",
+            "# the palm (found by simulated grasp trials, scripts/choose_expert_grasps.py).",
+            "grasp_poses: {oppose: {" + ", ".join(f"{k}: {_f(v)}" for k, v in THUMB_OPPOSE.items()) + "}}",
+        ]
+    return "\n".join(lines + [""])
 
 
 def main() -> None:

@@ -23,11 +23,15 @@ re-planned when the object has been pushed before it is grasped.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, replace
+from functools import cache
 
 import numpy as np
 
-from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp, with_overrides
+from dexdrake.hands.description import HandDescription
+from dexdrake.paths import models_dir
+from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp, script_for, with_overrides
 
 
 @dataclass(frozen=True)
@@ -56,13 +60,33 @@ class ReactiveRules:
     replan_steps: int = 3  # ... and of each re-planned way-point (from the old one)
 
 
+def expert_grasps_path(hand: str):
+    """The hand's table of per-object grasp variants (written by scripts/choose_expert_grasps.py)."""
+    return models_dir() / "weights" / f"{hand}_expert_grasps.json"
+
+
+@cache
+def _expert_grasps(hand: str) -> dict:
+    path = expert_grasps_path(hand)
+    return json.loads(path.read_text()) if path.is_file() else {"variants": {}, "objects": {}}
+
+
+def expert_script(hand: HandDescription, object_name: str) -> GraspScript:
+    """The hand's grasp script with the variant chosen for `object_name` by simulated trials
+    (the object's shape decides it; objects without an entry get the hand's default)."""
+    table = _expert_grasps(hand.name)
+    entry = table["objects"].get(object_name)
+    script = script_for(hand)
+    return replace(script, **table["variants"][entry["variant"]]) if entry else script
+
+
 class ReactiveGrasp(ScriptedGrasp):
     """Callable controller for `GraspEnv` (like ScriptedGrasp) whose output depends on the state only."""
 
     def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
         hand = env.scene.hand
         self.rules = rules or with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert")
-        super().__init__(env, script)
+        super().__init__(env, script or expert_script(hand, env.scene.object_info.name))
         self.p_start = env.object_position()
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2
         self._span = self.q_closed - self.q_open

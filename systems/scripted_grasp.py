@@ -36,6 +36,7 @@ class GraspScript:
     reach: float = -0.03  # grasp centre shift along the fingers' direction (m)
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
+    closed_pose: str = ""  # a named hand-description grasp pose for some joints ("": closing rule only)
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
     ik_damping: float = 1e-3  # damping of `step_arm`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
@@ -55,14 +56,20 @@ def script_for(hand: HandDescription) -> GraspScript:
     return with_overrides(GraspScript, hand.grasp_script, hand, "grasp_script")
 
 
-def closed_pose(hand: HandDescription, closure: float = 1.0) -> np.ndarray:
+def closed_pose(hand: HandDescription, closure: float = 1.0, pose: str = "") -> np.ndarray:
     """Finger set-points of a power grasp: the pre-grasp pose moved toward each joint's
-    limit in the flexion direction (`hand.closing` signs), arm joints untouched."""
+    limit in the flexion direction (`hand.closing` signs), arm joints untouched; the joints
+    of the hand's grasp pose named `pose` (if any) take that pose's set-points instead."""
+    if pose and pose not in hand.grasp_poses:
+        raise DexdrakeError(f"hand {hand.name!r} has no grasp pose {pose!r}; known: {sorted(hand.grasp_poses)}")
+    named = hand.grasp_poses.get(pose, {})
     lo, hi = hand.joint_limits()
     q = hand.pregrasp_vector()
     for i, joint in enumerate(hand.policy_joints):
         sign = hand.closing.get(joint, 0.0)
-        if sign > 0:
+        if joint in named:
+            q[i] = np.clip(named[joint], lo[i], hi[i])
+        elif sign > 0:
             q[i] += closure * (hi[i] - q[i])
         elif sign < 0:
             q[i] += closure * (lo[i] - q[i])
@@ -138,7 +145,7 @@ class ScriptedGrasp:
         self.n_arm = len(self.hand.arm_joints)
         self.lo, self.hi = self.hand.joint_limits()
         self.q_open = self.hand.pregrasp_vector()
-        self.q_closed = closed_pose(self.hand, self.script.closure)
+        self.q_closed = closed_pose(self.hand, self.script.closure, self.script.closed_pose)
         self._plan(env)
 
     def _set_arm(self, q_arm: np.ndarray):

@@ -54,3 +54,51 @@ def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     q = grasp.step_arm(shifted, grasp.R_grasp, q_low, 3)
     assert grasp.lo[1] <= q[1] <= grasp.hi[1]
     np.testing.assert_allclose(grasp._palm_pose(q)[0], shifted, atol=2e-3)
+
+
+def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_others():
+    from dexdrake.errors import DexdrakeError
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.scripted_grasp import closed_pose
+
+    hand = load_hand("adroit")
+    plain, oppose = closed_pose(hand, 0.8), closed_pose(hand, 0.8, "oppose")
+    named = hand.grasp_poses["oppose"]
+    lo, hi = hand.joint_limits()
+    for i, joint in enumerate(hand.policy_joints):
+        if joint in named:  # clamped into the joint's limits
+            assert oppose[i] == pytest.approx(np.clip(named[joint], lo[i], hi[i])) and oppose[i] != pytest.approx(plain[i])
+        else:
+            assert oppose[i] == plain[i]
+    i = hand.policy_joints.index("FFJ2")  # a closing joint goes 80 % of the way to its limit
+    assert plain[i] == pytest.approx(hand.pregrasp_vector()[i] + 0.8 * (hi[i] - hand.pregrasp_vector()[i]))
+    with pytest.raises(DexdrakeError, match="no grasp pose 'pinch'"):
+        closed_pose(hand, 1.0, "pinch")
+
+
+def test_grasp_pose_naming_an_unknown_joint_is_refused():
+    from dexdrake.errors import DexdrakeError
+    from dexdrake.hands.description import _grasp_poses
+
+    with pytest.raises(DexdrakeError, match=r"unknown joints \['XXJ9'\]"):
+        _grasp_poses({"name": "h", "grasp_poses": {"p": {"XXJ9": 1.0}}}, ("THJ0",))
+
+
+def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monkeypatch):
+    import json
+
+    from dexdrake.systems import reactive_grasp
+
+    table = {"variants": {"power": {}, "oppose_70": {"closed_pose": "oppose", "closure": 0.7}},
+             "objects": {"can_soda": {"variant": "oppose_70"}}}
+    (tmp_path / "t.json").write_text(json.dumps(table))
+    monkeypatch.setattr(reactive_grasp, "expert_grasps_path", lambda hand: tmp_path / "t.json")
+    reactive_grasp._expert_grasps.cache_clear()
+    try:
+        can_env.reset(0)
+        expert = ReactiveGrasp(can_env)
+        assert (expert.script.closed_pose, expert.script.closure) == ("oppose", 0.7)
+        hand = can_env.scene.hand
+        assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
+    finally:
+        reactive_grasp._expert_grasps.cache_clear()

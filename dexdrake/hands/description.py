@@ -19,6 +19,9 @@ Schema (YAML):
     occupancy: {body: mfproximal, offset: [0, -0.07, 0], size: 0.2, resolution: 10}
     pregrasp: {JOINT: value, ...}    # joints not named are 0 (clamped into their limits)
     closing: {JOINT: 1 | -1, ...}    # direction each finger joint moves to close the hand
+    grasp_poses: {NAME: {JOINT: value}} # optional: named closed-pose set-points replacing the
+                                     # closing-direction rule for those joints (e.g. a thumb
+                                     # posture), chosen by GraspScript.closed_pose
     grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
     grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
     include: FILE                    # optional: a part shared by several descriptions (beside
@@ -77,6 +80,7 @@ class HandDescription:
     pregrasp: dict[str, float] = field(default_factory=dict)
     hardware_joints: tuple[str, ...] | None = None
     closing: dict[str, float] = field(default_factory=dict)
+    grasp_poses: dict[str, dict[str, float]] = field(default_factory=dict)
     grasp_script: dict[str, float] = field(default_factory=dict)
     grasp_expert: dict[str, float] = field(default_factory=dict)
 
@@ -109,6 +113,15 @@ def _point(d: dict) -> BodyPoint:
     return BodyPoint(d["name"], d["body"], tuple(float(x) for x in d.get("offset", (0, 0, 0))))
 
 
+def _grasp_poses(d: dict, joints: tuple[str, ...]) -> dict[str, dict[str, float]]:
+    poses = {str(name): {str(j): float(v) for j, v in pose.items()} for name, pose in (d.get("grasp_poses") or {}).items()}
+    for name, pose in poses.items():
+        unknown = sorted(set(pose) - set(joints))
+        if unknown:
+            raise DexdrakeError(f"hand {d['name']!r}: grasp pose {name!r} names unknown joints {unknown}")
+    return poses
+
+
 def _from_dict(d: dict) -> HandDescription:
     arm = tuple(d.get("arm_joints") or ())
     policy = tuple(d["policy_joints"])
@@ -132,6 +145,7 @@ def _from_dict(d: dict) -> HandDescription:
         pregrasp={k: float(v) for k, v in (d.get("pregrasp") or {}).items()},
         hardware_joints=tuple(d["hardware_joints"]) if d.get("hardware_joints") else None,
         closing={k: float(v) for k, v in (d.get("closing") or {}).items()},
+        grasp_poses=_grasp_poses(d, policy),
         grasp_script=dict(d.get("grasp_script") or {}),
         grasp_expert=dict(d.get("grasp_expert") or {}),
     )

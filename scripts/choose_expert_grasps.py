@@ -1,0 +1,85 @@
+"""Choose the state-driven expert's grasp variant per training object by simulated trials.
+
+    python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,101,102] [--workers 2]
+
+Each variant (overrides of the hand's GraspScript: the closed pose and how far the fingers
+close) runs the expert (ReactiveGrasp) on every training object for the given seeds; the
+variant with the most successes wins (ties: the earlier variant, the hand's default first).
+Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
+and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
+reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
+measured on the seeds the choice was fitted to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+from dataclasses import replace
+
+from tqdm import tqdm
+
+VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the hand's default
+    "power": {},
+    "power_80": {"closure": 0.8},
+    "oppose_80": {"closed_pose": "oppose", "closure": 0.8},
+    "oppose_70": {"closed_pose": "oppose", "closure": 0.7},
+}
+
+
+def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, dict[str, list[bool]]]:
+    hand, name, seeds, horizon = args
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
+    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scripted_grasp import script_for
+
+    env = GraspEnv(SceneConfig(hand=hand, object=name), horizon=horizon)
+    default = script_for(env.scene.hand)
+    results = {}
+    for variant, overrides in VARIANTS.items():
+        script = replace(default, **overrides)
+        results[variant] = [env.rollout(lambda e: ReactiveGrasp(e, script), seed).success for seed in seeds]
+    return name, results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hand", default="adroit")
+    parser.add_argument("--seeds", default="100,101,102", help="comma-separated placement seeds of the trials")
+    parser.add_argument("--horizon", type=int, default=150)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+
+    from dexdrake.objects.library import list_objects
+    from dexdrake.systems.reactive_grasp import expert_grasps_path
+
+    seeds = [int(s) for s in args.seeds.split(",")]
+    names = [o.name for o in list_objects("train")]
+    jobs = [(args.hand, n, seeds, args.horizon) for n in names]
+    trials: dict[str, dict[str, list[bool]]] = {}
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        for name, results in tqdm(pool.imap_unordered(_trial_object, jobs), total=len(jobs), desc="objects"):
+            trials[name] = results
+    objects = {}
+    for name in names:
+        counts = {v: sum(ok) for v, ok in trials[name].items()}
+        best = max(VARIANTS, key=lambda v: (counts[v], -list(VARIANTS).index(v)))
+        objects[name] = {"variant": best, "successes": counts}
+        print(f"{name:18s} {best:10s} " + " ".join(f"{v}={c}/{len(seeds)}" for v, c in counts.items()))
+    totals = {v: sum(o["successes"][v] for o in objects.values()) for v in VARIANTS}
+    chosen = sum(o["successes"][o["variant"]] for o in objects.values())
+    print(f"per variant: {totals}; chosen per object: {chosen}/{len(names) * len(seeds)}")
+    table = {"hand": args.hand, "command": f"python {' '.join(sys.argv)}", "seeds": seeds,
+             "horizon": args.horizon, "variants": VARIANTS, "objects": objects}
+    out = expert_grasps_path(args.hand)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(table, indent=1) + "\n")
+    tmp.replace(out)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -30,11 +30,7 @@ FORBIDDEN = {
 }
 
 # Temporary exceptions, (importing file, imported package); each says why and until when.
-ALLOWED: set[tuple[str, str]] = {
-    # TEMPORARY (issue #13 item 2): the DexRep rerun view still builds a scene and logs
-    # through systems/rerun_logger.py; it goes when the one rerun logger in systems/ replaces it.
-    ("dexdrake/dexrep/rerun_view.py", "dexdrake.systems"),
-}
+ALLOWED: set[tuple[str, str]] = set()
 
 
 def module_files(root: Path) -> dict[str, Path]:

@@ -90,7 +90,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from dexdrake.learn.samplers import check_env_matches
     from dexdrake.objects.library import get_object
     from dexdrake.systems.env_factory import env_factory_for_policy
-    from dexdrake.systems.rerun_logger import RerunEpisodeLogger
+    from dexdrake.systems.rerun_logger import RerunLogger
 
     torch.set_num_threads(1)
     manifest = Path(policy_path).with_suffix(".json")
@@ -99,10 +99,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     policy, _ = load_policy(policy_path)
     env = env_factory_for_policy(policy.config, [name], args.steps)()
     check_env_matches(env, policy)
-    logger = RerunEpisodeLogger(args.rrd)
+    logger = RerunLogger(args.rrd, "demo")
     start = time.perf_counter()
     try:
-        success, lift, steps, reward = run_episode(_LoggedEnv(env, logger), policy, args.seed, args.steps)
+        success, lift, steps, reward = run_episode(logger.wrap(env), policy, args.seed, args.steps)
     finally:
         logger.close()
     wall = time.perf_counter() - start
@@ -111,19 +111,3 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(measured_rates(manifest))
     return 0
 
-
-class _LoggedEnv:
-    """Wraps a GraspEnv so every reset and step is logged to rerun."""
-
-    def __init__(self, env, logger):
-        self.env, self.logger = env, logger
-
-    def reset(self, seed: int):
-        obs = self.env.reset(seed)
-        self.logger.log_step(self.env, None)
-        return obs
-
-    def step(self, action):
-        out = self.env.step(action)
-        self.logger.log_step(self.env, out[3])
-        return out

@@ -21,10 +21,18 @@ def _describe(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    from dexdrake.dexrep.rerun_view import show_features
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.rerun_logger import RerunLogger
+    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     rrd = None if args.spawn else (args.rrd or f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd")
-    summary = show_features(args.object, args.hand, rrd, args.seed, args.steps, spawn=args.spawn)
+    env = GraspEnv(SceneConfig(hand=args.hand, object=args.object), horizon=args.steps)
+    logger = RerunLogger(rrd, "sim", spawn=args.spawn)
+    try:
+        summary = env.rollout(ScriptedGrasp, args.seed, logger=logger)
+    finally:
+        logger.close()
     where = "the rerun viewer" if args.spawn else rrd
     print(f"logged {summary.steps} steps of a scripted grasp of {args.object} ({args.hand}, seed {args.seed}, "
           f"success {summary.success}, max lift {summary.max_lift:.3f} m) to {where}")
@@ -51,7 +59,7 @@ def add_parser(subparsers) -> None:
     d.add_argument("--hand", default="adroit")
     d.add_argument("--set", default=None, help="one feature set (default: all)")
     d.set_defaults(func=_describe)
-    s = feat.add_parser("show", help="log a scripted-grasp episode's DexRep to rerun, frame by frame")
+    s = feat.add_parser("show", help="record a scripted-grasp episode to rerun (its DexRep in the DexRep tab)")
     s.add_argument("--object", required=True, help="object library name")
     s.add_argument("--hand", default="adroit")
     s.add_argument("--rrd", default=None, help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")

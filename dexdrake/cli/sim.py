@@ -59,9 +59,9 @@ def run_sim(args: argparse.Namespace) -> int:
     env = GraspEnv(config, horizon=args.steps)
     logger = None
     if args.rrd:
-        from dexdrake.systems.rerun_logger import RerunEpisodeLogger
+        from dexdrake.systems.rerun_logger import RerunLogger
 
-        logger = RerunEpisodeLogger(str(args.rrd))
+        logger = RerunLogger(args.rrd, "sim")
     start = time.perf_counter()
     summary = env.rollout(ScriptedGrasp, args.seed, logger=logger)
     wall = time.perf_counter() - start

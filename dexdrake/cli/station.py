@@ -212,7 +212,13 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
             if tracker is not None:
                 tracker.update(p)
             if logger is not None:
-                logger.log_step(k, diagram, context, ctrl, station)
+                st_context = st.GetMyContextFromRoot(context)
+                logger.log_station_step(
+                    context.get_time(), st.GetOutputPort("hand_state").Eval(st_context),
+                    ctrl.get_output_port().Eval(ctrl.GetMyContextFromRoot(context)),
+                    st.GetOutputPort("object_pose").Eval(st_context),
+                    {**ctrl.timer.stats(), "nan_holds": ctrl.nan_holds},
+                    station.world.object_pose() if station.world is not None else None)
     except (StationFault, HardwareError) as err:
         fault = str(err)
     except RuntimeError as err:  # a Python exception raised inside a Drake event
@@ -222,6 +228,8 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
     finally:
         if station.world is not None:
             station.world.release()
+    if fault is not None and logger is not None:
+        logger.log_fault(fault)
     wall = time.perf_counter() - wall0
     stats = station.stats()
     stats["policy"] = ctrl.timer.stats()
@@ -263,9 +271,9 @@ def run_hil(args: argparse.Namespace) -> int:
     logger = None
     with make_station(scenario) as station:
         if rrd:
-            from dexdrake.systems.station import StationRerunLogger
+            from dexdrake.systems.rerun_logger import RerunLogger
 
-            logger = StationRerunLogger(rrd, station)
+            logger = RerunLogger(rrd, scenario.mode, station=station)
         result = run_episode(station, controller, args.steps, logger)
     if logger is not None:
         logger.close()

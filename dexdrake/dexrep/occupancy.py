@@ -48,6 +48,12 @@ def voxel_centres(size: float = 0.2, resolution: int = 10) -> np.ndarray:
     return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
+def occupied_voxels(occupancy: np.ndarray, size: float, resolution: int) -> tuple[np.ndarray, float]:
+    """(centres (k, 3) in the grid frame, half edge) of the occupied voxels of an occupancy
+    vector (`voxel_centres` order; a voxel is occupied above 0.5)."""
+    return voxel_centres(size, resolution)[np.asarray(occupancy) > 0.5], size / resolution / 2
+
+
 def _planar_hit(sd: np.ndarray, grad_G: np.ndarray, half_edge: float) -> np.ndarray:
     """Cube (half-edge `half_edge`, axes of G) meets the tangent half-space of the surface."""
     l1 = np.abs(grad_G).sum(axis=1)

@@ -67,8 +67,10 @@ def test_sim_with_allegro_on_z1_lifts_the_sphere(tmp_path, capsys):
     assert main(["sim", "--hand", "allegro_z1", "--object", "sphere_medium", "--steps", "150", "--rrd", str(rrd)]) == 0
     line = _summary(capsys.readouterr().out)
     assert line["success"] == "True" and float(line["max_lift"].rstrip("m")) > 0.1
-    joints = [e for e in logged_rows(rrd) if e.startswith("/joints/q/")]
-    assert len(joints) == 6 + 16  # the Z1 arm and the Allegro hand
+    rows = logged_rows(rrd)
+    assert len([e for e in rows if e.startswith("/joints/arm/") and e.endswith("/q")]) == 6  # the Z1 arm
+    for finger in ("index", "middle", "ring", "thumb"):  # the Allegro hand, one group per finger
+        assert len([e for e in rows if e.startswith(f"/joints/{finger}/") and e.endswith("/q")]) == 4
 
 
 def test_train_dagger_on_allegro_z1(tmp_path):

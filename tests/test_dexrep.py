@@ -371,23 +371,21 @@ def test_manifest_of_shipped_encoder():
     assert isinstance(load_encoder(), PointNetEncoder)
 
 
-class _Recorder:
-    """Stands in for a rerun RecordingStream: keeps (entity path, archetype) pairs."""
+def _last_row(path, entity: str, column: str) -> list:
+    """The value of an archetype's component column in the last row logged at `entity`."""
+    from rerun.chunk import RrdReader
 
-    def __init__(self):
-        self.logged = []
-
-    def log(self, path, archetype, static=False):
-        self.logged.append((path, archetype))
-
-    def set_time(self, *args, **kwargs):
-        pass
+    chunks = [c for c in RrdReader(path).stream().collect().stream() if c.entity_path == entity]
+    batch = chunks[-1].to_record_batch()
+    return batch.column(column).to_pylist()[-1]
 
 
 def test_features_show_logs_dexrep_each_step(tmp_path):
     from dexdrake.cli.dexrep import add_parser
-    from dexdrake.dexrep.rerun_view import DexRepEpisodeLogger
+    from dexdrake.dexrep.feature_sets import FeatureExtractor
+    from dexdrake.dexrep.geometry import object_geometry
     from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.rerun_logger import RerunLogger
     from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
@@ -397,27 +395,23 @@ def test_features_show_logs_dexrep_each_step(tmp_path):
     args = parser.parse_args(["features", "show", "--object", "sphere_medium", "--rrd", str(rrd), "--steps", "2"])
     assert args.func(args) == 0
     rows = logged_rows(rrd)
-    # Each of the 2 steps (and the reset) logs the DexRep parts next to the scene.
-    for entity in ("/world/dexrep/grid", "/world/dexrep/closest_points", "/world/dexrep/normals",
-                   "/dexrep/occupied_voxels", "/dexrep/distance/fftip", "/dexrep/distance/thtip"):
-        assert rows[entity] >= 2, entity
-    assert rows["/reward/total"] == 2 and "/world/object/mesh" in rows
+    # The reset and each of the 2 steps log the DexRep parts next to the scene.
+    for entity in ("/world/dexrep/grid", "/world/dexrep/grid/voxels", "/world/dexrep/hand_points",
+                   "/world/dexrep/closest_points", "/world/dexrep/normals", "/dexrep/occupied_voxels",
+                   "/dexrep/distance/fftip", "/dexrep/distance/thtip"):
+        assert rows[entity] == 3, entity
+    assert rows["/reward/total"] == 2 and rows["/world/object/mesh"] == 1
 
-    env = GraspEnv(SceneConfig(object="sphere_medium"), horizon=2)
-    logger = DexRepEpisodeLogger(None)
-    logger.rec = logger.episode.rec = _Recorder()
+    env = GraspEnv(SceneConfig(object="sphere_medium"), horizon=20)  # the hand reaches the object
+    logger = RerunLogger(tmp_path / "again.rrd", "sim")
     env.rollout(ScriptedGrasp, 0, logger=logger)
-    logged = logger.rec.logged
-    per_step = [a for p, a in logged if p == "world/dexrep/grid/voxels"]
-    assert len(per_step) == 3  # reset + 2 steps
-    count = [a for p, a in logged if p == "dexrep/occupied_voxels"]
-    n = len(env.scene.hand.dexrep_points)
-    assert sum(1 for p, _ in logged if p.startswith("dexrep/distance/")) == 3 * n
-    for path in ("world/dexrep/hand_points", "world/dexrep/closest_points", "world/dexrep/normals",
-                 "world/dexrep/grid"):
-        assert sum(1 for p, _ in logged if p == path) == 3
-    # the voxel boxes are the occupied voxels of the extractor's own occupancy
-    snap = logger._extractor.snapshot(env.plant_context, env.scene.object_pose(env.plant_context))
-    assert len(per_step[-1].centers.as_arrow_array()) == snap.occupancy.sum()
-    assert len(count) == 3
+    logger.close()
+    extractor = FeatureExtractor(env.scene.hand, env.scene.plant, env.scene.hand_instance,
+                                 object_geometry("sphere_medium"), "Occ+Surf")
+    snap = extractor.snapshot(env.plant_context, env.scene.object_pose(env.plant_context))
+    # the voxel boxes of the last step are the occupied voxels of DexRep's own occupancy
+    voxels = _last_row(tmp_path / "again.rrd", "/world/dexrep/grid/voxels", "Boxes3D:centers")
+    assert len(voxels) == snap.occupancy.sum() > 0
+    points = _last_row(tmp_path / "again.rrd", "/world/dexrep/closest_points", "Points3D:positions")
+    np.testing.assert_allclose(points, snap.closest.points, atol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(snap.closest.normals, axis=1), 1.0, atol=1e-9)

@@ -124,21 +124,22 @@ def test_round_objects_are_grasped_at_the_start_yaw_whatever_their_own(sphere_en
 
 
 def test_rerun_recording_is_written(tmp_path, sphere_env):
-    from dexdrake.systems.rerun_logger import RerunEpisodeLogger
+    from dexdrake.systems.rerun_logger import RerunLogger
 
     path = tmp_path / "ep.rrd"
     env = GraspEnv(SceneConfig(object="box_cube"), horizon=5)
-    logger = RerunEpisodeLogger(path)
+    logger = RerunLogger(path, "sim")
     env.rollout(ScriptedGrasp, seed=0, logger=logger)
     logger.close()
     rows = logged_rows(path)
-    # The scene once (static), then every step: the object, joints, reward terms, task state.
-    assert rows["/world/table"] == 0 and rows["/world/object/mesh"] == 0 and "/world/hand/palm" in rows
+    # The scene once (table and hand static, the object's mesh at the reset), then every
+    # step: the object, joints, reward terms, task state.
+    assert rows["/world/table"] == 0 and rows["/world/object/mesh"] == 1 and "/world/hand/palm" in rows
     for entity in ("/reward/total", "/reward/r_d", "/task/lift", "/task/success"):
         assert rows[entity] == 5, entity
-    assert rows["/world/object"] >= 5 and rows["/world/fingertips"] >= 5
-    joints = [e for e in rows if e.startswith("/joints/q/")]
-    assert len(joints) == 30 and all(rows[e] >= 5 for e in joints)
+    assert rows["/world/object"] == 6 and rows["/world/fingertips"] == 6
+    joints = [e for e in rows if e.startswith("/joints/") and e.endswith("/q")]
+    assert len(joints) == 30 and all(rows[e] == 6 for e in joints)
 
 
 def test_cli_unknown_names_list_valid_ones(capsys):

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rrd_content import blueprint_tree, logged_rows, matches
 
 from dexdrake.systems.scenario import ScenarioError, load_scenario, parse_scenario
 
@@ -292,13 +293,15 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
     from dexdrake.cli.station import make_controller, run_episode
-    from dexdrake.systems.station import StationRerunLogger, make_station
+    from dexdrake.systems.rerun_logger import RerunLogger
+    from dexdrake.systems.station import make_station
 
     scenario = hil_scenario("rendered")
     controller, _ = make_controller(scenario)
     rrd = tmp_path / "hil.rrd"
+    logger = RerunLogger(rrd, "hil", scenario=scenario)
     with make_station(scenario) as station:
-        logger = StationRerunLogger(str(rrd), station)
+        logger.attach(station)
         p0 = station.world.object_pose().translation()
         estimates = []  # positions from every successful registration, in order
         log_to_rerun = station.perception.on_result
@@ -315,7 +318,12 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
     assert estimates
     # the first frame is taken before the hand reaches the object; later ones see it move
     assert np.linalg.norm(estimates[0] - p0) < 0.03  # registration found the object
-    assert rrd.stat().st_size > 10_000
+    # the recording's blueprint has the camera tab, and the camera images are in it
+    rows = logged_rows(rrd)
+    (camera,) = [n for n in blueprint_tree(rrd).walk() if n.name == "Camera"]
+    for entity in ("/camera/image", "/camera/mask", "/camera/depth"):
+        assert rows[entity] > 0 and any(matches(v, entity) for v in camera.views()), entity
+    assert rows["/world/registered"] > 0 and rows["/world/object_true"] == 150
 
 
 def test_policy_checkpoint_paths_resolve_to_the_shipped_models(tmp_path, monkeypatch):

@@ -99,6 +99,8 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
     ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
+    ev.add_argument("--rrd", type=argtypes.output_file(".rrd"),
+                    help="write a rerun recording of every episode to this .rrd file (one worker)")
     ev.set_defaults(func=cmd_eval)
 
 
@@ -235,9 +237,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
     label, objects = resolve_objects(args.objects)
     label = args.label or label
     check_evaluation_seeds(args.seed, args.episodes)
-    report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers, args.horizon,
-                             label=label, command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
-                                                                                 "workers", "horizon", "out", "label"]))
+    logger = None
+    if args.rrd:
+        if args.workers > 1:
+            raise DexdrakeError("--rrd records in one process: use --workers 1")
+        from dexdrake.systems.rerun_logger import RerunLogger
+
+        logger = RerunLogger(args.rrd, "eval")
+    try:
+        report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers,
+                                 args.horizon, label=label, record=None if logger is None else logger.wrap,
+                                 command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
+                                                                       "workers", "horizon", "out", "label", "rrd"]))
+    finally:
+        if logger is not None:
+            logger.close()
     print(markdown_table(report))
     if args.out:
         paths = write_report(report, args.out)

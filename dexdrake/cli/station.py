@@ -269,11 +269,13 @@ def run_hil(args: argparse.Namespace) -> int:
     rrd = args.rrd or scenario.rrd
     controller, description = make_controller(scenario)  # refused before any device starts
     logger = None
-    with make_station(scenario) as station:
-        if rrd:
-            from dexdrake.systems.rerun_logger import RerunLogger
+    if rrd:
+        from dexdrake.systems.rerun_logger import RerunLogger
 
-            logger = RerunLogger(rrd, scenario.mode, station=station)
+        logger = RerunLogger(rrd, scenario.mode, scenario=scenario)
+    with make_station(scenario) as station:
+        if logger is not None:
+            logger.attach(station)
         result = run_episode(station, controller, args.steps, logger)
     if logger is not None:
         logger.close()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
@@ -132,7 +133,8 @@ def run_episode(env, policy, seed: int, horizon: int) -> tuple[bool, float, int,
 class _EpisodeRunner:
     """Holds the policy and one single-object env per object name (built on first use)."""
 
-    def __init__(self, policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory):
+    def __init__(self, policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory,
+                 record: Callable[[Any], Any] | None = None):
         import torch
 
         from dexdrake.learn.policy import load_policy
@@ -141,6 +143,7 @@ class _EpisodeRunner:
         self.policy, _ = load_policy(policy_path)
         self.horizon = horizon
         self.env_factory_for = env_factory_for
+        self.record = record
         self._envs: dict[str, Any] = {}
 
     def __call__(self, name: str, seed: int) -> EpisodeResult:
@@ -149,7 +152,7 @@ class _EpisodeRunner:
 
             env = self.env_factory_for(self.policy.config, [name], self.horizon)()
             check_env_matches(env, self.policy)
-            self._envs[name] = env
+            self._envs[name] = env if self.record is None else self.record(env)
         success, lift, steps, reward = run_episode(self._envs[name], self.policy, seed, self.horizon)
         return EpisodeResult(name, int(seed), success, lift, steps, reward)
 
@@ -179,15 +182,19 @@ def evaluate_policy(
     label: str = "selected",
     command: str = "",
     progress: bool = True,
+    record: Callable[[Any], Any] | None = None,
 ) -> EvalReport:
     """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint,
-    in envs from `env_factory_for` (picklable: worker processes call it too)."""
+    in envs from `env_factory_for` (picklable: worker processes call it too). `record(env)`
+    returns the env to run instead (e.g. one that logs every step; one worker only)."""
     from dexdrake.learn.policy import load_policy
 
     if episodes < 1 or workers < 1 or horizon < 1:
         raise DexdrakeError(f"episodes, workers and horizon must be >= 1 (got {episodes}, {workers}, {horizon})")
     if not objects:
         raise DexdrakeError("no objects to evaluate")
+    if record is not None and workers > 1:
+        raise DexdrakeError("a recorded evaluation runs in one process: use --workers 1 with --rrd")
     policy, _ = load_policy(policy_path)  # fail early, in this process, on a bad checkpoint
     env_factory_for(policy.config, objects, horizon)
     jobs = [(name, seed + i) for name in objects for i in range(episodes)]
@@ -196,7 +203,7 @@ def evaluate_policy(
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
     if workers == 1:
-        runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for)
+        runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for, record)
         for name, s in jobs:
             report.episodes.append(runner(name, s))
             bar.update()

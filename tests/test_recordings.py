@@ -1,0 +1,145 @@
+"""Recordings a person can read at a glance: every mode's .rrd carries the one logger's
+blueprint, and every view of it shows data the recording holds."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rrd_content import blueprint_tree, logged_rows, matches
+
+from dexdrake.cli import main
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+SEED = 1_000_000_007  # evaluation seeds lie in the range reserved for evaluation
+STATION_VIEWS = {"Loop rates (Hz)", "Latencies (ms)", "Fault counters", "Faults and events"}
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _shipped(hand: str) -> str:
+    from dexdrake.paths import models_dir
+
+    return str(models_dir() / "weights" / f"{hand}_dexrep_policy.pt")
+
+
+def _real(path: Path) -> None:
+    """`dexdrake real` runs no episode in this version (dry run only): the station logger in
+    real mode is fed the measured states of a short simulated Allegro-on-Z1 episode, as the
+    real loop would feed it (no world truth: the task is scored on the perceived pose)."""
+    from dexdrake.hands.description import load_hand
+    from dexdrake.hardware.safety import period_stats
+    from dexdrake.systems.grasp_env import GraspEnv
+    from dexdrake.systems.rerun_logger import RerunLogger
+    from dexdrake.systems.scenario import load_scenario
+    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scripted_grasp import ScriptedGrasp
+    from dexdrake.systems.station import Station, pose_vector
+
+    scenario = load_scenario(CONFIGS / "real.yaml")
+    env = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=3)
+    logger = RerunLogger(path, "real", scenario=scenario)
+    logger.attach(Station(scenario, None, load_hand(scenario.hand)))  # no devices: no device statistics
+    env.reset(scenario.seed)
+    controller = ScriptedGrasp(env)
+    for k in range(3):
+        env.step_positions(controller(env))
+        times = [scenario.control_period * i for i in range(k + 2)]
+        logger.log_station_step(env.context.get_time(), env.hand_state(), env.q_command,
+                                pose_vector(env.scene.object_pose(env.plant_context)),
+                                {**period_stats(times), "nan_holds": 0})
+    logger.log_fault("Allegro hand fault: watchdog (a fault as the loop reports it)")
+    logger.close()
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory) -> dict[str, Path]:
+    """One short recording per mode, each made the way its command makes it."""
+    out = tmp_path_factory.mktemp("recordings")
+    hil = out / "hil.yaml"
+    hil.write_text((CONFIGS / "hil.yaml").read_text().replace("kind: rendered", "kind: sim"))
+    commands = {
+        "sim": ["sim", "--steps", "3"],
+        "eval": ["eval", "--policy", _shipped("adroit"), "--objects", "apple,mug", "--episodes", "1",
+                 "--seed", str(SEED), "--horizon", "3"],
+        "demo": ["demo", "--steps", "3"],
+        "hil": ["hil", "--config", str(hil), "--steps", "3"],
+    }
+    paths = {}
+    for mode, command in commands.items():
+        paths[mode] = out / f"{mode}.rrd"
+        assert main([*command, "--rrd", str(paths[mode])]) == 0, mode
+    paths["real"] = out / "real.rrd"
+    _real(paths["real"])
+    return paths
+
+
+MODES = ("sim", "eval", "demo", "hil", "real")
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_every_view_of_the_blueprint_shows_logged_data(recordings, mode):
+    tree, rows = blueprint_tree(recordings[mode]), logged_rows(recordings[mode])
+    views = tree.views()
+    assert len(views) >= 10
+    for view in views:
+        shown = [e for e in rows if matches(view, e)]
+        assert shown, f"{mode}: view {view.name!r} shows none of the logged entities"
+    # every joint's measured and commanded position are in one plot, one plot per finger
+    joints = [e.removesuffix("/q") for e in rows if e.startswith("/joints/") and e.endswith("/q")]
+    assert joints and all(rows[f"{j}/q"] > 0 and rows[f"{j}/cmd"] > 0 for j in joints)
+    for joint in joints:
+        (plot,) = [v for v in views if matches(v, f"{joint}/q")]
+        assert matches(plot, f"{joint}/cmd") and plot.origin == joint.rsplit("/", 1)[0].lstrip("/")
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_the_scene_is_large_and_framed_on_hand_and_object(recordings, mode):
+    tree = blueprint_tree(recordings[mode])
+    assert tree.kind == "horizontal" and tree.shares[0] > tree.shares[1]  # the 3D side is the wider
+    tabs = tree.children[0]
+    assert tabs.kind == "tabs"
+    scene = tabs.children[0]  # the first tab: what the viewer opens on
+    assert (scene.kind, scene.name, scene.origin) == ("3D", "Scene", "world")
+    eye, target = np.array(scene.eye["position"]), np.array(scene.eye["look_target"])
+    # the table is 1 m wide: an eye within 0.5 m of a target near the object frames the grasp
+    assert 0.15 < np.linalg.norm(eye - target) < 0.5
+    assert np.linalg.norm(target[:2]) < 0.15 and 0.0 < target[2] < 0.3
+    assert matches(scene, "/world/hand/palm") and matches(scene, "/world/object")
+    assert not matches(scene, "/world/dexrep/grid/voxels")  # DexRep is one tab away
+    (dexrep,) = [n for n in tabs.children if n.name == "DexRep"]
+    for entity in ("/world/dexrep/grid/voxels", "/world/dexrep/hand_points", "/world/dexrep/closest_points"):
+        assert any(matches(v, entity) for v in dexrep.views()), entity
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_lift_band_reward_and_success_share_one_panel(recordings, mode):
+    rows = logged_rows(recordings[mode])
+    (task,) = [n for n in blueprint_tree(recordings[mode]).walk() if n.name == "Task"]
+    for entity in ("/task/lift", "/task/band/low", "/task/band/high", "/reward/total", "/reward/r_d",
+                   "/task/success"):
+        assert rows[entity] > 0 and any(matches(v, entity) for v in task.views()), entity
+
+
+def test_one_blueprint_in_every_mode_adding_only_what_the_mode_has(recordings):
+    names = {mode: {v.name for v in blueprint_tree(recordings[mode]).views()} for mode in MODES}
+    assert names["sim"] - {n for n in names["sim"] if " joints" in n} == names["eval"] - {
+        n for n in names["eval"] if " joints" in n}
+    assert names["sim"] == names["eval"] == names["demo"]  # the same hand (Adroit)
+    assert names["hil"] == names["real"]  # the same hand (Allegro on a Z1)
+    assert names["hil"] - names["sim"] >= STATION_VIEWS and not names["sim"] & STATION_VIEWS
+    common = {n for n in names["sim"] if " joints" not in n}
+    assert common <= names["hil"]
+    rows = logged_rows(recordings["eval"])
+    assert rows["/episodes"] == 2 and rows["/world/object/mesh"] == 2  # apple, then mug
+
+
+@pytest.mark.parametrize("mode", ["hil", "real"])
+def test_station_recordings_have_loop_rates_latencies_and_faults(recordings, mode):
+    rows = logged_rows(recordings[mode])
+    assert rows["/loop/policy/rate_hz"] == 3 and rows["/latency/policy/p99_ms"] > 0
+    assert rows["/faults/policy/nan_holds"] == 3 and rows["/faults/log"] >= 1
+    if mode == "hil":  # the devices' loops, the world's lag and the perception error against the truth
+        for entity in ("/loop/can/rate_hz", "/loop/z1/rate_hz", "/latency/world/lag_ms", "/faults/can/frame_errors",
+                       "/world/object_true", "/hil/perception_error_m"):
+            assert rows[entity] == 3, entity
+    else:
+        assert rows["/faults/log"] == 2 and "/world/object_true" not in rows  # start, then the fault

@@ -74,21 +74,23 @@ def joint_groups(scene: GraspScene) -> dict[str, list[str]]:
 
 
 def eye_framing(scene: GraspScene, plant_context, task: TaskSpec = TaskSpec()) -> tuple[np.ndarray, np.ndarray]:
-    """(eye position, look target) of a 3D view that frames the hand and the object with
-    the lift target, looking at the palm's front from above and to one side."""
-    plant, hand = scene.plant, scene.hand
-    X_WP = plant.EvalBodyPoseInWorld(plant_context, plant.GetBodyByName(hand.palm.body, scene.hand_instance))
+    """(eye position, look target) of a 3D view framing the hand (palm and fingertips), the
+    object and its lift target: seen from the side of the fingers' direction, from above."""
+    plant, hand, inst = scene.plant, scene.hand, scene.hand_instance
+    X_WP = plant.EvalBodyPoseInWorld(plant_context, plant.GetBodyByName(hand.palm.body, inst))
     palm = X_WP.multiply(np.array(hand.palm.centre))
+    tips = [plant.EvalBodyPoseInWorld(plant_context, plant.GetBodyByName(p.body, inst)).multiply(np.array(p.offset))
+            for p in hand.fingertips]
     p_obj = scene.object_pose(plant_context).translation()
-    points = np.array([palm, p_obj, p_obj + [0, 0, task.target_height]])
-    target = points.mean(axis=0)
-    spread = max(float(np.linalg.norm(points - target, axis=1).max()), 0.12)
-    normal = X_WP.rotation().multiply(np.array(hand.palm.normal))
-    front = np.array([normal[0], normal[1], 0.0])
-    front = front / np.linalg.norm(front) if np.linalg.norm(front) > 0.2 else np.array([0.0, -1.0, 0.0])
-    side = np.array([-front[1], front[0], 0.0])
-    direction = front + 0.8 * side + np.array([0.0, 0.0, 0.7])
-    return target + 2.6 * spread * direction / np.linalg.norm(direction), target
+    points = np.array([palm, *tips, p_obj, p_obj + [0, 0, task.target_height]])
+    target = (points.min(axis=0) + points.max(axis=0)) / 2
+    radius = max(float(np.linalg.norm(points - target, axis=1).max()), 0.1)
+    fingers = np.mean(tips, axis=0) - palm
+    fingers[2] = 0.0
+    fingers = fingers / np.linalg.norm(fingers) if np.linalg.norm(fingers) > 1e-3 else np.array([0.0, 1.0, 0.0])
+    side = np.array([fingers[1], -fingers[0], 0.0])
+    direction = side + 0.4 * fingers + np.array([0.0, 0.0, 0.6])
+    return target + 2.8 * radius * direction / np.linalg.norm(direction), target
 
 
 def blueprint(mode: str, groups: dict[str, list[str]], eye: np.ndarray, target: np.ndarray,
@@ -106,7 +108,7 @@ def blueprint(mode: str, groups: dict[str, list[str]], eye: np.ndarray, target: 
         column_shares=[3, 1], name="DexRep")
     left = [scene, dexrep]
     if camera:
-        left.append(rrb.Horizontal(rrb.Spatial2DView(name="Camera", origin="camera",
+        left.append(rrb.Horizontal(rrb.Spatial2DView(name="Camera image and mask", origin="camera",
                                                      contents=["+ /camera/image", "+ /camera/mask"]),
                                    rrb.Spatial2DView(name="Depth", origin="camera/depth"), name="Camera"))
     task = rrb.Vertical(

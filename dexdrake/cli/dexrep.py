@@ -62,7 +62,8 @@ def add_parser(subparsers) -> None:
     s = feat.add_parser("show", help="record a scripted-grasp episode to rerun (its DexRep in the DexRep tab)")
     s.add_argument("--object", required=True, help="object library name")
     s.add_argument("--hand", default="adroit")
-    s.add_argument("--rrd", default=None, help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
+    s.add_argument("--rrd", type=argtypes.output_file(".rrd"),
+                   help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
     s.add_argument("--seed", type=argtypes.seed, default=0)
     s.add_argument("--steps", type=int, default=200, help="control steps (20 ms each)")
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")

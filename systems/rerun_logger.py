@@ -8,14 +8,14 @@ and `episode`):
   world/hand/<body>, world/object               Transform3D per step
   world/fingertips                              Points3D per step
   world/dexrep/{grid, grid/voxels, hand_points, closest_points, links, normals}
-  dexrep/distance/<point>, dexrep/occupied_voxels
+  dexrep/distance/<point>
   joints/<group>/<joint>/{q, cmd}               measured and commanded, per finger (`arm`,
                                                 `wrist` and one group per fingertip)
   task/lift, task/band/{low, high}, task/success, reward/{r_d, r_g, r_t, total}
   episodes                                      TextLog: object and seed of each episode
 hil and real add (from the station):
-  world/object_true (hil: the emulated world's object), hil/perception_error_m
-  camera/{image, depth, mask}, world/cloud, world/registered, perception/fitness
+  world/object_true (hil: the emulated world's object)
+  camera/{image, depth, mask}, world/cloud, world/registered, perception/{fitness, error_m}
   loop/<can|z1|policy|world>/..., latency/..., faults/<counter>, faults/log
 The blueprint: the 3D scene large (left), its eye framing hand and object, with the DexRep
 view and (with a camera) the camera images one tab away; on the right the task panel (lift
@@ -39,7 +39,9 @@ from dexdrake.dexrep.features import SURFACE_CLIP
 from dexdrake.dexrep.occupancy import occupied_voxels
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
-from dexdrake.systems.scene import TABLE_SIZE, GraspScene
+from dexdrake.systems.grasp_env import GraspEnv
+from dexdrake.systems.scene import TABLE_SIZE, GraspScene, SceneConfig
+from dexdrake.systems.station import pose_from_vector
 
 MODES = ("sim", "eval", "demo", "hil", "real")
 STATION_MODES = ("hil", "real")  # modes whose episodes run on the station (drivers, perception)
@@ -104,17 +106,21 @@ def blueprint(mode: str, groups: dict[str, list[str]], eye: np.ndarray, target: 
         rrb.Spatial3DView(name="DexRep: voxels, hand points, closest points", origin="world",
                           contents=["+ /world/dexrep/**", "+ /world/object/**", "+ /world/hand/**"],
                           eye_controls=eye_controls),
-        rrb.TimeSeriesView(name="DexRep distances (m)", origin="dexrep"),
+        rrb.TimeSeriesView(name="DexRep distances (m)", origin="dexrep/distance"),
         column_shares=[3, 1], name="DexRep")
     left = [scene, dexrep]
     if camera:
-        left.append(rrb.Horizontal(rrb.Spatial2DView(name="Camera image and mask", origin="camera",
-                                                     contents=["+ /camera/image", "+ /camera/mask"]),
-                                   rrb.Spatial2DView(name="Depth", origin="camera/depth"), name="Camera"))
-    task = rrb.Vertical(
-        rrb.TimeSeriesView(name="Lift (m) and the success band", contents=["+ /task/lift", "+ /task/band/**"]),
-        rrb.TimeSeriesView(name="Reward terms and success", contents=["+ /reward/**", "+ /task/success"]),
-        name="Task")
+        left.append(rrb.Vertical(
+            rrb.Horizontal(rrb.Spatial2DView(name="Camera image and mask", origin="camera",
+                                             contents=["+ /camera/image", "+ /camera/mask"]),
+                           rrb.Spatial2DView(name="Depth", origin="camera/depth")),
+            rrb.TimeSeriesView(name="Perception: fitness, error against the truth (m)", origin="perception"),
+            row_shares=[2, 1], name="Camera"))
+    task = [rrb.TimeSeriesView(name="Lift (m) and the success band", contents=["+ /task/lift", "+ /task/band/**"]),
+            rrb.TimeSeriesView(name="Reward terms and success", contents=["+ /reward/**", "+ /task/success"])]
+    if mode == "eval":  # many episodes: which object and seed each is
+        task.append(rrb.TextLogView(name="Episodes", origin="episodes"))
+    task = rrb.Vertical(*task, name="Task")
     joints = rrb.Grid(*[rrb.TimeSeriesView(name=f"{group} joints: measured (thick), command (thin)",
                                            origin=f"joints/{group}") for group in groups], name="Joints")
     right = [task, joints]
@@ -137,8 +143,8 @@ class RerunLogger:
 
     sim, eval, demo: `log_step(env, info)` after each `GraspEnv.reset` (info None) and step,
     or `wrap(env)`. hil, real: `RerunLogger(..., scenario=scenario)`, `attach(station)` and
-    `log_station_step` every control step; perception results are logged as they arrive. The blueprint is sent
-    with the first episode (its eye frames that episode's hand and object)."""
+    `log_station_step` every control step; perception results are logged as they arrive.
+    The blueprint is sent with the first episode (its eye frames that episode's hand and object)."""
 
     def __init__(self, path: str | Path | None, mode: str, spawn: bool = False, scenario=None):
         if mode not in MODES:
@@ -162,9 +168,6 @@ class RerunLogger:
         self._series: dict[str, list[tuple[int, float, int, float]]] = {}  # scalars not yet sent
         self._time = (0, 0.0, 0)  # (step, sim_time, episode) of the current step
         if scenario is not None:  # built before the station starts its devices
-            from dexdrake.systems.grasp_env import GraspEnv
-            from dexdrake.systems.scene import SceneConfig
-
             self._mirror = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=1)
 
     def attach(self, station) -> None:
@@ -180,7 +183,7 @@ class RerunLogger:
         self._set_time(env.context.get_time(), new_episode=info is None)
         if info is None:
             self._start_episode(env.scene, env.plant_context, env.seed)
-        self._log_state(env.scene, env.plant_context, env.q_command)
+        self._log_state(env)
         if info is not None:
             self._log_task(info)
 
@@ -196,8 +199,6 @@ class RerunLogger:
         `policy_stats` (rates, nan_holds) and, in hil, the world's `true_pose` of the object.
         The task is scored on the true pose when there is one, else on the perceived one;
         the scene and DexRep show what the controller sees."""
-        from dexdrake.systems.station import pose_from_vector
-
         env = self._mirror
         scene, ctx = env.scene, env.plant_context
         q = scene.plant.GetPositions(ctx).copy()
@@ -220,11 +221,13 @@ class RerunLogger:
             self._start_episode(scene, ctx, sc.seed)
             self.rec.log("faults/log", rr.TextLog(f"{sc.mode} episode started: {sc.hand}, {sc.object}, camera "
                                                   f"{sc.drivers.camera.kind}", level=rr.TextLogLevel.INFO))
-        self._log_state(scene, ctx, np.asarray(command, float))
+        env.q_command = np.asarray(command, float)
+        self._log_state(env)
         self._log_task(info)
         if true_pose is not None:
             self.rec.log("world/object_true", _transform(true_pose))
-            self._scalar("hil/perception_error_m", float(np.linalg.norm(p - X_WO.translation())))
+            if self.station.perception is not None:
+                self._scalar("perception/error_m", float(np.linalg.norm(p - X_WO.translation())))
         self._log_station_stats({**self.station.stats(), "policy": policy_stats})
 
     def log_fault(self, text: str) -> None:
@@ -334,19 +337,19 @@ class RerunLogger:
                 rec.log(f"joints/{group}/{joint}/cmd",
                         rr.SeriesLines(colors=[color], widths=[1.0], names=[f"{joint} cmd"]), static=True)
 
-    def _log_state(self, scene: GraspScene, plant_context, q_command: np.ndarray) -> None:
-        rec, plant = self.rec, scene.plant
+    def _log_state(self, env: GraspEnv) -> None:
+        """The hand, the object, the fingertips, the joints (measured, commanded) and DexRep."""
+        rec, scene, plant_context = self.rec, env.scene, env.plant_context
+        plant = scene.plant
         for index in plant.GetBodyIndices(scene.hand_instance):
             body = plant.get_body(index)
             rec.log(f"world/hand/{body.name()}", _transform(plant.EvalBodyPoseInWorld(plant_context, body)))
         X_WO = scene.object_pose(plant_context)
         rec.log("world/object", _transform(X_WO))
-        tips = np.array([plant.CalcPointsPositions(plant_context, plant.GetFrameByName(p.body, scene.hand_instance),
-                                                   np.array(p.offset), plant.world_frame())[:, 0]
-                         for p in scene.hand.fingertips])
-        rec.log("world/fingertips", rr.Points3D(tips, radii=0.004, colors=[[250, 80, 80]]))
+        rec.log("world/fingertips", rr.Points3D(env.points_in_world(scene.hand.fingertips), radii=0.004,
+                                                colors=[[250, 80, 80]]))
         q = dict(zip(scene.hand.policy_joints, scene.hand_positions(plant_context)))
-        cmd = dict(zip(scene.hand.policy_joints, q_command))
+        cmd = dict(zip(scene.hand.policy_joints, env.q_command))
         for group, joints in self._groups.items():
             for joint in joints:
                 self._scalar(f"joints/{group}/{joint}/q", float(q[joint]))
@@ -376,7 +379,6 @@ class RerunLogger:
                                                     colors=[[60, 120, 250]]))
         for pt, value in zip(hand.dexrep_points, np.clip(snap.closest.distance, 0.0, SURFACE_CLIP)):
             self._scalar(f"dexrep/distance/{pt.name}", float(value))
-        self._scalar("dexrep/occupied_voxels", float(len(centres)))
 
     def _log_task(self, info: dict) -> None:
         rec, task, terms = self.rec, TaskSpec(), info["terms"]

@@ -397,7 +397,7 @@ def test_features_show_logs_dexrep_each_step(tmp_path):
     rows = logged_rows(rrd)
     # The reset and each of the 2 steps log the DexRep parts next to the scene.
     for entity in ("/world/dexrep/grid", "/world/dexrep/grid/voxels", "/world/dexrep/hand_points",
-                   "/world/dexrep/closest_points", "/world/dexrep/normals", "/dexrep/occupied_voxels",
+                   "/world/dexrep/closest_points", "/world/dexrep/normals",
                    "/dexrep/distance/fftip", "/dexrep/distance/thtip"):
         assert rows[entity] == 3, entity
     assert rows["/reward/total"] == 2 and rows["/world/object/mesh"] == 1

@@ -319,11 +319,12 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
     # the first frame is taken before the hand reaches the object; later ones see it move
     assert np.linalg.norm(estimates[0] - p0) < 0.03  # registration found the object
     # the recording's blueprint has the camera tab, and the camera images are in it
-    rows = logged_rows(rrd)
-    (camera,) = [n for n in blueprint_tree(rrd).walk() if n.name == "Camera"]
+    rows, tree = logged_rows(rrd), blueprint_tree(rrd)
+    assert all(any(matches(v, e) for e in rows) for v in tree.views())  # every view shows data
+    (camera,) = [n for n in tree.walk() if n.name == "Camera"]
     for entity in ("/camera/image", "/camera/mask", "/camera/depth"):
         assert rows[entity] > 0 and any(matches(v, entity) for v in camera.views()), entity
-    assert rows["/world/registered"] > 0 and rows["/world/object_true"] == 150
+    assert rows["/world/registered"] > 0 and rows["/world/object_true"] == rows["/perception/error_m"] == 150
 
 
 def test_policy_checkpoint_paths_resolve_to_the_shipped_models(tmp_path, monkeypatch):

@@ -92,7 +92,7 @@ def eye_framing(scene: GraspScene, plant_context, task: TaskSpec = TaskSpec()) -
     fingers = fingers / np.linalg.norm(fingers) if np.linalg.norm(fingers) > 1e-3 else np.array([0.0, 1.0, 0.0])
     side = np.array([fingers[1], -fingers[0], 0.0])
     direction = side + 0.4 * fingers + np.array([0.0, 0.0, 0.6])
-    return target + 2.2 * radius * direction / np.linalg.norm(direction), target
+    return target + 2.5 * radius * direction / np.linalg.norm(direction), target
 
 
 def blueprint(mode: str, groups: dict[str, list[str]], eye: np.ndarray, target: np.ndarray,

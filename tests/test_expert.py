@@ -102,3 +102,20 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
     finally:
         reactive_grasp._expert_grasps.cache_clear()
+
+
+def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.objects.library import list_objects
+    from dexdrake.systems import reactive_grasp
+
+    reactive_grasp._expert_grasps.cache_clear()
+    table = reactive_grasp._expert_grasps("adroit")
+    assert table["command"].startswith("python scripts/choose_expert_grasps.py")
+    assert not set(table["seeds"]) & set(range(10))  # the expert table's seeds 0..9 stay unseen by the choice
+    assert {o.name for o in list_objects("train")} == set(table["objects"])
+    hand = load_hand("adroit")
+    for name, entry in table["objects"].items():
+        counts = entry["successes"]
+        assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())
+        reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)

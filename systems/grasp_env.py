@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
 from dexdrake.dexrep.feature_sets import FeatureExtractor
@@ -125,8 +126,11 @@ class GraspEnv:
         plant, ctx = self.scene.plant, self.plant_context
         return np.concatenate([plant.GetPositions(ctx)[self.scene.q_index], plant.GetVelocities(ctx)[self.scene.v_index]])
 
+    def object_pose(self) -> RigidTransform:
+        return self.scene.object_pose(self.plant_context)
+
     def object_position(self) -> np.ndarray:
-        return self.scene.object_pose(self.plant_context).translation().copy()
+        return self.object_pose().translation().copy()
 
     def points_in_world(self, points) -> np.ndarray:
         """World positions (k x 3) of hand-description BodyPoints."""

@@ -130,7 +130,11 @@ def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
 
 
 class ScriptedGrasp:
-    """Callable controller for `GraspEnv.rollout`: returns joint set-points each step."""
+    """Callable controller for `GraspEnv.rollout`: returns joint set-points each step.
+
+    It reads the world through the env only: `scene` (hand, plant, object info),
+    `plant_context` (the measured hand positions), `object_pose()` (where the object is
+    seen: the plant in simulation, perception on the station) and `context.get_time()`."""
 
     def __init__(self, env, script: GraspScript | None = None):
         self.script = script or script_for(env.scene.hand)
@@ -208,7 +212,7 @@ class ScriptedGrasp:
     def _choose_grasp(self, env) -> None:
         """The grasp plan for the object where it is now (the palm's pre-grasp rotation as reference)."""
         R_pregrasp = self._palm_pose(self.q_open[: self.n_arm])[1]
-        self.plan = plan_grasp(self.script, env.scene.object_info, env.scene.object_pose(env.plant_context), R_pregrasp)
+        self.plan = plan_grasp(self.script, env.scene.object_info, env.object_pose(), R_pregrasp)
         self.R_grasp = self.plan.R
 
     def __call__(self, env) -> np.ndarray:

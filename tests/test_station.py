@@ -434,3 +434,28 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
+
+
+def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_path):
+    """The scripted fallback plans from the pose perception delivers: an object seen away
+    from its default pose (and turned) is grasped where it was seen."""
+    from pydrake.math import RigidTransform, RollPitchYaw
+
+    from dexdrake.cli.station import ScriptedGraspController
+    from dexdrake.systems.scripted_grasp import plan_grasp
+    from dexdrake.systems.station import pose_vector
+
+    controller = ScriptedGraspController(load_scenario(_hil_config(tmp_path, None)))
+    scene = controller.scene
+    X_seen = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [0.04, -0.045, scene.object_info.rest_height])
+    default = scene.object_pose(controller.plant_context).translation()
+    assert np.linalg.norm(default[:2] - X_seen.translation()[:2]) > 0.05
+    hand_state = np.concatenate([scene.hand.pregrasp_vector(), np.zeros(scene.hand.num_actuators)])
+    controller(0.0, hand_state, pose_vector(X_seen))
+    script = controller._script
+    R_pregrasp = script._palm_pose(script.q_open[: script.n_arm])[1]
+    expected = plan_grasp(script.script, scene.object_info, X_seen, R_pregrasp)
+    np.testing.assert_allclose(script.plan.grasp, expected.grasp, atol=1e-9)
+    assert np.linalg.norm(script.plan.grasp[:2] - X_seen.translation()[:2]) <= abs(script.script.reach) + 1e-9
+    centre = script._palm_pose(script.q_grasp)[0]  # the arm's IK reaches the perceived grasp point
+    assert np.linalg.norm(centre - script.plan.grasp) < 5e-3

@@ -38,22 +38,27 @@ class ScriptedGraspController:
         self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
         self.context = self.scene.diagram.CreateDefaultContext()
         self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
-        self._p_obj = np.zeros(3)
+        self._X_obj = None
         self._script = None
         self._t0 = 0.0
 
+    def object_pose(self):
+        """The perceived object pose the grasp is planned on (the first one seen)."""
+        return self._X_obj
+
     def object_position(self) -> np.ndarray:
-        return self._p_obj.copy()
+        return self._X_obj.translation().copy()
 
     def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
         from dexdrake.systems.scripted_grasp import ScriptedGrasp
+        from dexdrake.systems.station import pose_from_vector
 
         n = self.scene.hand.num_actuators
         if self._script is None:
             q = self.scene.plant.GetPositions(self.plant_context).copy()
             q[self.scene.q_index] = hand_state[:n]
             self.scene.plant.SetPositions(self.plant_context, q)
-            self._p_obj = np.asarray(object_pose[:3], float)
+            self._X_obj = pose_from_vector(object_pose)
             self._t0 = t
             self._script = ScriptedGrasp(self)
         self.context.SetTime(t - self._t0)

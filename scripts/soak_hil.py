@@ -147,7 +147,7 @@ def main() -> int:
     print(f"  control step (wall, deadline {period_ms:.0f} ms): p50 {np.percentile(walls, 50):.1f} "
           f"p90 {np.percentile(walls, 90):.1f} p99 {np.percentile(walls, 99):.1f} max {walls.max():.1f} ms, "
           f"missed {int(np.sum(walls > period_ms))} of {walls.size}; sim-clock period p99 "
-          f"{policy['p99_ms']:.2f} ms, nan_holds {policy['nan_holds']}")
+          f"{policy['p99_ms']:.2f} ms, non-finite held {policy['non_finite']}, clipped {policy['clipped']}")
     r = monitor.world.report()
     print(f"  world step (wall): p50 {r['p50_ms']:.2f} p99 {r['p99_ms']:.2f} max {r['max_ms']:.2f} ms; "
           f"late hand replies {world['late_replies']:.0f}")

@@ -18,6 +18,7 @@ from dexdrake.dexrep.feature_sets import FeatureExtractor
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
+from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
 
 
@@ -49,6 +50,7 @@ class GraspEnv:
         self._use(self.objects[0])
         lo, hi = self.scene.hand.joint_limits()
         self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
+        self.command_guard = CommandGuard(lo, hi)  # counts bad commands of the current episode
         self.action_dim = self.scene.hand.num_actuators
         self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
 
@@ -87,12 +89,14 @@ class GraspEnv:
         self.tracker = SuccessTracker(self.p_start, self.task)
         self.steps = 0
         self.q_command = q0.copy()
+        self.command_guard.reset_counts()
         return self.observation()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
+        """One control period at normalised set-points `action` (the bad-command rule of
+        `command_guard` applies: non-finite -> the last command held, out of [-1, 1] -> clipped)."""
         a = np.asarray(action, dtype=float)
-        a = np.clip(np.nan_to_num(a, nan=0.0), -1.0, 1.0)
-        return self.step_positions(self._mid + a * self._half)
+        return self.step_positions(self._mid + a * self._half if a.shape == self._half.shape else a)
 
     def normalise(self, q_command: np.ndarray) -> np.ndarray:
         """The normalised action in [-1, 1] that `step` maps to set-points `q_command`."""
@@ -104,8 +108,9 @@ class GraspEnv:
         return self._half
 
     def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
-        """Like `step` with joint set-points in physical units (rad, m), clamped to limits."""
-        self.q_command = np.clip(q_command, self._mid - self._half, self._mid + self._half)
+        """Like `step` with joint set-points in physical units (rad, m); `command_guard`
+        holds non-finite commands and clips to the joint limits, counting both."""
+        self.q_command = self.command_guard(q_command, self.q_command)
         self._command_port.FixValue(self.context, self.q_command)
         self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
         self.steps += 1

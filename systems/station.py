@@ -20,7 +20,8 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   stops every driver (Allegro: zero torque, servo off; Z1: PASSIVE) and the emulators.
 - A driver that latches a fault (e.g. a stalled stream) makes its system raise
   StationFault at its next update, which ends the episode and triggers the safe stop.
-- A non-finite controller output is never sent: ControllerSystem holds the last command.
+- A non-finite controller output is never sent: ControllerSystem holds the last command
+  (systems/command_guard.py, the rule of every mode).
 - Perception failures hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
   at all within `first_pose_timeout_s` raises StationFault.
@@ -49,6 +50,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
@@ -275,14 +277,15 @@ class ControllerSystem(LeafSystem):
     """Runs `controller(t, hand_state, object_pose) -> q_command` every `period`.
 
     Inputs "hand_state", "object_pose"; output "command". The command starts at the
-    measured position; a non-finite controller output is not used: the last command is
-    held and `nan_holds` counts it. The update times give the policy rate (`timer`)."""
+    measured position; controller outputs pass `guard` (systems/command_guard.py: a
+    non-finite one holds the last command, one beyond the hand's joint limits is clipped;
+    `guard.counts`). The update times give the policy rate (`timer`)."""
 
-    def __init__(self, controller: Controller, n: int, period: float):
+    def __init__(self, controller: Controller, hand: HandDescription, period: float):
         super().__init__()
         self.controller = controller
-        self.n = n
-        self.nan_holds = 0
+        self.n = n = hand.num_actuators
+        self.guard = CommandGuard(*hand.joint_limits())
         self.timer = _Timer()
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         self._pose = self.DeclareVectorInputPort("object_pose", 7)
@@ -296,12 +299,8 @@ class ControllerSystem(LeafSystem):
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         self.timer.tick(context.get_time())
-        q = np.asarray(self.controller(context.get_time(), self._hand.Eval(context),
-                                       self._pose.Eval(context)), float)
-        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
-            self.nan_holds += 1
-            return  # discrete state unchanged: hold the last command
-        state.set_value(0, q)
+        q = self.controller(context.get_time(), self._hand.Eval(context), self._pose.Eval(context))
+        state.set_value(0, self.guard(q, context.get_discrete_state(0).get_value()))
 
 
 # ----------------------------------------------------------------------------- station

@@ -196,6 +196,40 @@ def test_hil_episode_driven_by_the_shipped_policy():
     assert d1 < d0 - 0.05, (d0, d1)  # the arm moved toward the object
 
 
+def test_controller_slot_holds_non_finite_and_clips_out_of_range_commands():
+    """The station's controller slot applies the one bad-command rule (systems/command_guard.py)."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.station import ControllerSystem
+
+    hand = load_hand("allegro_z1")
+    n, (lo, hi) = hand.num_actuators, hand.joint_limits()
+    q0 = (lo + hi) / 2
+
+    def controller(t, hand_state, object_pose):
+        if t > 0.045:
+            return np.full(n, np.inf)
+        q = q0.copy()
+        q[0] = hi[0] + 1.0
+        return q
+
+    builder = DiagramBuilder()
+    ctrl = builder.AddSystem(ControllerSystem(controller, hand, 0.01))
+    state = builder.AddSystem(ConstantVectorSource(np.concatenate([q0, np.zeros(n)])))
+    pose = builder.AddSystem(ConstantVectorSource(np.array([0, 0, 0, 1.0, 0, 0, 0])))
+    builder.Connect(state.get_output_port(), ctrl.GetInputPort("hand_state"))
+    builder.Connect(pose.get_output_port(), ctrl.GetInputPort("object_pose"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.AdvanceTo(0.085)
+    command = ctrl.get_output_port().Eval(ctrl.GetMyContextFromRoot(simulator.get_context()))
+    assert command[0] == hi[0] and np.array_equal(command[1:], q0[1:])
+    assert ctrl.guard.counts == {"non_finite": 4, "clipped": 5}
+
+
 def test_nan_command_holds_and_is_never_sent():
     from dexdrake.cli.station import run_episode
     from dexdrake.systems.station import make_station
@@ -207,7 +241,7 @@ def test_nan_command_holds_and_is_never_sent():
         q1 = station.world.robot_positions()
         stats = station.stats()
     assert result.fault is None
-    assert result.stats["policy"]["nan_holds"] >= 15
+    assert result.stats["policy"]["non_finite"] >= 15 and result.stats["policy"]["clipped"] == 0
     assert stats["can"]["rejected_commands"] == 0 and stats["z1"]["rejected_commands"] == 0
     n_arm = len(station.hand.arm_joints)
     assert np.max(np.abs(q1[:n_arm] - q0[:n_arm])) < 0.05
@@ -453,9 +487,9 @@ def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_
     hand_state = np.concatenate([scene.hand.pregrasp_vector(), np.zeros(scene.hand.num_actuators)])
     controller(0.0, hand_state, pose_vector(X_seen))
     script = controller._script
-    R_pregrasp = script._palm_pose(script.q_open[: script.n_arm])[1]
+    R_pregrasp = script.ik.palm_pose(script.q_open[: script.n_arm])[1]
     expected = plan_grasp(script.script, scene.object_info, X_seen, R_pregrasp)
     np.testing.assert_allclose(script.plan.grasp, expected.grasp, atol=1e-9)
     assert np.linalg.norm(script.plan.grasp[:2] - X_seen.translation()[:2]) <= abs(script.script.reach) + 1e-9
-    centre = script._palm_pose(script.q_grasp)[0]  # the arm's IK reaches the perceived grasp point
+    centre = script.ik.palm_pose(script.q_grasp)[0]  # the arm's IK reaches the perceived grasp point
     assert np.linalg.norm(centre - script.plan.grasp) < 5e-3

@@ -171,10 +171,9 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
     from dexdrake.task import SuccessTracker
 
     sc = station.scenario
-    n = station.hand.num_actuators
     builder = DiagramBuilder()
     st = builder.AddNamedSystem("station", station.diagram)
-    ctrl = builder.AddNamedSystem("controller", ControllerSystem(controller, n, sc.control_period))
+    ctrl = builder.AddNamedSystem("controller", ControllerSystem(controller, station.hand, sc.control_period))
     builder.Connect(ctrl.get_output_port(), st.GetInputPort("command"))
     builder.Connect(st.GetOutputPort("hand_state"), ctrl.GetInputPort("hand_state"))
     builder.Connect(st.GetOutputPort("object_pose"), ctrl.GetInputPort("object_pose"))
@@ -230,7 +229,7 @@ def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
     wall = time.perf_counter() - wall0
     stats = station.stats()
     stats["policy"] = ctrl.timer.stats()
-    stats["policy"]["nan_holds"] = ctrl.nan_holds
+    stats["policy"].update(ctrl.guard.counts)
     return EpisodeResult(tracker.success if tracker else False, tracker.max_lift if tracker else float("nan"),
                          done, wall, stats, fault)
 
@@ -288,7 +287,8 @@ def run_hil(args: argparse.Namespace) -> int:
               f"(real-time factor {world['real_time_factor']:.2f}), step p50 {world['step_p50_ms']:.2f} ms "
               f"p99 {world['step_p99_ms']:.2f} ms wall, late hand replies {world['late_replies']:.0f}")
     print(f"  policy on the wall clock: {result.stats['policy']['wall_rate_hz']:.1f} Hz, "
-          f"nan_holds={result.stats['policy']['nan_holds']}")
+          f"non-finite commands held {result.stats['policy']['non_finite']}, "
+          f"clipped {result.stats['policy']['clipped']}")
     if result.fault:
         print(f"  stopped safely: {result.fault}")
         return 1

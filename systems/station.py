@@ -363,12 +363,18 @@ def make_station(scenario: Scenario) -> Station:
         raise
 
 
-def _sim_station(scenario: Scenario) -> Station:
-    from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+def scene_config(scenario: Scenario):
+    """The scenario's grasp scene configuration (sim station, HIL world, controllers' kinematics)."""
+    from dexdrake.systems.scene import SceneConfig
 
-    scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
-                                          time_step=scenario.time_step,
-                                          control_period=scenario.control_period))
+    return SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
+                       time_step=scenario.time_step, control_period=scenario.control_period)
+
+
+def _sim_station(scenario: Scenario) -> Station:
+    from dexdrake.systems.scene import build_grasp_scene
+
+    scene = build_grasp_scene(scene_config(scenario))
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
     builder.ExportInput(sub.GetInputPort("command"), "command")
@@ -410,15 +416,36 @@ def open_can_bus(scenario: Scenario):
         raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
 
 
+def hil_drive(scenario: Scenario, hand: HandDescription):
+    """The HIL world's joint drive (systems/scene.JointDrive): the arm's PD is the Z1
+    controller's (the scenario's LOWCMD gains, else the model's, times the controller's gain
+    scales); the fingers are torque-driven with the firmware emulator's PWM model
+    (ddq = accel_per_pwm * pwm - damping * dq) at the scenario's torque per PWM count."""
+    from dexdrake.hardware.allegro_emulator import EmulatorConfig
+    from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
+    from dexdrake.systems.scene import JointDrive
+
+    arm, limits, emu = scenario.drivers.arm, z1_model().limits, EmulatorConfig()
+    kp = limits.kp if arm.kp is None else np.asarray(arm.kp, float)
+    kd = limits.kd if arm.kd is None else np.asarray(arm.kd, float)
+    n_fingers = hand.num_actuators - len(hand.arm_joints)
+    inertia = scenario.torque_per_pwm / emu.accel_per_pwm  # kg*m^2 reflected per finger joint
+    return JointDrive(kp=np.r_[kp * KP_SCALE, np.zeros(n_fingers)], kd=np.r_[kd * KD_SCALE, np.zeros(n_fingers)],
+                      rotor_inertia=np.r_[np.zeros(len(kp)), np.full(n_fingers, inertia)],
+                      damping=np.r_[np.zeros(len(kp)), np.full(n_fingers, inertia * emu.damping)])
+
+
 def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
-    """hil: the world plant with the CAN firmware emulator and the loopback Z1 emulator."""
+    """hil: the scenario's grasp scene (with the HIL joint drive) as the world, with the CAN
+    firmware emulator and the loopback Z1 emulator."""
     from dexdrake.systems.hil_world import HilWorld
-    from dexdrake.systems.scene import ObjectPlacement
+    from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 
     placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))
+    scene = build_grasp_scene(scene_config(scenario), hil_drive(scenario, hand))
     emu_bus = open_can_bus(scenario)
     stack.callback(emu_bus.shutdown)
-    world = HilWorld(scenario, emu_bus, hand.pregrasp_vector(), placement)
+    world = HilWorld(scenario, scene, emu_bus, hand.pregrasp_vector(), placement)
     world.start()
     stack.callback(world.stop)
     return world

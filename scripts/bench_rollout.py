@@ -3,7 +3,7 @@
     python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes 1]
         [--horizon 100] [--bc-samples 8000] [--workers 1,2]
 
-Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.run_episode`:
+Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_episode`:
 Drake physics, DexRep features, the task's reward and the state-driven expert's label):
 - start-up: importing the stack and building the env for one object, in a fresh process;
 - expert-driven collection (the expert acts and labels) and policy-driven collection (the
@@ -150,13 +150,13 @@ def instrument(sections: Sections, sample_every: int = 5):
 
 def collect(env, objects, episodes: int, policy, seed0: int) -> tuple[int, float]:
     """(labelled steps, CPU seconds) of DAgger episodes: the expert acts if `policy` is None."""
-    from dexdrake.learn.dagger import run_episode
+    from dexdrake.learn.dagger import labelled_episode
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     steps, start = 0, time.process_time()
     for k in range(episodes):
         for name in objects:
-            steps += len(run_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
+            steps += len(labelled_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
     return steps, time.process_time() - start
 
 

@@ -112,7 +112,7 @@ def main() -> int:
     parser.add_argument("--sample-s", type=float, default=5.0)
     args = parser.parse_args()
 
-    from dexdrake.cli.station import make_controller, run_episode
+    from dexdrake.systems.diagram import make_controller, run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 
@@ -128,7 +128,7 @@ def main() -> int:
             controller = sine_controller(station.hand, station.hand.pregrasp_vector())
         monitor = SoakMonitor(station, args.sample_s)
         monitor.rss[0] = (0.0, rss0)
-        result = run_episode(station, controller, steps, logger=monitor)
+        result = run_station_episode(station, controller, steps, logger=monitor)
         monitor.close()
         world = station.world.stats()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0

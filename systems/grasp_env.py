@@ -8,7 +8,7 @@ included); with `feature_set=None` the observation is the hand state [q; v] alon
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from pydrake.math import RigidTransform
@@ -16,21 +16,11 @@ from pydrake.systems.analysis import Simulator
 
 from dexdrake.dexrep.feature_sets import FeatureExtractor
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
+from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
-
-
-@dataclass
-class EpisodeSummary:
-    object: str
-    seed: int
-    success: bool
-    max_lift: float
-    steps: int
-    total_reward: float
-    rewards: list[float] = field(default_factory=list)
 
 
 class GraspEnv:
@@ -127,6 +117,10 @@ class GraspEnv:
             return self.hand_state()
         return self._features(self.plant_context, self.scene.object_pose(self.plant_context))
 
+    @property
+    def object_name(self) -> str:
+        return self.scene.object_info.name
+
     def hand_state(self) -> np.ndarray:
         plant, ctx = self.scene.plant, self.plant_context
         return np.concatenate([plant.GetPositions(ctx)[self.scene.q_index], plant.GetVelocities(ctx)[self.scene.v_index]])
@@ -162,20 +156,18 @@ class GraspEnv:
             self._tips_at = q
         return self._tips.copy()
 
-    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeSummary:
-        """Runs one episode from `reset(seed)`. `make_controller(env)` is called once after
-        the reset and returns `controller(env) -> q_command`, called every control step."""
-        self.reset(seed)
-        controller = make_controller(self)
-        rewards = []
-        if logger is not None:
-            logger.log_step(self, None)
-        done = False
-        while not done:
-            _, r, done, info = self.step_positions(controller(self))
-            rewards.append(r)
-            if logger is not None:
-                logger.log_step(self, info)
-        return EpisodeSummary(
-            self.scene.object_info.name, seed, self.tracker.success, self.tracker.max_lift, self.steps, float(sum(rewards)), rewards
-        )
+    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeResult:
+        """Runs one episode from `reset(seed)` (the one episode loop, dexdrake/episode.py).
+        `make_controller(env)` is called once after the reset and returns
+        `controller(env) -> q_command` (set-points), called every control step."""
+        controller = None
+
+        def act(observation: np.ndarray) -> np.ndarray:
+            nonlocal controller
+            controller = controller or make_controller(self)
+            return self.normalise(controller(self))
+
+        if logger is None:
+            return run_episode(self, act, seed)
+        return run_episode(self, act, seed, on_reset=lambda: logger.log_step(self, None),
+                           on_step=lambda reward, info: logger.log_step(self, info))

@@ -19,6 +19,7 @@ from pydrake.systems.framework import BasicVector, Context, DiscreteValues, Leaf
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
 from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.systems.station import LoopTimer
 
 
 class PolicySystem(LeafSystem):
@@ -49,6 +50,7 @@ class PolicySystem(LeafSystem):
         if init.shape != (act_dim,):
             raise DexdrakeError(f"initial_action has shape {init.shape}, expected ({act_dim},)")
         self.guard = CommandGuard(-np.ones(act_dim), np.ones(act_dim))
+        self.timer = LoopTimer()  # update times: the policy rate
         self._obs_port = self.DeclareVectorInputPort("observation", BasicVector(obs_dim))
         state = self.DeclareDiscreteState(init)
         self.DeclareStateOutputPort("action", state)
@@ -61,5 +63,6 @@ class PolicySystem(LeafSystem):
         return action
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        self.timer.tick(context.get_time())
         action = self.compute_action(self._obs_port.Eval(context))
         discrete_state.set_value(0, self.guard(action, context.get_discrete_state(0).get_value()))

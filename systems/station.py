@@ -74,7 +74,7 @@ def pose_from_vector(x: np.ndarray) -> RigidTransform:
     return RigidTransform(Quaternion(q), np.asarray(x[:3], float))
 
 
-class _Timer:
+class LoopTimer:
     """Times of periodic calls on the diagram's clock (the simulated clock in hil) and on
     the wall clock, for loop rate and jitter statistics."""
 
@@ -286,7 +286,7 @@ class ControllerSystem(LeafSystem):
         self.controller = controller
         self.n = n = hand.num_actuators
         self.guard = CommandGuard(*hand.joint_limits())
-        self.timer = _Timer()
+        self.timer = LoopTimer()
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         self._pose = self.DeclareVectorInputPort("object_pose", 7)
         state = self.DeclareDiscreteState(n)

@@ -85,7 +85,7 @@ FINGER_OFFSETS = {"joint_0.0": 0.2, "joint_5.0": 0.5, "joint_10.0": 0.4, "joint_
 def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | None = None):
     """Command FINGER_OFFSETS from the start pose; (start q, end q, offsets, result).
     `world_minus_control` collects world time - control time at every controller call."""
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
 
     hand = station.hand
     offset = np.zeros(hand.num_actuators)
@@ -99,7 +99,7 @@ def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | 
         return hold(t, hand_state, object_pose)
 
     q0 = station.world.robot_positions()
-    result = run_episode(station, controller, steps=steps)
+    result = run_station_episode(station, controller, steps=steps)
     return q0, station.world.robot_positions(), offset, result
 
 
@@ -177,16 +177,16 @@ def test_hil_episode_driven_by_the_shipped_policy():
     and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
     centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
     0.6 m away)."""
-    from dexdrake.cli.station import PolicyController, make_controller, run_episode
+    from dexdrake.systems.diagram import make_controller, run_station_episode
     from dexdrake.systems.station import make_station
 
     scenario = hil_scenario()
     controller, description = make_controller(scenario)
-    assert isinstance(controller, PolicyController), description
+    assert controller.get_name() == "policy", description
     with make_station(scenario) as station:
         q0 = station.world.robot_positions()
         p_object = station.world.object_pose().translation()
-        result = run_episode(station, controller, steps=30)
+        result = run_station_episode(station, controller, steps=30)
         q1 = station.world.robot_positions()
     assert result.fault is None and result.steps == 30
     assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
@@ -231,13 +231,13 @@ def test_controller_slot_holds_non_finite_and_clips_out_of_range_commands():
 
 
 def test_nan_command_holds_and_is_never_sent():
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
         n = station.hand.num_actuators
         q0 = station.world.robot_positions()
-        result = run_episode(station, _hold_then(np.zeros(n), nan_after=0.1), steps=25)
+        result = run_station_episode(station, _hold_then(np.zeros(n), nan_after=0.1), steps=25)
         q1 = station.world.robot_positions()
         stats = station.stats()
     assert result.fault is None
@@ -250,14 +250,14 @@ def test_nan_command_holds_and_is_never_sent():
 @pytest.mark.parametrize("device", ["allegro", "z1"])
 def test_stalled_emulator_stream_ends_in_safe_state(device):
     from dexdrake.hardware.z1_udp import ArmFSMState
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
         emulator = station.devices[f"{device}_emulator"]
         timer = threading.Timer(0.2, emulator.stall, args=(2.0,))
         timer.start()
-        result = run_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
+        result = run_station_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
         timer.join()
         assert result.fault is not None and result.steps < 100
         assert ("Allegro" if device == "allegro" else "Z1") in result.fault
@@ -325,7 +325,7 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
-    from dexdrake.cli.station import make_controller, run_episode
+    from dexdrake.systems.diagram import make_controller, run_station_episode
     from dexdrake.systems.station import StationRerunLogger, make_station
 
     scenario = hil_scenario("rendered")
@@ -343,7 +343,7 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
                 estimates.append(np.asarray(log.result["X_WO"])[:3, 3].copy())
 
         station.perception.on_result = on_result
-        result = run_episode(station, controller, steps=150, logger=logger)
+        result = run_station_episode(station, controller, steps=150, logger=logger)
         logger.close()
     assert result.fault is None
     assert estimates
@@ -400,13 +400,13 @@ def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_se
 
 
 def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
-    from dexdrake.cli.station import PolicyController, ScriptedGraspController, make_controller
+    from dexdrake.systems.diagram import ScriptedGraspOnMeasurements, make_controller
 
     controller, description = make_controller(load_scenario(_hil_config(tmp_path, None)))
-    assert isinstance(controller, ScriptedGraspController) and "no policy in the scenario" in description
+    assert isinstance(controller.controller, ScriptedGraspOnMeasurements) and "no policy in the scenario" in description
     assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
     controller, description = make_controller(hil_scenario())
-    assert isinstance(controller, PolicyController)
+    assert controller.get_name() == "policy" and controller.HasSubsystemNamed("policy_system")
     assert "allegro_z1_dexrep_policy.pt" in description and "2451 observations -> 22" in description
     with pytest.raises(ScenarioError, match="policy.checkpoint must name"):
         parse_scenario("policy: {checkpoint: ''}")
@@ -475,11 +475,11 @@ def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_
     from its default pose (and turned) is grasped where it was seen."""
     from pydrake.math import RigidTransform, RollPitchYaw
 
-    from dexdrake.cli.station import ScriptedGraspController
+    from dexdrake.systems.diagram import ScriptedGraspOnMeasurements
     from dexdrake.systems.scripted_grasp import plan_grasp
     from dexdrake.systems.station import pose_vector
 
-    controller = ScriptedGraspController(load_scenario(_hil_config(tmp_path, None)))
+    controller = ScriptedGraspOnMeasurements(load_scenario(_hil_config(tmp_path, None)))
     scene = controller.scene
     X_seen = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [0.04, -0.045, scene.object_info.rest_height])
     default = scene.object_pose(controller.plant_context).translation()

@@ -85,7 +85,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise DexdrakeError(f"policy file {policy_path} not found: {hint}")
     import torch
 
-    from dexdrake.eval.evaluate import run_episode
+    from dexdrake.episode import run_episode
+    from dexdrake.eval.evaluate import mean_actor
     from dexdrake.learn.policy import load_policy
     from dexdrake.learn.samplers import check_env_matches
     from dexdrake.objects.library import get_object
@@ -102,28 +103,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     logger = RerunEpisodeLogger(args.rrd)
     start = time.perf_counter()
     try:
-        success, lift, steps, reward = run_episode(_LoggedEnv(env, logger), policy, args.seed, args.steps)
+        result = run_episode(env, mean_actor(policy), args.seed, args.steps,
+                             on_reset=lambda: logger.log_step(env, None),
+                             on_step=lambda reward, info: logger.log_step(env, info))
     finally:
         logger.close()
     wall = time.perf_counter() - start
-    print(f"object={name} ({info.split}) seed={args.seed} success={success} max_lift={lift:.3f}m "
-          f"steps={steps} reward={reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
+    print(f"object={name} ({info.split}) seed={args.seed} success={result.success} max_lift={result.max_lift:.3f}m "
+          f"steps={result.steps} reward={result.total_reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
     print(measured_rates(manifest))
     return 0
-
-
-class _LoggedEnv:
-    """Wraps a GraspEnv so every reset and step is logged to rerun."""
-
-    def __init__(self, env, logger):
-        self.env, self.logger = env, logger
-
-    def reset(self, seed: int):
-        obs = self.env.reset(seed)
-        self.logger.log_step(self.env, None)
-        return obs
-
-    def step(self, action):
-        out = self.env.step(action)
-        self.logger.log_step(self.env, out[3])
-        return out

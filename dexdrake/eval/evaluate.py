@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.paper import PAPER_AVERAGE
 from dexdrake.eval.seeds import evaluation_seeds_reserved
@@ -40,16 +42,6 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     centre = (p + z * z / (2 * trials)) / denom
     half = z * ((p * (1 - p) / trials + z * z / (4 * trials * trials)) ** 0.5) / denom
     return max(0.0, centre - half), min(1.0, centre + half)
-
-
-@dataclass(frozen=True)
-class EpisodeResult:
-    object: str
-    seed: int
-    success: bool
-    max_lift: float  # m
-    steps: int
-    total_reward: float
 
 
 @dataclass
@@ -114,19 +106,9 @@ class EvalReport:
         return d
 
 
-def run_episode(env, policy, seed: int, horizon: int) -> tuple[bool, float, int, float]:
-    """One deterministic (mean-action) episode; returns (success, max lift, steps, reward)."""
-    obs = env.reset(int(seed))
-    success, max_lift, total, steps = False, 0.0, 0.0, 0
-    for steps in range(1, horizon + 1):
-        action, _ = policy.act(np.asarray(obs, dtype=np.float32))
-        obs, reward, done, info = env.step(action)
-        total += float(reward)
-        success = success or bool(info["success"])
-        max_lift = max(max_lift, float(info["lift"]))
-        if done:
-            break
-    return success, max_lift, steps, total
+def mean_actor(policy) -> Callable[[np.ndarray], np.ndarray]:
+    """The policy's deterministic (mean) action for an observation, as `run_episode`'s `act`."""
+    return lambda observation: policy.act(np.asarray(observation, dtype=np.float32))[0]
 
 
 class _EpisodeRunner:
@@ -150,8 +132,7 @@ class _EpisodeRunner:
             env = self.env_factory_for(self.policy.config, [name], self.horizon)()
             check_env_matches(env, self.policy)
             self._envs[name] = env
-        success, lift, steps, reward = run_episode(self._envs[name], self.policy, seed, self.horizon)
-        return EpisodeResult(name, int(seed), success, lift, steps, reward)
+        return run_episode(self._envs[name], mean_actor(self.policy), seed, self.horizon)
 
 
 _RUNNER: _EpisodeRunner | None = None

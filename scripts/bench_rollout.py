@@ -106,12 +106,12 @@ def instrument(sections: Sections, sample_every: int = 5):
             return out
 
     def _sample_contact_split(env, q_command, acc):
-        diagram, t = env.scene.diagram, env.context.get_time() + env.base_config.control_period
+        diagram, t = env.diagram, env.context.get_time() + env.base_config.control_period
         q = np.clip(q_command, env._mid - env._half, env._mid + env._half)
         runs = {}
         for key, far in (("full", False), ("free", True)):
             ctx = env.context.Clone()
-            diagram.get_input_port(0).FixValue(ctx, q)
+            diagram.GetInputPort("command").FixValue(ctx, q)
             if far:
                 plant_ctx = env.scene.plant.GetMyMutableContextFromRoot(ctx)
                 env.scene.plant.SetFreeBodyPose(plant_ctx, env.scene.object_body, RigidTransform([5.0, 5.0, 5.0]))
@@ -119,7 +119,7 @@ def instrument(sections: Sections, sample_every: int = 5):
             start = time.process_time()
             sim.AdvanceTo(t)
             runs[key] = time.process_time() - start
-        query = diagram.GetOutputPort("query_object").Eval(env.context)
+        query = env.scene.diagram.GetOutputPort("query_object").Eval(env.scene.diagram.GetMyContextFromRoot(env.context))
         start = time.process_time()
         query.ComputePointPairPenetration()
         steps = round(env.base_config.control_period / env.base_config.time_step)

@@ -160,7 +160,7 @@ class BuiltDiagram:
 
     station: Station
     diagram: Diagram
-    dexrep: DexRepSystem
+    dexrep: DexRepSystem | None
     controller: object = None
 
     @property
@@ -190,26 +190,26 @@ class BuiltDiagram:
         return (self.policy_system or self.controller).guard.counts
 
 
-def build_diagram(station: Station, controller=None, feature_set: str | None = None) -> BuiltDiagram:
-    """The station of a scenario with DexRepSystem and `controller` in the slot (see the
-    module doc; None leaves the slot's "command" as the diagram's input). `feature_set`
-    defaults to the scenario policy's, else "DexRep"."""
-    from dexdrake.dexrep.geometry import object_geometry
-    from dexdrake.systems.scene import build_grasp_scene
-    from dexdrake.systems.station import scene_config
-
-    scenario = station.scenario
-    if feature_set is None:
-        feature_set = scenario.policy.feature_set if scenario.policy is not None else "DexRep"
-    scene = station.scene or build_grasp_scene(scene_config(scenario))  # hil/real: the robot's kinematics only
+def build_diagram(station: Station, controller=None, feature_set: str | None = "DexRep") -> BuiltDiagram:
+    """The station of a scenario with DexRepSystem computing `feature_set` (None: no
+    DexRepSystem, for controllers that read no features) and `controller` in the slot (see
+    the module doc; None leaves the slot's "command" as the diagram's input)."""
     builder = DiagramBuilder()
     st = builder.AddNamedSystem("station", station.diagram)
-    dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(scene.hand, scene.plant, scene.hand_instance,
-                                                           object_geometry(scenario.object), feature_set))
+    dexrep = None
+    if feature_set is not None:
+        from dexdrake.dexrep.geometry import object_geometry
+        from dexdrake.systems.scene import build_grasp_scene
+        from dexdrake.systems.station import scene_config
+
+        scene = station.scene or build_grasp_scene(scene_config(station.scenario))  # hil/real: kinematics only
+        dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(scene.hand, scene.plant, scene.hand_instance,
+                                                               object_geometry(station.scenario.object), feature_set))
+        for name in ("hand_state", "object_pose"):
+            builder.Connect(st.GetOutputPort(name), dexrep.GetInputPort(name))
+        builder.ExportOutput(dexrep.GetOutputPort("features"), "features")
     for name in ("hand_state", "object_pose"):
-        builder.Connect(st.GetOutputPort(name), dexrep.GetInputPort(name))
         builder.ExportOutput(st.GetOutputPort(name), name)
-    builder.ExportOutput(dexrep.GetOutputPort("features"), "features")
     if controller is None:
         builder.ExportInput(st.GetInputPort("command"), "command")
     else:
@@ -325,7 +325,9 @@ def run_station_episode(station: Station, controller, steps: int, logger=None) -
         raise DexdrakeError(f"steps must be >= 1, got {steps}")
     if not isinstance(controller, System):
         controller = ControllerSystem(controller, station.hand, station.scenario.control_period)
-    built = build_diagram(station, controller)
+    policy = station.scenario.policy
+    feature_set = (policy.feature_set if policy is not None else "DexRep") if controller.HasInputPort("features") else None
+    built = build_diagram(station, controller, feature_set)
     env = StationEpisode(built, steps, logger)
     try:
         result = run_episode(env, lambda observation: None, station.scenario.seed)

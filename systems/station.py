@@ -354,7 +354,7 @@ def make_station(scenario: Scenario) -> Station:
     For hil/real the devices run from here on: use the result as a context manager (or call
     `stop()`) so that they are stopped safely."""
     if scenario.mode == "sim":
-        return _sim_station(scenario)
+        return sim_station(scenario)
     stack = contextlib.ExitStack()
     try:
         return _device_station(scenario, stack)
@@ -371,10 +371,12 @@ def scene_config(scenario: Scenario):
                        time_step=scenario.time_step, control_period=scenario.control_period)
 
 
-def _sim_station(scenario: Scenario) -> Station:
+def sim_station(scenario: Scenario, scene=None) -> Station:
+    """The sim station of `scenario` around its grasp scene (`scene`, default: built from
+    the scenario's scene_config)."""
     from dexdrake.systems.scene import build_grasp_scene
 
-    scene = build_grasp_scene(scene_config(scenario))
+    scene = scene or build_grasp_scene(scene_config(scenario))
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
     builder.ExportInput(sub.GetInputPort("command"), "command")

@@ -54,10 +54,22 @@ def test_reset_places_object_at_rest_on_table(sphere_env):
 def test_hand_state_port_matches_env_state(sphere_env):
     env = sphere_env
     env.reset(0)
-    port = env.scene.diagram.GetOutputPort("hand_state").Eval(env.context)
+    port = env.diagram.GetOutputPort("hand_state").Eval(env.context)
     np.testing.assert_allclose(port, env.hand_state())
-    pose = env.scene.diagram.GetOutputPort("object_pose").Eval(env.context)
+    pose = env.diagram.GetOutputPort("object_pose").Eval(env.context)
     np.testing.assert_allclose(pose[:3], env.object_position())
+
+
+def test_env_steps_the_one_diagram_and_observes_its_features_port():
+    """GraspEnv feeds the built diagram's "command" input and reads its "features" output
+    (DexRepSystem on the hand state and object pose), the same values as the extractor on
+    the plant's own state."""
+    env = GraspEnv(SceneConfig(object="sphere_medium"), feature_set="DexRep", horizon=5)
+    env.reset(3)
+    env.step(np.linspace(-0.3, 0.3, env.action_dim))
+    assert env.diagram.GetInputPort("command") is not None and env.built.controller is None
+    direct = env.built.dexrep.extractor(env.plant_context, env.scene.object_pose(env.plant_context))
+    np.testing.assert_allclose(env.observation(), direct, atol=1e-9)
 
 
 def test_normalised_actions_map_onto_joint_ranges(sphere_env):

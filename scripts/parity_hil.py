@@ -19,7 +19,8 @@ import numpy as np
 
 
 def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
-    from dexdrake.systems.diagram import make_controller, run_station_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 

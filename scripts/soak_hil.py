@@ -112,7 +112,8 @@ def main() -> int:
     parser.add_argument("--sample-s", type=float, default=5.0)
     args = parser.parse_args()
 
-    from dexdrake.systems.diagram import make_controller, run_station_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 

@@ -15,8 +15,8 @@ no controller (training rollouts: systems/grasp_env.py) the diagram exports "com
 input and "features" as an output. The built diagram's outputs: "hand_state",
 "object_pose", "features", and "command" when a controller is in the slot.
 
-`run_station_episode` builds it around a station and runs it through the one episode loop
-(dexdrake/episode.py).
+The slot's controllers are made in systems/controllers.py; `run_station_episode` builds the
+diagram around a station and runs it through the one episode loop (dexdrake/episode.py).
 """
 
 from __future__ import annotations
@@ -26,131 +26,20 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
-from pydrake.systems.primitives import AffineSystem, PassThrough
 
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
 from dexdrake.systems.dexrep_system import DexRepSystem
-from dexdrake.systems.scenario import Scenario
-from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault, pose_from_vector
+from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault
 
 SLOT_INPUTS = ("features", "hand_state", "object_pose")
 
 
-# ----------------------------------------------------------------------------- controllers
 def joint_map(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
     """(mid, half) of each joint's range: set-point = mid + action * half (policy order)."""
     lo, hi = hand.joint_limits()
     return (hi + lo) / 2, (hi - lo) / 2
-
-
-def policy_controller(scenario: Scenario, hand: HandDescription) -> tuple[Diagram, str]:
-    """The scenario's policy in the slot: PolicySystem (features -> normalised action) and
-    the map to joint set-points; refused (a DexdrakeError naming the checkpoint and the
-    reason) when the checkpoint is missing or unreadable, or was trained for another hand,
-    feature set or action size."""
-    from dexdrake.dexrep.feature_sets import observation_blocks
-    from dexdrake.learn.policy import load_policy
-    from dexdrake.paths import resolve_model_path
-    from dexdrake.systems.policy_system import PolicySystem
-
-    entry = scenario.policy
-    try:
-        policy, metadata = load_policy(resolve_model_path(entry.checkpoint))
-    except DexdrakeError as err:
-        raise DexdrakeError(f"policy refused: {err}") from None
-    cfg = policy.config
-    if cfg.hand != scenario.hand:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
-                            f"the scenario runs {scenario.hand!r}")
-    if cfg.feature_set != entry.feature_set:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
-                            f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
-    if cfg.action_dim != hand.num_actuators:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
-                            f"{scenario.hand!r} has {hand.num_actuators} joints")
-    size = sum(observation_blocks(hand, entry.feature_set).values())
-    if size != cfg.obs_dim:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
-                            f"feature set {entry.feature_set!r} gives {size}")
-    n = hand.num_actuators
-    mid, half = joint_map(hand)
-    builder = DiagramBuilder()
-    system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period))
-    to_command = builder.AddNamedSystem("action_to_command", AffineSystem(
-        np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0), np.zeros((n, 0)), np.diag(half), mid))
-    builder.Connect(system.GetOutputPort("action"), to_command.get_input_port())
-    builder.ExportInput(system.GetInputPort("observation"), "features")
-    for name, size in (("hand_state", 2 * n), ("object_pose", 7)):  # read by loggers only
-        builder.ExportInput(builder.AddNamedSystem(name, PassThrough(size)).get_input_port(), name)
-    builder.ExportOutput(to_command.get_output_port(), "command")
-    description = (f"policy {entry.checkpoint} (hand {cfg.hand}, feature set {cfg.feature_set}, "
-                   f"{cfg.obs_dim} observations -> {cfg.action_dim} joint targets, "
-                   f"stage {metadata.get('stage', 'unknown')})")
-    slot = builder.Build()
-    slot.set_name("policy")
-    return slot, description
-
-
-class ScriptedGraspOnMeasurements:
-    """The scripted grasp (systems/scripted_grasp.py) driven by the measured hand state and
-    the perceived object pose, as a ControllerSystem callback: planned once, from the first
-    pose, with the hand's own IK on a private scene."""
-
-    def __init__(self, scenario: Scenario):
-        from dexdrake.systems.scene import SceneConfig, build_grasp_scene
-
-        self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
-        self.context = self.scene.diagram.CreateDefaultContext()
-        self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
-        self._X_obj = None
-        self._script = None
-        self._t0 = 0.0
-
-    def object_pose(self):
-        """The perceived object pose the grasp is planned on (the first one seen)."""
-        return self._X_obj
-
-    def object_position(self) -> np.ndarray:
-        return self._X_obj.translation().copy()
-
-    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
-        from dexdrake.systems.scripted_grasp import ScriptedGrasp
-
-        n = self.scene.hand.num_actuators
-        if self._script is None:
-            q = self.scene.plant.GetPositions(self.plant_context).copy()
-            q[self.scene.q_index] = hand_state[:n]
-            self.scene.plant.SetPositions(self.plant_context, q)
-            self._X_obj = pose_from_vector(object_pose)
-            self._t0 = t
-            self._script = ScriptedGrasp(self)
-        self.context.SetTime(t - self._t0)
-        return self._script(self)
-
-
-def describe_script(hand: HandDescription) -> str:
-    """The scripted grasp's plan, from the GraspScript the hand description configures."""
-    from dexdrake.systems.scripted_grasp import script_for
-
-    g = script_for(hand)
-    return (f"scripted grasp (no policy in the scenario): from the first perceived pose, approach "
-            f"{g.hover:.2f} m above the object by {g.approach_end:.1f} s, descend by {g.descend_end:.1f} s, "
-            f"close by {g.close_end:.1f} s, lift {g.lift:.2f} m by {g.lift_end:.1f} s")
-
-
-def make_controller(scenario: Scenario):
-    """(controller slot system, description) of what the scenario asks for: its policy (a
-    policy that cannot be run is refused with a DexdrakeError, never replaced), or the
-    scripted grasp when the scenario names no policy."""
-    from dexdrake.hands.description import load_hand
-
-    hand = load_hand(scenario.hand)
-    if scenario.policy is not None:
-        return policy_controller(scenario, hand)
-    system = ControllerSystem(ScriptedGraspOnMeasurements(scenario), hand, scenario.control_period)
-    return system, describe_script(hand)
 
 
 # ----------------------------------------------------------------------------- builder

@@ -88,6 +88,18 @@ class GraspEnv:
         self.command_guard.reset_counts()
         return self.observation()
 
+    def mirror(self, hand_state: np.ndarray, X_WO: RigidTransform) -> None:
+        """Put the plant in a measured state, for controllers driven by measurements: the
+        hand at [q; v] (policy order), the object at rest at X_WO."""
+        plant, ctx, n = self.scene.plant, self.plant_context, self.action_dim
+        q = plant.GetPositions(ctx)
+        q[self.scene.q_index] = hand_state[:n]
+        plant.SetPositions(ctx, q)
+        v = np.zeros(plant.num_velocities())
+        v[self.scene.v_index] = hand_state[n:]
+        plant.SetVelocities(ctx, v)
+        plant.SetFreeBodyPose(ctx, self.scene.object_body, X_WO)
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
         """One control period at normalised set-points `action` (the bad-command rule of
         `command_guard` applies: non-finite -> the last command held, out of [-1, 1] -> clipped)."""

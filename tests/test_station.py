@@ -177,7 +177,8 @@ def test_hil_episode_driven_by_the_shipped_policy():
     and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
     centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
     0.6 m away)."""
-    from dexdrake.systems.diagram import make_controller, run_station_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     scenario = hil_scenario()
@@ -325,7 +326,8 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
-    from dexdrake.systems.diagram import make_controller, run_station_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import StationRerunLogger, make_station
 
     scenario = hil_scenario("rendered")
@@ -400,10 +402,10 @@ def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_se
 
 
 def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
-    from dexdrake.systems.diagram import ScriptedGraspOnMeasurements, make_controller
+    from dexdrake.systems.controllers import OnMeasurements, make_controller
 
     controller, description = make_controller(load_scenario(_hil_config(tmp_path, None)))
-    assert isinstance(controller.controller, ScriptedGraspOnMeasurements) and "no policy in the scenario" in description
+    assert isinstance(controller.controller, OnMeasurements) and "no policy in the scenario" in description
     assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
     controller, description = make_controller(hil_scenario())
     assert controller.get_name() == "policy" and controller.HasSubsystemNamed("policy_system")
@@ -472,24 +474,44 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
 
 def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_path):
     """The scripted fallback plans from the pose perception delivers: an object seen away
-    from its default pose (and turned) is grasped where it was seen."""
+    from where its model was placed (and turned) is grasped where it was seen."""
     from pydrake.math import RigidTransform, RollPitchYaw
 
-    from dexdrake.systems.diagram import ScriptedGraspOnMeasurements
+    from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.scripted_grasp import plan_grasp
     from dexdrake.systems.station import pose_vector
 
-    controller = ScriptedGraspOnMeasurements(load_scenario(_hil_config(tmp_path, None)))
-    scene = controller.scene
-    X_seen = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [0.04, -0.045, scene.object_info.rest_height])
-    default = scene.object_pose(controller.plant_context).translation()
-    assert np.linalg.norm(default[:2] - X_seen.translation()[:2]) > 0.05
-    hand_state = np.concatenate([scene.hand.pregrasp_vector(), np.zeros(scene.hand.num_actuators)])
+    slot, _ = make_controller(load_scenario(_hil_config(tmp_path, None)))
+    controller = slot.controller
+    env = controller.env
+    X_seen = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [-0.04, 0.0, env.scene.object_info.rest_height])
+    assert np.linalg.norm(env.object_position()[:2] - X_seen.translation()[:2]) > 0.05
+    hand_state = np.concatenate([env.scene.hand.pregrasp_vector(), np.zeros(env.action_dim)])
     controller(0.0, hand_state, pose_vector(X_seen))
-    script = controller._script
+    script = controller._controller
     R_pregrasp = script.ik.palm_pose(script.q_open[: script.n_arm])[1]
-    expected = plan_grasp(script.script, scene.object_info, X_seen, R_pregrasp)
+    expected = plan_grasp(script.script, env.scene.object_info, X_seen, R_pregrasp)
     np.testing.assert_allclose(script.plan.grasp, expected.grasp, atol=1e-9)
     assert np.linalg.norm(script.plan.grasp[:2] - X_seen.translation()[:2]) <= abs(script.script.reach) + 1e-9
     centre = script.ik.palm_pose(script.q_grasp)[0]  # the arm's IK reaches the perceived grasp point
     assert np.linalg.norm(centre - script.plan.grasp) < 5e-3
+
+
+def test_expert_in_the_controller_slot_reaches_for_the_object():
+    """The state-driven expert as a slot controller (measured state, object pose from the
+    station) on the sim station: the grasp centre closes in on the object."""
+    from dexdrake.systems.controllers import expert_controller
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.station import make_station
+
+    scenario = load_scenario(CONFIGS / "sim.yaml")
+    scenario.policy = None
+    station = make_station(scenario)
+    slot = expert_controller(scenario)
+    result = run_station_episode(station, slot, steps=25)
+    env = slot.controller.env  # the mirror: the last measured state
+    p_object = env.object_position()
+    d0 = np.linalg.norm(_grasp_centre(station.hand, station.hand.pregrasp_vector()) - p_object)
+    d1 = np.linalg.norm(_grasp_centre(station.hand, env.hand_state()[: env.action_dim]) - p_object)
+    assert result.fault is None and result.steps == 25 and result.stats["policy"]["non_finite"] == 0
+    assert d1 < d0 - 0.03, (d0, d1)

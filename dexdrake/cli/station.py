@@ -33,7 +33,8 @@ def _fmt_rate(name: str, s: dict) -> str:
 
 
 def run_hil(args: argparse.Namespace) -> int:
-    from dexdrake.systems.diagram import make_controller, run_station_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import ScenarioError, load_scenario
     from dexdrake.systems.station import make_station
 
@@ -94,7 +95,7 @@ def dry_run(scenario) -> int:
     from dexdrake.hardware.safety import HardwareError
     from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, z1_model
     from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
-    from dexdrake.systems.diagram import make_controller
+    from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.scenario import driver_configs
     from dexdrake.systems.station import open_can_bus
 

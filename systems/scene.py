@@ -15,7 +15,7 @@ about half the CPU of 2 ms per control step. Plant output ports are computed on 
 them cost ~25 % of each advance. The robot is gravity compensated (the virtual arm of the
 paper's model is a free-floating base held by servos).
 
-The HIL world (hardware/hil_world.py) steps the same scene built with a `JointDrive`: the
+The HIL world (systems/hil_world.py) steps the same scene built with a `JointDrive`: the
 arm's PD gains those of the Z1 controller, the fingers torque-driven (the Allegro firmware
 emulator's PWM), with the emulator's reflected inertia and damping.
 

@@ -77,7 +77,7 @@ class DexRepEpisodeLogger:
 def show_features(object_name: str, hand: str = "adroit", rrd: str | Path | None = None, seed: int = 0,
                   steps: int = 200, spawn: bool = False):
     """Runs a scripted-grasp episode on `object_name` and logs its DexRep to rerun
-    (to `rrd`, or a live viewer with spawn=True). Returns the EpisodeSummary."""
+    (to `rrd`, or a live viewer with spawn=True). Returns the EpisodeResult."""
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import ScriptedGrasp

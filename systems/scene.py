@@ -68,6 +68,10 @@ class SceneConfig:
     time_step: float = 0.005  # plant step (s)
     control_period: float = 0.02  # command / policy period (s)
     friction: float = 1.0
+    # Output ports sampled at each step (True) or computed on demand (False, the default:
+    # nothing reads contact results per step). A reader of the net actuation after every
+    # step (the HIL world) wants them sampled: on demand, each read repeats the step's solve.
+    sampled_outputs: bool = False
 
 
 @dataclass(frozen=True)
@@ -182,7 +186,7 @@ def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | N
             time_step=config.time_step,
             discrete_contact_approximation="sap",
             contact_model="point",
-            use_sampled_output_ports=False,  # outputs on demand: nothing reads contact results per step
+            use_sampled_output_ports=config.sampled_outputs,
         ),
         builder,
     )

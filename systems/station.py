@@ -34,7 +34,7 @@ import contextlib
 import multiprocessing
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
@@ -444,7 +444,7 @@ def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDesc
     from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 
     placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))
-    scene = build_grasp_scene(scene_config(scenario), hil_drive(scenario, hand))
+    scene = build_grasp_scene(replace(scene_config(scenario), sampled_outputs=True), hil_drive(scenario, hand))
     emu_bus = open_can_bus(scenario)
     stack.callback(emu_bus.shutdown)
     world = HilWorld(scenario, scene, emu_bus, hand.pregrasp_vector(), placement)

@@ -53,12 +53,12 @@ def every_nth_step(data, stride: int):
 
 def expert_episodes(hand: str, objects: list[str], seeds: list[int]):
     """The expert's own episodes on `objects` (positions and labels)."""
-    from dexdrake.learn.dagger import DaggerData, run_episode
+    from dexdrake.learn.dagger import DaggerData, labelled_episode
     from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     env = GraspEnvFactory(hand, None, tuple(objects), 100)()
-    return DaggerData.concat([run_episode(env, name, s, None, 0.0, ReactiveGrasp) for name in objects for s in seeds])
+    return DaggerData.concat([labelled_episode(env, name, s, None, 0.0, ReactiveGrasp) for name in objects for s in seeds])
 
 
 def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict[str, object]:

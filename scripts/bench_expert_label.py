@@ -5,7 +5,7 @@
 
 Each episode is driven by `ReactiveGrasp` (the DAgger expert: lift set-points and re-planned
 way-points from a few Jacobian steps); on every visited state a twin expert whose lift and
-re-plans run the full least-squares IK (`solve_arm`, the previous method) labels the same
+re-plans run the full least-squares IK (`ArmIK.solve`, the previous method) labels the same
 state. Prints ms per label (time.process_time) of both, their ratio, the phases' shares and
 how often and where the two labels differ (normalised action units).
 """
@@ -35,8 +35,8 @@ def main() -> None:
         """The expert as it was: an IK solve for every lift label and every re-plan."""
 
         def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
-            p = self._palm_pose(q_arm)[0]
-            return self.solve_arm(np.array([p[0], p[1], self.grasp_point[2] + self.script.lift]), self.R_grasp, q_arm)
+            p = self.ik.palm_pose(q_arm)[0]
+            return self.ik.solve(np.array([p[0], p[1], self.grasp_point[2] + self.script.lift]), q_arm, self.R_grasp)
 
         def _replan(self, env) -> None:
             ScriptedGrasp._plan(self, env)

@@ -3,7 +3,7 @@
     python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes 1]
         [--horizon 100] [--bc-samples 8000] [--workers 1,2]
 
-Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.run_episode`:
+Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_episode`:
 Drake physics, DexRep features, the task's reward and the state-driven expert's label):
 - start-up: importing the stack and building the env for one object, in a fresh process;
 - expert-driven collection (the expert acts and labels) and policy-driven collection (the
@@ -106,12 +106,12 @@ def instrument(sections: Sections, sample_every: int = 5):
             return out
 
     def _sample_contact_split(env, q_command, acc):
-        diagram, t = env.scene.diagram, env.context.get_time() + env.base_config.control_period
+        diagram, t = env.diagram, env.context.get_time() + env.base_config.control_period
         q = np.clip(q_command, env._mid - env._half, env._mid + env._half)
         runs = {}
         for key, far in (("full", False), ("free", True)):
             ctx = env.context.Clone()
-            diagram.get_input_port(0).FixValue(ctx, q)
+            diagram.GetInputPort("command").FixValue(ctx, q)
             if far:
                 plant_ctx = env.scene.plant.GetMyMutableContextFromRoot(ctx)
                 env.scene.plant.SetFreeBodyPose(plant_ctx, env.scene.object_body, RigidTransform([5.0, 5.0, 5.0]))
@@ -119,7 +119,7 @@ def instrument(sections: Sections, sample_every: int = 5):
             start = time.process_time()
             sim.AdvanceTo(t)
             runs[key] = time.process_time() - start
-        query = diagram.GetOutputPort("query_object").Eval(env.context)
+        query = env.scene.diagram.GetOutputPort("query_object").Eval(env.scene.diagram.GetMyContextFromRoot(env.context))
         start = time.process_time()
         query.ComputePointPairPenetration()
         steps = round(env.base_config.control_period / env.base_config.time_step)
@@ -150,13 +150,13 @@ def instrument(sections: Sections, sample_every: int = 5):
 
 def collect(env, objects, episodes: int, policy, seed0: int) -> tuple[int, float]:
     """(labelled steps, CPU seconds) of DAgger episodes: the expert acts if `policy` is None."""
-    from dexdrake.learn.dagger import run_episode
+    from dexdrake.learn.dagger import labelled_episode
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     steps, start = 0, time.process_time()
     for k in range(episodes):
         for name in objects:
-            steps += len(run_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
+            steps += len(labelled_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
     return steps, time.process_time() - start
 
 

@@ -1,5 +1,5 @@
 """Sim-to-HIL parity of the shipped Allegro-on-Z1 policy: the same controller, episode loop
-and success rule (dexdrake.cli.station.run_episode, dexdrake.task) on the same objects
+and success rule (dexdrake.systems.diagram.run_station_episode, dexdrake.task) on the same objects
 and seeds, once in simulation and once hardware-in-the-loop at each PWM -> N*m scale
 (`--scales`, multiples of allegro_units.NM_PER_PWM, the one place that assumption lives).
 HIL uses rendered perception (`--camera rendered`, the default) or the world's pose (`sim`).
@@ -19,7 +19,8 @@ import numpy as np
 
 
 def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
-    from dexdrake.cli.station import make_controller, run_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 
@@ -33,7 +34,7 @@ def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, c
     controller, _ = make_controller(scenario)
     t0 = time.perf_counter()
     with make_station(scenario) as station:
-        result = run_episode(station, controller, steps)
+        result = run_station_episode(station, controller, steps)
     return {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": result.success,
             "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0}
 

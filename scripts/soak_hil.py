@@ -112,7 +112,8 @@ def main() -> int:
     parser.add_argument("--sample-s", type=float, default=5.0)
     args = parser.parse_args()
 
-    from dexdrake.cli.station import make_controller, run_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 
@@ -128,7 +129,7 @@ def main() -> int:
             controller = sine_controller(station.hand, station.hand.pregrasp_vector())
         monitor = SoakMonitor(station, args.sample_s)
         monitor.rss[0] = (0.0, rss0)
-        result = run_episode(station, controller, steps, logger=monitor)
+        result = run_station_episode(station, controller, steps, logger=monitor)
         monitor.close()
         world = station.world.stats()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
@@ -147,7 +148,7 @@ def main() -> int:
     print(f"  control step (wall, deadline {period_ms:.0f} ms): p50 {np.percentile(walls, 50):.1f} "
           f"p90 {np.percentile(walls, 90):.1f} p99 {np.percentile(walls, 99):.1f} max {walls.max():.1f} ms, "
           f"missed {int(np.sum(walls > period_ms))} of {walls.size}; sim-clock period p99 "
-          f"{policy['p99_ms']:.2f} ms, nan_holds {policy['nan_holds']}")
+          f"{policy['p99_ms']:.2f} ms, non-finite held {policy['non_finite']}, clipped {policy['clipped']}")
     r = monitor.world.report()
     print(f"  world step (wall): p50 {r['p50_ms']:.2f} p99 {r['p99_ms']:.2f} max {r['max_ms']:.2f} ms; "
           f"late hand replies {world['late_replies']:.0f}")

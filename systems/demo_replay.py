@@ -24,13 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.math import RollPitchYaw
-from scipy.optimize import least_squares
 
 from dexdrake.demos.format import HumanDemo
 from dexdrake.demos.trim import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.objects.library import ObjectInfo, get_object
+from dexdrake.systems.arm_ik import ArmIK
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.scene import ObjectPlacement, SceneConfig
 from dexdrake.task import TaskSpec, target_position
@@ -280,10 +280,10 @@ class DemoReplayer:
     def _lift_pose(self, env: GraspEnv, q_end: np.ndarray) -> np.ndarray:
         """Arm set-points moving the commanded palm grasp centre by (target - object now),
         solved from the current arm set-points with rotations held near them."""
-        lift = IKArm(env, self.hand)
-        centre = lift.grasp_centre(q_end[: self.n_arm])
+        ik = ArmIK(env.scene)
+        centre = ik.palm_pose(q_end[: self.n_arm])[0]
         goal = centre + target_position(env.p_start, env.task) - env.object_position()
-        return lift.solve(goal, q_end[: self.n_arm])
+        return ik.solve(goal, q_end[: self.n_arm], stay=0.05)
 
     def perturbation(self, env: GraspEnv, plan: ReplayPlan, rng: np.random.Generator) -> np.ndarray:
         """(horizon, n) correlated offsets: OU noise on all joints plus a closure ramp from
@@ -322,32 +322,3 @@ def observation_blocks_for(hand: str, feature_set: str | None) -> dict[str, int]
     from dexdrake.dexrep.feature_sets import observation_blocks
 
     return observation_blocks(desc, feature_set)
-
-
-class IKArm:
-    """Palm grasp-centre position IK over the arm joints on a private plant context."""
-
-    def __init__(self, env: GraspEnv, hand: HandDescription):
-        scene = env.scene
-        self.plant, self.ctx = scene.plant, scene.plant.CreateDefaultContext()
-        self.frame = scene.plant.GetFrameByName(hand.palm.body, scene.hand_instance)
-        self.centre = np.array(hand.palm.centre)
-        self.n_arm = len(hand.arm_joints)
-        self.index = scene.q_index[: self.n_arm]
-        lo, hi = hand.joint_limits()
-        self.lo, self.hi = lo[: self.n_arm], hi[: self.n_arm]
-
-    def grasp_centre(self, q_arm: np.ndarray) -> np.ndarray:
-        q = self.plant.GetPositions(self.ctx)
-        q[self.index] = q_arm
-        self.plant.SetPositions(self.ctx, q)
-        return self.plant.CalcPointsPositions(self.ctx, self.frame, self.centre, self.plant.world_frame())[:, 0]
-
-    def solve(self, target: np.ndarray, q_seed: np.ndarray, weight: float = 0.05) -> np.ndarray:
-        """Arm set-points putting the grasp centre at `target`, staying near `q_seed`."""
-        seed = np.clip(q_seed, self.lo, self.hi)
-
-        def residual(q_arm):
-            return np.concatenate([self.grasp_centre(q_arm) - target, weight * (q_arm - seed)])
-
-        return least_squares(residual, seed, bounds=(self.lo, self.hi), xtol=1e-8).x

@@ -1,12 +1,18 @@
-"""DexRepSystem: a LeafSystem wrapper over dexdrake.dexrep.feature_sets.FeatureExtractor.
+"""DexRepSystem: the DexRep features (dexdrake.dexrep.feature_sets.FeatureExtractor) of the
+hand and the object as the controller sees them, in every mode.
 
-Inputs:  "plant_state" (the plant's full [q; v]) and "query_object" (SceneGraph's
-         QueryObject; read only on the "scenegraph" path).
-Output:  "features", the selected feature set's vector (see FeatureExtractor).
+Inputs:  "hand_state"   [q; v] in policy joint order (2n): measured, or the plant's;
+         "object_pose"  [x, y, z, qw, qx, qy, qz]: perceived, or the plant's;
+         "query_object" SceneGraph's QueryObject (read only on the "scenegraph" path, which
+                        needs the SceneGraph of the plant the features are computed on).
+Output:  "features", the selected feature set's vector.
+The hand's kinematics are evaluated on a private context of `plant` (a model of the robot:
+the simulated scene's plant, or a scene built for the purpose on the station).
 """
 
 from __future__ import annotations
 
+import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
 from pydrake.systems.framework import BasicVector, LeafSystem
@@ -14,29 +20,28 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from dexdrake.dexrep.feature_sets import FeatureExtractor
 from dexdrake.dexrep.geometry import ObjectGeometry
 from dexdrake.hands.description import HandDescription
+from dexdrake.systems.station import pose_from_vector
 
 
 class DexRepSystem(LeafSystem):
-    def __init__(self, hand: HandDescription, plant, hand_instance, object_instance,
-                 geometry: ObjectGeometry, feature_set: str = "DexRep", path: str = "fast",
-                 distance_geometry_id=None):
+    def __init__(self, hand: HandDescription, plant, hand_instance, geometry: ObjectGeometry,
+                 feature_set: str = "DexRep", path: str = "fast", distance_geometry_id=None):
         super().__init__()
         self._plant = plant
         self._plant_context = plant.CreateDefaultContext()
-        bodies = [plant.get_body(i) for i in plant.GetBodyIndices(object_instance)]
-        if len(bodies) != 1:
-            raise ValueError(f"object instance must hold exactly one body, found {len(bodies)}")
-        self._object_body = bodies[0]
+        self._q_index = np.array([plant.GetJointByName(j, hand_instance).position_start() for j in hand.policy_joints])
+        self._n = hand.num_actuators
         self.extractor = FeatureExtractor(hand, plant, hand_instance, geometry, feature_set, path,
                                           distance_geometry_id)
-        nx = plant.num_multibody_states()
-        self.DeclareVectorInputPort("plant_state", nx)
-        self.DeclareAbstractInputPort("query_object", AbstractValue.Make(QueryObject()))
+        self._hand = self.DeclareVectorInputPort("hand_state", 2 * self._n)
+        self._pose = self.DeclareVectorInputPort("object_pose", 7)
+        self._query = self.DeclareAbstractInputPort("query_object", AbstractValue.Make(QueryObject()))
         self.DeclareVectorOutputPort("features", self.extractor.size, self._calc)
 
     def _calc(self, context, output: BasicVector) -> None:
-        x = self.get_input_port(0).Eval(context)
-        self._plant.SetPositionsAndVelocities(self._plant_context, x)
-        X_WO = self._plant.EvalBodyPoseInWorld(self._plant_context, self._object_body)
-        query = self.get_input_port(1).Eval(context) if self.extractor.path == "scenegraph" else None
+        q = self._plant.GetPositions(self._plant_context)
+        q[self._q_index] = self._hand.Eval(context)[: self._n]
+        self._plant.SetPositions(self._plant_context, q)
+        X_WO = pose_from_vector(self._pose.Eval(context))
+        query = self._query.Eval(context) if self.extractor.path == "scenegraph" else None
         output.SetFromVector(self.extractor(self._plant_context, X_WO, query))

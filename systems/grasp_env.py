@@ -8,31 +8,27 @@ included); with `feature_set=None` the observation is the hand state [q; v] alon
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
-from dexdrake.dexrep.feature_sets import FeatureExtractor
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
+from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
-from dexdrake.systems.scene import GraspScene, ObjectPlacement, SceneConfig, build_grasp_scene
-
-
-@dataclass
-class EpisodeSummary:
-    object: str
-    seed: int
-    success: bool
-    max_lift: float
-    steps: int
-    total_reward: float
-    rewards: list[float] = field(default_factory=list)
+from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.systems.diagram import BuiltDiagram, build_diagram
+from dexdrake.systems.scenario import Scenario
+from dexdrake.systems.scene import ObjectPlacement, SceneConfig, build_grasp_scene
+from dexdrake.systems.station import sim_station
 
 
 class GraspEnv:
-    """One hand, one object at a time; the scene is rebuilt only when the object changes."""
+    """One hand, one object at a time, on the diagram of every mode (systems/diagram.py) with
+    the sim station and an empty controller slot: each step feeds its "command" input and
+    observes what its DexRepSystem computes. The diagram is built once per object."""
 
     def __init__(
         self,
@@ -44,25 +40,28 @@ class GraspEnv:
     ):
         self.base_config, self.feature_set, self.horizon, self.task = config, feature_set, horizon, task
         self.objects = objects or [config.object]
-        self._scenes: dict[str, tuple[GraspScene, Simulator, ObjectGeometry, FeatureExtractor | None]] = {}
+        self._scenes: dict[str, tuple[BuiltDiagram, Simulator, ObjectGeometry]] = {}
         self._use(self.objects[0])
         lo, hi = self.scene.hand.joint_limits()
         self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
+        self.command_guard = CommandGuard(lo, hi)  # counts bad commands of the current episode
         self.action_dim = self.scene.hand.num_actuators
         self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
 
     # -- scene management -------------------------------------------------------------
     def _use(self, name: str) -> None:
         if name not in self._scenes:
-            scene = build_grasp_scene(replace(self.base_config, object=name))
-            geometry = object_geometry(name)
-            features = None if self.feature_set is None else FeatureExtractor(
-                scene.hand, scene.plant, scene.hand_instance, geometry, self.feature_set)
-            self._scenes[name] = (scene, Simulator(scene.diagram), geometry, features)
-        self.scene, self.simulator, self.geometry, self._features = self._scenes[name]
+            c = replace(self.base_config, object=name)
+            scenario = Scenario(name="sim", hand=c.hand, object=name, seed=c.seed, time_step=c.time_step,
+                                control_period=c.control_period)
+            built = build_diagram(sim_station(scenario, build_grasp_scene(c)), None, self.feature_set)
+            self._scenes[name] = (built, Simulator(built.diagram), object_geometry(name))
+        self.built, self.simulator, self.geometry = self._scenes[name]
+        self.diagram, self.scene = self.built.diagram, self.built.station.scene
+        self._features = None if self.built.dexrep is None else self.built.dexrep.extractor
         self.context = self.simulator.get_mutable_context()
         self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
-        self._command_port = self.scene.diagram.get_input_port(0)
+        self._command_port = self.diagram.GetInputPort("command")
         self._tip_bodies = [self.scene.plant.GetBodyByName(p.body, self.scene.hand_instance)
                             for p in self.scene.hand.fingertips]
         self._tip_offsets = np.array([[*p.offset, 1.0] for p in self.scene.hand.fingertips])
@@ -86,12 +85,26 @@ class GraspEnv:
         self.tracker = SuccessTracker(self.p_start, self.task)
         self.steps = 0
         self.q_command = q0.copy()
+        self.command_guard.reset_counts()
         return self.observation()
 
+    def mirror(self, hand_state: np.ndarray, X_WO: RigidTransform) -> None:
+        """Put the plant in a measured state, for controllers driven by measurements: the
+        hand at [q; v] (policy order), the object at rest at X_WO."""
+        plant, ctx, n = self.scene.plant, self.plant_context, self.action_dim
+        q = plant.GetPositions(ctx)
+        q[self.scene.q_index] = hand_state[:n]
+        plant.SetPositions(ctx, q)
+        v = np.zeros(plant.num_velocities())
+        v[self.scene.v_index] = hand_state[n:]
+        plant.SetVelocities(ctx, v)
+        plant.SetFreeBodyPose(ctx, self.scene.object_body, X_WO)
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
+        """One control period at normalised set-points `action` (the bad-command rule of
+        `command_guard` applies: non-finite -> the last command held, out of [-1, 1] -> clipped)."""
         a = np.asarray(action, dtype=float)
-        a = np.clip(np.nan_to_num(a, nan=0.0), -1.0, 1.0)
-        return self.step_positions(self._mid + a * self._half)
+        return self.step_positions(self._mid + a * self._half if a.shape == self._half.shape else a)
 
     def normalise(self, q_command: np.ndarray) -> np.ndarray:
         """The normalised action in [-1, 1] that `step` maps to set-points `q_command`."""
@@ -103,8 +116,9 @@ class GraspEnv:
         return self._half
 
     def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
-        """Like `step` with joint set-points in physical units (rad, m), clamped to limits."""
-        self.q_command = np.clip(q_command, self._mid - self._half, self._mid + self._half)
+        """Like `step` with joint set-points in physical units (rad, m); `command_guard`
+        holds non-finite commands and clips to the joint limits, counting both."""
+        self.q_command = self.command_guard(q_command, self.q_command)
         self._command_port.FixValue(self.context, self.q_command)
         self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
         self.steps += 1
@@ -117,16 +131,28 @@ class GraspEnv:
 
     # -- state access -------------------------------------------------------------------
     def observation(self) -> np.ndarray:
+        """The features of the diagram's DexRepSystem (its "features" output), or the hand
+        state without a feature set. Its extractor runs on the plant's own context, whose
+        kinematics the reward has already evaluated: reading the port would evaluate them
+        again on the system's private context, about 6 % more CPU per step
+        (scripts/bench_features_port.py)."""
         if self._features is None:
             return self.hand_state()
         return self._features(self.plant_context, self.scene.object_pose(self.plant_context))
+
+    @property
+    def object_name(self) -> str:
+        return self.scene.object_info.name
 
     def hand_state(self) -> np.ndarray:
         plant, ctx = self.scene.plant, self.plant_context
         return np.concatenate([plant.GetPositions(ctx)[self.scene.q_index], plant.GetVelocities(ctx)[self.scene.v_index]])
 
+    def object_pose(self) -> RigidTransform:
+        return self.scene.object_pose(self.plant_context)
+
     def object_position(self) -> np.ndarray:
-        return self.scene.object_pose(self.plant_context).translation().copy()
+        return self.object_pose().translation().copy()
 
     def points_in_world(self, points) -> np.ndarray:
         """World positions (k x 3) of hand-description BodyPoints."""
@@ -153,20 +179,16 @@ class GraspEnv:
             self._tips_at = q
         return self._tips.copy()
 
-    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeSummary:
-        """Runs one episode from `reset(seed)`. `make_controller(env)` is called once after
-        the reset and returns `controller(env) -> q_command`, called every control step."""
-        self.reset(seed)
-        controller = make_controller(self)
-        rewards = []
-        if logger is not None:
-            logger.log_step(self, None)
-        done = False
-        while not done:
-            _, r, done, info = self.step_positions(controller(self))
-            rewards.append(r)
-            if logger is not None:
-                logger.log_step(self, info)
-        return EpisodeSummary(
-            self.scene.object_info.name, seed, self.tracker.success, self.tracker.max_lift, self.steps, float(sum(rewards)), rewards
-        )
+    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeResult:
+        """Runs one episode from `reset(seed)` (the one episode loop, dexdrake/episode.py).
+        `make_controller(env)` is called once after the reset and returns
+        `controller(env) -> q_command` (set-points), called every control step; `logger` (a
+        RerunLogger) records the episode."""
+        controller = None
+
+        def act(observation: np.ndarray) -> np.ndarray:
+            nonlocal controller
+            controller = controller or make_controller(self)
+            return self.normalise(controller(self))
+
+        return run_episode(self, act, seed, **({} if logger is None else logger.hooks(self)))

@@ -1,5 +1,7 @@
 """The hardware-in-the-loop world: a Drake plant co-simulated with the Allegro firmware
-emulator and the Z1 controller emulator, on one simulated clock.
+emulator and the Z1 controller emulator, on one simulated clock. The plant is the
+scenario's grasp scene (systems/scene.py), which the station builds with the HIL joint
+drive (`station.hil_drive`) and hands in: the world builds no plant of its own.
 
 The emulators keep their bus/UDP behaviour (framing, periods, servo and FSM logic, fault
 injection) and get their joints from the plant through their public dynamics hooks:
@@ -41,94 +43,18 @@ import collections
 import math
 import threading
 import time
-from dataclasses import dataclass
 
 import can
 import numpy as np
-from pydrake.geometry import SceneGraph
 from pydrake.math import RigidTransform
-from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
-from pydrake.multibody.tree import JointActuatorIndex, PdControllerGains
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder
 
-from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.safety import HardwareError, period_stats
 from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConfig
-from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
+from dexdrake.hardware.z1_model import z1_model
 from dexdrake.hardware.z1_udp import ArmFSMState
-from dexdrake.objects.library import add_object, exclude_distance_geometry_from_contact, get_object
 from dexdrake.systems.scenario import Scenario
-from dexdrake.systems.scene import ObjectPlacement, _add_table
-
-
-@dataclass
-class WorldPlant:
-    """The world's diagram and the index maps between device orders and the plant."""
-
-    diagram: Diagram
-    plant: MultibodyPlant
-    scene_graph: SceneGraph
-    hand: HandDescription
-    robot: object  # ModelInstanceIndex
-    object_body: object
-    q_index: np.ndarray  # policy order -> plant positions
-    v_index: np.ndarray  # policy order -> plant velocities
-    act_index: np.ndarray  # policy order -> actuator (actuation / desired-state) order
-
-
-def build_world_plant(scenario: Scenario) -> WorldPlant:
-    """Robot (arm PD in the plant, fingers torque-driven), table and object; see module doc."""
-    hand = load_hand(scenario.hand)
-    info = get_object(scenario.object)
-    arm_cfg = scenario.drivers.arm
-    builder = DiagramBuilder()
-    plant, scene_graph = AddMultibodyPlant(
-        MultibodyPlantConfig(time_step=scenario.time_step, discrete_contact_approximation="sap",
-                             contact_model="point"), builder)
-    (robot,) = Parser(plant).AddModels(str(hand.model_path))
-    plant.set_gravity_enabled(robot, False)
-    n_arm = len(hand.arm_joints)
-    limits = z1_model().limits
-    emu = EmulatorConfig()  # the firmware emulator's PWM model, kept at this torque scale
-    inertia = scenario.torque_per_pwm / emu.accel_per_pwm  # kg*m^2 reflected per finger joint
-    kp = limits.kp if arm_cfg.kp is None else arm_cfg.kp
-    kd = limits.kd if arm_cfg.kd is None else arm_cfg.kd
-    for i, name in enumerate(hand.policy_joints):
-        joint = plant.GetJointByName(name, robot)
-        actuator = _actuator_of(plant, robot, name)
-        if i < n_arm:
-            actuator.set_controller_gains(PdControllerGains(p=kp[i] * KP_SCALE, d=kd[i] * KD_SCALE))
-        else:
-            actuator.set_controller_gains(PdControllerGains(p=0.0, d=0.0))  # torque-driven
-            actuator.set_default_rotor_inertia(inertia)
-            actuator.set_default_gear_ratio(1.0)
-            joint.set_default_damping(inertia * emu.damping)
-    _add_table(plant, 1.0)
-    object_instance = add_object(plant, info)
-    plant.Finalize()
-    exclude_distance_geometry_from_contact(scene_graph)
-    builder.ExportInput(plant.get_desired_state_input_port(robot), "desired_state")
-    builder.ExportInput(plant.get_actuation_input_port(), "actuation")
-    builder.ExportInput(plant.get_applied_generalized_force_input_port(), "arm_weight")
-    diagram = builder.Build()
-    actuators = [plant.get_joint_actuator(i) for i in plant.GetJointActuatorIndices(robot)]
-    order = [a.joint().name() for a in actuators]
-    q_index = np.array([plant.GetJointByName(j, robot).position_start() for j in hand.policy_joints])
-    v_index = np.array([plant.GetJointByName(j, robot).velocity_start() for j in hand.policy_joints])
-    act_index = np.array([order.index(j) for j in hand.policy_joints])
-    body = plant.GetBodyByName(info.name, object_instance)
-    return WorldPlant(diagram, plant, scene_graph, hand, robot, body, q_index, v_index, act_index)
-
-
-def _actuator_of(plant: MultibodyPlant, robot, joint_name: str):
-    for i in range(plant.num_actuators()):
-        actuator = plant.get_joint_actuator(JointActuatorIndex(i))
-        if actuator.model_instance() == robot and actuator.joint().name() == joint_name:
-            return actuator
-    raise HardwareError(f"joint {joint_name!r} has no actuator in the robot model")
 
 
 class _PlantFingers:
@@ -165,20 +91,19 @@ class HilWorld:
     after `start()`). Give the drivers `clock=world.clock` so that they run on the same
     simulated time (module doc)."""
 
-    def __init__(self, scenario: Scenario, hand_bus: can.BusABC, q0: np.ndarray,
-                 placement: ObjectPlacement):
+    def __init__(self, scenario: Scenario, scene, hand_bus: can.BusABC, q0: np.ndarray, placement):
+        """`scene`: the scenario's grasp scene (systems/scene.py) built with the HIL joint
+        drive; the robot starts at rest at q0 (policy order), the object at `placement`."""
         self.scenario = scenario
-        self.world = w = build_world_plant(scenario)
+        self.world = w = scene
         self.n_arm = len(w.hand.arm_joints)
         self.bus_perm = w.hand.hardware_permutation()  # q_bus = q_policy[perm]
         self._simulator = Simulator(w.diagram)
         self._context = self._simulator.get_mutable_context()
         self._plant_context = w.plant.GetMyMutableContextFromRoot(self._context)
-        q = w.plant.GetPositions(self._plant_context).copy()
-        q[w.q_index] = q0
-        w.plant.SetPositions(self._plant_context, q)
-        info = get_object(scenario.object)
-        w.plant.SetFreeBodyPose(self._plant_context, w.object_body, placement.pose(info))
+        w.set_initial_state(self._plant_context, placement, q0)
+        self._inputs = [w.diagram.GetInputPort(name) for name in ("desired_state", "actuation", "generalized_force")]
+        self._net_actuation = w.diagram.GetOutputPort("net_actuation")
         self.placement = placement
         self._fingers = _PlantFingers(q0[self.bus_perm])
         self._arm = _PlantArm(q0[: self.n_arm])
@@ -191,7 +116,7 @@ class HilWorld:
                                                         q0=tuple(q0[: self.n_arm]), seed=scenario.seed),
                                        clock=self.clock, dynamics=self._arm)
         self._desired = np.zeros(2 * w.hand.num_actuators)
-        self._actuation = np.zeros(w.plant.num_actuators())
+        self._actuation = np.zeros(w.hand.num_actuators)
         self._arm_model = z1_model()
         self._weight = np.zeros(w.plant.num_velocities())  # generalized forces: the arm's load
         self._lock = threading.Lock()
@@ -280,7 +205,7 @@ class HilWorld:
         n = w.hand.num_actuators
         cmd = self._arm.command
         q_d, dq_d, tau_ff = cmd.q_d, cmd.dq_d, cmd.tau_ff
-        arm = w.act_index[:n_arm]
+        arm = np.arange(n_arm)
         if cmd.fsm == ArmFSMState.PASSIVE:  # damping only: hold wherever the arm is
             q_now = w.plant.GetPositions(self._plant_context)[w.q_index]
             q_d, dq_d, tau_ff = q_now[:n_arm], np.zeros(n_arm), np.zeros(n_arm)
@@ -293,19 +218,18 @@ class HilWorld:
         self._weight[w.v_index[:n_arm]] = -self._arm_model.gravity(q_arm)
         tau_fingers = np.zeros(n - n_arm)
         tau_fingers[self.bus_perm - n_arm] = self._fingers.pwm * self.scenario.torque_per_pwm
-        self._actuation[w.act_index[n_arm:]] = tau_fingers
-        w.diagram.get_input_port(0).FixValue(self._context, self._desired)
-        w.diagram.get_input_port(1).FixValue(self._context, self._actuation)
-        w.diagram.get_input_port(2).FixValue(self._context, self._weight)
+        self._actuation[n_arm:] = tau_fingers
+        for port, value in zip(self._inputs, (self._desired, self._actuation, self._weight)):
+            port.FixValue(self._context, value)
 
     def _publish(self) -> None:
         w, n_arm = self.world, self.n_arm
         q = w.plant.GetPositions(self._plant_context)[w.q_index]
         v = w.plant.GetVelocities(self._plant_context)[w.v_index]
-        tau = w.plant.get_net_actuation_output_port().Eval(self._plant_context)[w.act_index]
+        tau = self._net_actuation.Eval(self._context)
         self._arm.q, self._arm.dq, self._arm.tau = q[:n_arm], v[:n_arm], tau[:n_arm]
         self._fingers.q, self._fingers.dq = q[self.bus_perm], v[self.bus_perm]
-        pose = w.plant.EvalBodyPoseInWorld(self._plant_context, w.object_body)
+        pose = w.object_pose(self._plant_context)
         with self._lock:
             self._q = q
             self._object_pose = RigidTransform(pose)

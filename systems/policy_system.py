@@ -3,7 +3,8 @@
 Ports: input "observation" (the env observation vector, obs_dim) -> output "action"
 (action_dim, normalised to [-1, 1]). The action is discrete state updated by a periodic
 event every `control_period` seconds (a zero-order hold between updates; zeros, or
-`initial_action`, before the first update).
+`initial_action`, before the first update). Actions pass `guard` (systems/command_guard.py:
+a non-finite action holds the last one, one outside [-1, 1] is clipped; `guard.counts`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from pydrake.systems.framework import BasicVector, Context, DiscreteValues, Leaf
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
+from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.systems.station import LoopTimer
 
 
 class PolicySystem(LeafSystem):
@@ -26,7 +29,6 @@ class PolicySystem(LeafSystem):
         control_period: float,
         deterministic: bool = True,
         seed: int = 0,
-        clip_actions: bool = True,
         initial_action: np.ndarray | None = None,
     ):
         """`policy` is a loaded policy or a checkpoint path (see dexdrake.learn.policy).
@@ -43,22 +45,24 @@ class PolicySystem(LeafSystem):
             policy, self.metadata = load_policy(policy)
         self.policy = policy.eval()
         self._rng = None if deterministic else np.random.default_rng(seed)
-        self._clip = clip_actions
         obs_dim, act_dim = policy.config.obs_dim, policy.config.action_dim
         init = np.zeros(act_dim) if initial_action is None else np.asarray(initial_action, dtype=float)
         if init.shape != (act_dim,):
             raise DexdrakeError(f"initial_action has shape {init.shape}, expected ({act_dim},)")
+        self.guard = CommandGuard(-np.ones(act_dim), np.ones(act_dim))
+        self.timer = LoopTimer()  # update times: the policy rate
         self._obs_port = self.DeclareVectorInputPort("observation", BasicVector(obs_dim))
         state = self.DeclareDiscreteState(init)
         self.DeclareStateOutputPort("action", state)
         self.DeclarePeriodicDiscreteUpdateEvent(control_period, 0.0, self._update)
 
     def compute_action(self, observation: np.ndarray) -> np.ndarray:
-        """The policy's action for one observation (mean unless sampling was requested)."""
+        """The policy's raw action for one observation (mean unless sampling was requested)."""
         with torch.inference_mode():
             action, _ = self.policy.act(observation, self._rng)
-        return np.clip(action, -1.0, 1.0) if self._clip else action
+        return action
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        obs = self._obs_port.Eval(context)
-        discrete_state.set_value(0, self.compute_action(obs))
+        self.timer.tick(context.get_time())
+        action = self.compute_action(self._obs_port.Eval(context))
+        discrete_state.set_value(0, self.guard(action, context.get_discrete_state(0).get_value()))

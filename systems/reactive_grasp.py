@@ -103,14 +103,14 @@ class ReactiveGrasp(ScriptedGrasp):
         """The plan for the object's new pose, its way-points a few IK steps from the old ones."""
         self._choose_grasp(env)
         steps = self.rules.replan_steps
-        self.q_above = self.step_arm(self.plan.above, self.R_grasp, self.q_above, steps)
-        self.q_grasp = self.step_arm(self.plan.grasp, self.R_grasp, self.q_grasp, steps)
-        self.q_lift = self.step_arm(self.plan.lift, self.R_grasp, self.q_lift, steps)
+        self.q_above = self.ik.step(self.plan.above, self.R_grasp, self.q_above, steps)
+        self.q_grasp = self.ik.step(self.plan.grasp, self.R_grasp, self.q_grasp, steps)
+        self.q_lift = self.ik.step(self.plan.lift, self.R_grasp, self.q_lift, steps)
         self._planned(env)
 
     def _planned(self, env) -> None:
         self.p_planned = env.object_position()
-        self.grasp_point = self._palm_pose(self.q_grasp)[0]
+        self.grasp_point = self.ik.palm_pose(self.q_grasp)[0]
 
     def closure(self, q: np.ndarray) -> float:
         """How far the fingers are from open (0) toward the closed pose (1), averaged over joints."""
@@ -125,7 +125,7 @@ class ReactiveGrasp(ScriptedGrasp):
         p_obj = env.object_position()
         lifted = p_obj[2] - self.p_start[2] > r.lifted
         closure = self.closure(q)
-        offset = self._palm_pose(q[: self.n_arm])[0] - self.grasp_point
+        offset = self.ik.palm_pose(q[: self.n_arm])[0] - self.grasp_point
         above, aside = offset[2], float(np.linalg.norm(offset[:2]))
         touch = env.fingertip_distances() < r.touch
         thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
@@ -158,9 +158,9 @@ class ReactiveGrasp(ScriptedGrasp):
         """Arm set-points that lift the grasp centre vertically from where it is now to the
         lift height (the object's start position cannot be seen once it is in the hand): a
         few IK steps from q_arm, so the label stays a cheap function of the state."""
-        p = self._palm_pose(q_arm)[0]
+        p = self.ik.palm_pose(q_arm)[0]
         target = np.array([p[0], p[1], self.grasp_point[2] + self.script.lift])
-        return self.step_arm(target, self.R_grasp, q_arm, self.rules.lift_steps)
+        return self.ik.step(target, self.R_grasp, q_arm, self.rules.lift_steps)
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

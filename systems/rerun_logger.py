@@ -142,9 +142,11 @@ class RerunLogger:
     """Records episodes to an .rrd file (or a live viewer with spawn=True) in one of MODES.
 
     sim, eval, demo: `log_step(env, info)` after each `GraspEnv.reset` (info None) and step,
-    or `wrap(env)`. hil, real: `RerunLogger(..., scenario=scenario)`, `attach(station)` and
-    `log_station_step` every control step; perception results are logged as they arrive.
-    The blueprint is sent with the first episode (its eye frames that episode's hand and object)."""
+    hooked into the one episode loop by `hooks(env)`. hil, real: `RerunLogger(...,
+    scenario=scenario)`, `attach(station)`, and `systems/diagram.run_station_episode` calls
+    `log_station_step` every control step and `log_fault` on the fault that ends the episode;
+    perception results are logged as they arrive. The blueprint is sent with the first
+    episode (its eye frames that episode's hand and object)."""
 
     def __init__(self, path: str | Path | None, mode: str, spawn: bool = False, scenario=None):
         if mode not in MODES:
@@ -187,16 +189,18 @@ class RerunLogger:
         if info is not None:
             self._log_task(info)
 
-    def wrap(self, env):
-        """`env` with every reset and step logged here (the learning `Env` protocol)."""
-        return _RecordedEnv(env, self)
+    def hooks(self, env) -> dict:
+        """`on_reset` and `on_step` for the one episode loop (dexdrake/episode.run_episode)
+        that log every reset and step of `env` here."""
+        return {"on_reset": lambda: self.log_step(env, None), "on_step": lambda reward, info: self.log_step(env, info)}
 
     # ------------------------------------------------------------------ hil, real
     def log_station_step(self, t: float, hand_state: np.ndarray, command: np.ndarray, object_pose: np.ndarray,
                          policy_stats: dict, true_pose: RigidTransform | None = None) -> None:
         """One control step of the station at time `t`: measured `hand_state` [q; v], the
         `command`, the perceived `object_pose` [x, y, z, qw, qx, qy, qz], the controller's
-        `policy_stats` (rates, nan_holds) and, in hil, the world's `true_pose` of the object.
+        `policy_stats` (rates, bad commands held or clipped) and, in hil, the world's
+        `true_pose` of the object.
         The task is scored on the true pose when there is one, else on the perceived one;
         the scene and DexRep show what the controller sees."""
         env = self._mirror
@@ -402,7 +406,7 @@ class RerunLogger:
             if "lag_s" in s:
                 self._scalar(f"latency/{device}/lag_ms", 1e3 * float(s["lag_s"]))
             for key in ("rejected_commands", "clamped_commands", "torque_clamped", "duplicates", "late_replies",
-                        "nan_holds"):
+                        "non_finite", "clipped"):
                 if key in s:
                     self._scalar(f"faults/{device}/{key}", float(s[key]))
             for key in ("frame_errors", "packet_errors"):
@@ -412,26 +416,6 @@ class RerunLogger:
             if fault and self._faults.get(device) != fault:
                 self._faults[device] = fault
                 rec.log("faults/log", rr.TextLog(f"{device}: {fault}", level=rr.TextLogLevel.ERROR))
-
-
-class _RecordedEnv:
-    """A GraspEnv whose every reset and step is logged by a RerunLogger."""
-
-    def __init__(self, env, logger: RerunLogger):
-        self.env, self.logger = env, logger
-
-    def __getattr__(self, name):
-        return getattr(self.env, name)
-
-    def reset(self, seed: int, *args, **kwargs):
-        obs = self.env.reset(seed, *args, **kwargs)
-        self.logger.log_step(self.env, None)
-        return obs
-
-    def step(self, action):
-        out = self.env.step(action)
-        self.logger.log_step(self.env, out[3])
-        return out
 
 
 def _shape_archetype(shape, X_FG: RigidTransform):

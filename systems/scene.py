@@ -15,10 +15,18 @@ about half the CPU of 2 ms per control step. Plant output ports are computed on 
 them cost ~25 % of each advance. The robot is gravity compensated (the virtual arm of the
 paper's model is a free-floating base held by servos).
 
+The HIL world (systems/hil_world.py) steps the same scene built with a `JointDrive`: the
+arm's PD gains those of the Z1 controller, the fingers torque-driven (the Allegro firmware
+emulator's PWM), with the emulator's reflected inertia and damping.
+
 Ports of the diagram (policy joint order, see the hand description):
-  input  "command"     joint position set-points (n)
+  input  "command"     joint position set-points (n)                      (no JointDrive)
+  input  "desired_state" [q_d; v_d] of the plant's PD (2n)                (with a JointDrive)
+  input  "actuation"   feed-forward joint torques (n)                      (with a JointDrive)
+  input  "generalized_force" applied generalized forces (plant velocities) (with a JointDrive)
   output "hand_state"  [q; v] (2n)
   output "object_pose" [x, y, z, qw, qx, qy, qz]
+  output "net_actuation" joint torques the actuators apply, PD included (n)
   output "query_object" SceneGraph's QueryObject (for signed-distance queries)
 """
 
@@ -36,7 +44,7 @@ from pydrake.multibody.plant import (
     MultibodyPlantConfig,
 )
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.tree import ModelInstanceIndex
+from pydrake.multibody.tree import JointActuatorIndex, ModelInstanceIndex, PdControllerGains
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder
 from pydrake.systems.primitives import MatrixGain
 
@@ -60,6 +68,22 @@ class SceneConfig:
     time_step: float = 0.005  # plant step (s)
     control_period: float = 0.02  # command / policy period (s)
     friction: float = 1.0
+    # Output ports sampled at each step (True) or computed on demand (False, the default:
+    # nothing reads contact results per step). A reader of the net actuation after every
+    # step (the HIL world) wants them sampled: on demand, each read repeats the step's solve.
+    sampled_outputs: bool = False
+
+
+@dataclass(frozen=True)
+class JointDrive:
+    """The hand's actuators where they are not the model file's PD (policy order): PD gains
+    kp, kd (both 0: torque-driven) and, for torque-driven joints, the reflected rotor
+    inertia (kg*m^2) and viscous damping (N*m*s/rad)."""
+
+    kp: np.ndarray
+    kd: np.ndarray
+    rotor_inertia: np.ndarray
+    damping: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -126,21 +150,34 @@ def _add_table(plant: MultibodyPlant, friction: float) -> None:
     plant.RegisterVisualGeometry(world, X, Box(*TABLE_SIZE), "table", np.array([0.45, 0.35, 0.25, 1.0]))
 
 
-def _command_gains(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDescription) -> MatrixGain:
-    """Maps policy-order set-points q_d to the plant's desired state [q_d; 0] in actuator order."""
+def _actuator_order(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDescription) -> np.ndarray:
+    """P with P[a, i] = 1 when actuator a drives policy joint i (actuator = P @ policy order)."""
     actuators = [plant.get_joint_actuator(i) for i in plant.GetJointActuatorIndices(instance)]
     order = [a.joint().name() for a in actuators]
     if sorted(order) != sorted(hand.policy_joints):
         raise ValueError(f"hand {hand.name!r}: actuated joints {order} differ from policy_joints")
-    n = len(order)
-    D = np.zeros((2 * n, n))
+    P = np.zeros((len(order), len(order)))
     for row, joint in enumerate(order):
-        D[row, hand.policy_joints.index(joint)] = 1.0
-    return MatrixGain(D)
+        P[row, hand.policy_joints.index(joint)] = 1.0
+    return P
 
 
-def build_grasp_scene(config: SceneConfig = SceneConfig()) -> GraspScene:
-    """Builds the diagram for `config`; the object placement is applied by `set_initial_state`."""
+def _set_drive(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDescription, drive: JointDrive) -> None:
+    """Applies `drive` to the hand's actuators (before the plant is finalised)."""
+    actuators = [plant.get_joint_actuator(JointActuatorIndex(i)) for i in range(plant.num_actuators())]
+    actuators = {a.joint().name(): a for a in actuators if a.model_instance() == instance}
+    for i, name in enumerate(hand.policy_joints):
+        joint, actuator = plant.GetJointByName(name, instance), actuators[name]
+        actuator.set_controller_gains(PdControllerGains(p=drive.kp[i], d=drive.kd[i]))
+        if drive.kp[i] == 0.0 and drive.kd[i] == 0.0:
+            actuator.set_default_rotor_inertia(drive.rotor_inertia[i])
+            actuator.set_default_gear_ratio(1.0)
+            joint.set_default_damping(drive.damping[i])
+
+
+def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | None = None) -> GraspScene:
+    """Builds the diagram for `config` (the hand's actuators as `drive` says, if given; see
+    the module doc for the ports); the object placement is applied by `set_initial_state`."""
     hand = load_hand(config.hand)
     info = get_object(config.object)
     builder = DiagramBuilder()
@@ -149,12 +186,14 @@ def build_grasp_scene(config: SceneConfig = SceneConfig()) -> GraspScene:
             time_step=config.time_step,
             discrete_contact_approximation="sap",
             contact_model="point",
-            use_sampled_output_ports=False,  # outputs on demand: nothing reads contact results per step
+            use_sampled_output_ports=config.sampled_outputs,
         ),
         builder,
     )
     (hand_instance,) = Parser(plant).AddModels(hand.model_path)
     plant.set_gravity_enabled(hand_instance, False)
+    if drive is not None:
+        _set_drive(plant, hand_instance, hand, drive)
     _add_table(plant, config.friction)
     object_instance = add_object(plant, info)
     plant.Finalize()
@@ -169,12 +208,25 @@ def build_grasp_scene(config: SceneConfig = SceneConfig()) -> GraspScene:
         if inspector.GetName(g).endswith(DISTANCE_GEOMETRY_NAME)
     ]
 
-    gains = builder.AddSystem(_command_gains(plant, hand_instance, hand))
+    P = _actuator_order(plant, hand_instance, hand)
+    n = len(P)
+    if drive is None:  # set-points q_d -> desired state [q_d; 0] in actuator order
+        gains = builder.AddSystem(MatrixGain(np.vstack([P, np.zeros_like(P)])))
+        builder.ExportInput(gains.get_input_port(), "command")
+    else:
+        gains = builder.AddSystem(MatrixGain(np.kron(np.eye(2), P)))
+        builder.ExportInput(gains.get_input_port(), "desired_state")
+        torques = builder.AddSystem(MatrixGain(P))
+        builder.Connect(torques.get_output_port(), plant.get_actuation_input_port(hand_instance))
+        builder.ExportInput(torques.get_input_port(), "actuation")
+        builder.ExportInput(plant.get_applied_generalized_force_input_port(), "generalized_force")
     builder.Connect(gains.get_output_port(), plant.get_desired_state_input_port(hand_instance))
-    builder.ExportInput(gains.get_input_port(), "command")
+    net = builder.AddSystem(MatrixGain(P.T))
+    builder.Connect(plant.get_net_actuation_output_port(hand_instance), net.get_input_port())
+    builder.ExportOutput(net.get_output_port(), "net_actuation")
 
     q_index, v_index = _joint_indices(plant, hand_instance, hand.policy_joints)
-    n, nq = hand.num_actuators, plant.num_positions()
+    nq = plant.num_positions()
     S = np.zeros((2 * n, nq + plant.num_velocities()))
     S[np.arange(n), q_index] = 1.0
     S[n + np.arange(n), nq + v_index] = 1.0

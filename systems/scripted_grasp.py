@@ -1,7 +1,7 @@
 """A scripted grasp controller: approach, descend, close, lift to the target, hold.
 
-It proves the physics can grasp and serves as a baseline. The arm set-points come from a
-small inverse-kinematics solve that places the palm's grasp centre (hand description
+It proves the physics can grasp and serves as a baseline. The arm set-points come from the
+arm's inverse kinematics (systems/arm_ik.py), placing the palm's grasp centre (hand description
 `palm.centre`) at a way-point with the palm facing down and the fingers turned across the
 object's shorter horizontal axis; the fingers move between the pre-grasp pose and a closed
 pose.
@@ -12,13 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
-from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.multibody.tree import JacobianWrtVariable
-from scipy.optimize import least_squares
+from pydrake.math import RigidTransform
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
 from dexdrake.objects.library import ObjectInfo
+from dexdrake.systems.arm_ik import ArmIK
 
 
 @dataclass(frozen=True)
@@ -38,7 +37,7 @@ class GraspScript:
     closure: float = 1.0  # fraction of each finger joint's closing range
     closed_pose: str = ""  # a named hand-description grasp pose for some joints ("": closing rule only)
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
-    ik_damping: float = 1e-3  # damping of `step_arm`'s least-squares steps (m)
+    ik_damping: float = 1e-3  # damping of `ArmIK.step`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
 
 
@@ -130,85 +129,33 @@ def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:
 
 
 class ScriptedGrasp:
-    """Callable controller for `GraspEnv.rollout`: returns joint set-points each step."""
+    """Callable controller for `GraspEnv.rollout`: returns joint set-points each step.
+
+    It reads the world through the env only: `scene` (hand, plant, object info),
+    `plant_context` (the measured hand positions), `object_pose()` (where the object is
+    seen: the plant in simulation, perception on the station) and `context.get_time()`."""
 
     def __init__(self, env, script: GraspScript | None = None):
         self.script = script or script_for(env.scene.hand)
-        scene = env.scene
-        self.hand = scene.hand
-        plant = scene.plant
-        self.plant, self.ctx = plant, plant.CreateDefaultContext()
-        self.palm_frame = plant.GetFrameByName(self.hand.palm.body, scene.hand_instance)
-        self.world = plant.world_frame()
-        self.centre = np.array(self.hand.palm.centre)
-        self.q_index = scene.q_index
+        self.hand = env.scene.hand
+        self.ik = ArmIK(env.scene, self.script.orientation_weight, self.script.ik_damping)
         self.n_arm = len(self.hand.arm_joints)
         self.lo, self.hi = self.hand.joint_limits()
         self.q_open = self.hand.pregrasp_vector()
         self.q_closed = closed_pose(self.hand, self.script.closure, self.script.closed_pose)
         self._plan(env)
 
-    def _set_arm(self, q_arm: np.ndarray):
-        """Puts the arm of the private context at q_arm; returns the palm body's pose in the world."""
-        q = self.plant.GetPositions(self.ctx)
-        q[self.q_index[: self.n_arm]] = q_arm
-        self.plant.SetPositions(self.ctx, q)
-        return self.palm_frame.CalcPoseInWorld(self.ctx)
-
-    def _palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Grasp-centre position and palm rotation in the world for arm set-points q_arm."""
-        X = self._set_arm(q_arm)
-        return X.multiply(self.centre), X.rotation().matrix()
-
-    def solve_arm(self, target: np.ndarray, R_target: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
-        """Arm set-points that put the grasp centre at `target` with the palm rotation near
-        `R_target` (orientation weighted lightly: position wins)."""
-        lo, hi = self.lo[: self.n_arm], self.hi[: self.n_arm]
-
-        def residual(q_arm):
-            p, R = self._palm_pose(q_arm)
-            return np.concatenate([p - target, self.script.orientation_weight * (R - R_target)[:, 1:].ravel()])
-
-        margin = 1e-3 * (hi - lo)  # start strictly inside the bounds: trf stalls on them
-        return least_squares(residual, np.clip(q_seed, lo + margin, hi - margin), bounds=(lo, hi), xtol=1e-8).x
-
-    def step_arm(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
-        """`solve_arm` near q_arm, cheaply: a fixed number of damped least-squares steps on the
-        grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
-        push past a limit stay on it and the others take the step."""
-        w = np.r_[np.full(3, self.script.orientation_weight), np.ones(3)]  # rotation (m per rad), position
-        lo, hi = self.lo[: self.n_arm], self.hi[: self.n_arm]
-        q = np.clip(q_arm, lo, hi)
-        for _ in range(steps):
-            X = self._set_arm(q)
-            rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
-            error = w * np.r_[rotation.angle() * rotation.axis(), target - X.multiply(self.centre)]
-            J = w[:, None] * self.plant.CalcJacobianSpatialVelocity(
-                self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
-            )[:, self.q_index[: self.n_arm]]
-            free, dq = np.ones(self.n_arm, dtype=bool), np.zeros(self.n_arm)
-            while free.any():
-                Jf = J[:, free]
-                dq[:] = 0.0
-                dq[free] = np.linalg.solve(Jf.T @ Jf + self.script.ik_damping**2 * np.eye(int(free.sum())), Jf.T @ error)
-                blocked = free & ((q + dq < lo) | (q + dq > hi))
-                if not blocked.any():
-                    break
-                free &= ~blocked
-            q = np.clip(q + dq, lo, hi)
-        return q
-
     def _plan(self, env) -> None:
         self.q_start_arm = env.scene.hand_positions(env.plant_context)[: self.n_arm]
         self._choose_grasp(env)
-        self.q_above = self.solve_arm(self.plan.above, self.R_grasp, self.q_start_arm)
-        self.q_grasp = self.solve_arm(self.plan.grasp, self.R_grasp, self.q_above)
-        self.q_lift = self.solve_arm(self.plan.lift, self.R_grasp, self.q_grasp)
+        self.q_above = self.ik.solve(self.plan.above, self.q_start_arm, self.R_grasp)
+        self.q_grasp = self.ik.solve(self.plan.grasp, self.q_above, self.R_grasp)
+        self.q_lift = self.ik.solve(self.plan.lift, self.q_grasp, self.R_grasp)
 
     def _choose_grasp(self, env) -> None:
         """The grasp plan for the object where it is now (the palm's pre-grasp rotation as reference)."""
-        R_pregrasp = self._palm_pose(self.q_open[: self.n_arm])[1]
-        self.plan = plan_grasp(self.script, env.scene.object_info, env.scene.object_pose(env.plant_context), R_pregrasp)
+        R_pregrasp = self.ik.palm_pose(self.q_open[: self.n_arm])[1]
+        self.plan = plan_grasp(self.script, env.scene.object_info, env.object_pose(), R_pregrasp)
         self.R_grasp = self.plan.R
 
     def __call__(self, env) -> np.ndarray:

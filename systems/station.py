@@ -20,7 +20,8 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   stops every driver (Allegro: zero torque, servo off; Z1: PASSIVE) and the emulators.
 - A driver that latches a fault (e.g. a stalled stream) makes its system raise
   StationFault at its next update, which ends the episode and triggers the safe stop.
-- A non-finite controller output is never sent: ControllerSystem holds the last command.
+- A non-finite controller output is never sent: ControllerSystem holds the last command
+  (systems/command_guard.py, the rule of every mode).
 - Perception failures hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
   at all within `first_pose_timeout_s` raises StationFault.
@@ -33,7 +34,7 @@ import contextlib
 import multiprocessing
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
@@ -49,6 +50,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
@@ -72,7 +74,7 @@ def pose_from_vector(x: np.ndarray) -> RigidTransform:
     return RigidTransform(Quaternion(q), np.asarray(x[:3], float))
 
 
-class _Timer:
+class LoopTimer:
     """Times of periodic calls on the diagram's clock (the simulated clock in hil) and on
     the wall clock, for loop rate and jitter statistics."""
 
@@ -275,15 +277,16 @@ class ControllerSystem(LeafSystem):
     """Runs `controller(t, hand_state, object_pose) -> q_command` every `period`.
 
     Inputs "hand_state", "object_pose"; output "command". The command starts at the
-    measured position; a non-finite controller output is not used: the last command is
-    held and `nan_holds` counts it. The update times give the policy rate (`timer`)."""
+    measured position; controller outputs pass `guard` (systems/command_guard.py: a
+    non-finite one holds the last command, one beyond the hand's joint limits is clipped;
+    `guard.counts`). The update times give the policy rate (`timer`)."""
 
-    def __init__(self, controller: Controller, n: int, period: float):
+    def __init__(self, controller: Controller, hand: HandDescription, period: float):
         super().__init__()
         self.controller = controller
-        self.n = n
-        self.nan_holds = 0
-        self.timer = _Timer()
+        self.n = n = hand.num_actuators
+        self.guard = CommandGuard(*hand.joint_limits())
+        self.timer = LoopTimer()
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         self._pose = self.DeclareVectorInputPort("object_pose", 7)
         state = self.DeclareDiscreteState(n)
@@ -296,12 +299,8 @@ class ControllerSystem(LeafSystem):
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         self.timer.tick(context.get_time())
-        q = np.asarray(self.controller(context.get_time(), self._hand.Eval(context),
-                                       self._pose.Eval(context)), float)
-        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
-            self.nan_holds += 1
-            return  # discrete state unchanged: hold the last command
-        state.set_value(0, q)
+        q = self.controller(context.get_time(), self._hand.Eval(context), self._pose.Eval(context))
+        state.set_value(0, self.guard(q, context.get_discrete_state(0).get_value()))
 
 
 # ----------------------------------------------------------------------------- station
@@ -355,7 +354,7 @@ def make_station(scenario: Scenario) -> Station:
     For hil/real the devices run from here on: use the result as a context manager (or call
     `stop()`) so that they are stopped safely."""
     if scenario.mode == "sim":
-        return _sim_station(scenario)
+        return sim_station(scenario)
     stack = contextlib.ExitStack()
     try:
         return _device_station(scenario, stack)
@@ -364,12 +363,20 @@ def make_station(scenario: Scenario) -> Station:
         raise
 
 
-def _sim_station(scenario: Scenario) -> Station:
-    from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+def scene_config(scenario: Scenario):
+    """The scenario's grasp scene configuration (sim station, HIL world, controllers' kinematics)."""
+    from dexdrake.systems.scene import SceneConfig
 
-    scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
-                                          time_step=scenario.time_step,
-                                          control_period=scenario.control_period))
+    return SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
+                       time_step=scenario.time_step, control_period=scenario.control_period)
+
+
+def sim_station(scenario: Scenario, scene=None) -> Station:
+    """The sim station of `scenario` around its grasp scene (`scene`, default: built from
+    the scenario's scene_config)."""
+    from dexdrake.systems.scene import build_grasp_scene
+
+    scene = scene or build_grasp_scene(scene_config(scenario))
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
     builder.ExportInput(sub.GetInputPort("command"), "command")
@@ -411,15 +418,36 @@ def open_can_bus(scenario: Scenario):
         raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
 
 
+def hil_drive(scenario: Scenario, hand: HandDescription):
+    """The HIL world's joint drive (systems/scene.JointDrive): the arm's PD is the Z1
+    controller's (the scenario's LOWCMD gains, else the model's, times the controller's gain
+    scales); the fingers are torque-driven with the firmware emulator's PWM model
+    (ddq = accel_per_pwm * pwm - damping * dq) at the scenario's torque per PWM count."""
+    from dexdrake.hardware.allegro_emulator import EmulatorConfig
+    from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
+    from dexdrake.systems.scene import JointDrive
+
+    arm, limits, emu = scenario.drivers.arm, z1_model().limits, EmulatorConfig()
+    kp = limits.kp if arm.kp is None else np.asarray(arm.kp, float)
+    kd = limits.kd if arm.kd is None else np.asarray(arm.kd, float)
+    n_fingers = hand.num_actuators - len(hand.arm_joints)
+    inertia = scenario.torque_per_pwm / emu.accel_per_pwm  # kg*m^2 reflected per finger joint
+    return JointDrive(kp=np.r_[kp * KP_SCALE, np.zeros(n_fingers)], kd=np.r_[kd * KD_SCALE, np.zeros(n_fingers)],
+                      rotor_inertia=np.r_[np.zeros(len(kp)), np.full(n_fingers, inertia)],
+                      damping=np.r_[np.zeros(len(kp)), np.full(n_fingers, inertia * emu.damping)])
+
+
 def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
-    """hil: the world plant with the CAN firmware emulator and the loopback Z1 emulator."""
+    """hil: the scenario's grasp scene (with the HIL joint drive) as the world, with the CAN
+    firmware emulator and the loopback Z1 emulator."""
     from dexdrake.systems.hil_world import HilWorld
-    from dexdrake.systems.scene import ObjectPlacement
+    from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 
     placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))
+    scene = build_grasp_scene(replace(scene_config(scenario), sampled_outputs=True), hil_drive(scenario, hand))
     emu_bus = open_can_bus(scenario)
     stack.callback(emu_bus.shutdown)
-    world = HilWorld(scenario, emu_bus, hand.pregrasp_vector(), placement)
+    world = HilWorld(scenario, scene, emu_bus, hand.pregrasp_vector(), placement)
     world.start()
     stack.callback(world.stop)
     return world

@@ -8,7 +8,7 @@ import pytest
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
-from dexdrake.learn.dagger import DaggerConfig, DaggerData, run_episode, train_dagger
+from dexdrake.learn.dagger import DaggerConfig, DaggerData, labelled_episode, train_dagger
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
@@ -30,7 +30,7 @@ def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
         if not phases or phases[-1] != expert.phase:
             phases.append(expert.phase)
         if expert.phase == "lift":
-            lifting.append(expert._palm_pose(env.hand_state()[: expert.n_arm])[0])
+            lifting.append(expert.ik.palm_pose(env.hand_state()[: expert.n_arm])[0])
         success = env.step_positions(q)[3]["success"] or success
     assert success
     assert phases[-3:] == ["descend", "close", "lift"]  # from the start pose, inside the funnel
@@ -69,8 +69,8 @@ def test_reset_refuses_an_object_outside_the_env(env):
         env.reset(0, object_name="apple")
 
 
-def test_run_episode_records_states_and_expert_labels(env):
-    data = run_episode(env, OBJECT, 0, None, 0.0, ReactiveGrasp)
+def test_labelled_episode_records_states_and_expert_labels(env):
+    data = labelled_episode(env, OBJECT, 0, None, 0.0, ReactiveGrasp)
     assert data.objects == [OBJECT] and data.success.tolist() == [True]
     n = env.horizon
     assert data.labels.shape == (n, env.action_dim) and data.observations.shape == (n, 2 * env.action_dim)
@@ -80,7 +80,7 @@ def test_run_episode_records_states_and_expert_labels(env):
 
 
 def test_dagger_data_round_trip_and_format_check(tmp_path, env):
-    data = run_episode(env, OBJECT, 1, None, 0.0, ReactiveGrasp)
+    data = labelled_episode(env, OBJECT, 1, None, 0.0, ReactiveGrasp)
     data.save(tmp_path / "d.npz", {"iteration": 0})
     back = DaggerData.load(tmp_path / "d.npz")
     assert back.objects == data.objects and np.array_equal(back.labels, data.labels)

@@ -352,14 +352,20 @@ def test_scenegraph_and_fast_paths_agree(hand_scene, geometries):
 def test_dexrep_system_outputs_extractor_features(hand_scene, geometries):
     from dexdrake.systems.dexrep_system import DexRepSystem
 
+    from dexdrake.systems.station import pose_vector
+
     s = hand_scene
-    system = DexRepSystem(s["hand"], s["plant"], s["hand_instance"], s["obj_instance"], geometries["torus"], "Occ+Surf")
-    assert system.get_output_port(0).size() == 105 + 1088
+    system = DexRepSystem(s["hand"], s["plant"], s["hand_instance"], geometries["torus"], "Occ+Surf")
+    assert system.GetOutputPort("features").size() == 105 + 1088
     ctx, pctx, X_WO = _posed_context(s, np.random.default_rng(7))
     sys_ctx = system.CreateDefaultContext()
-    system.get_input_port(0).FixValue(sys_ctx, s["plant"].GetPositionsAndVelocities(pctx))
-    out = system.get_output_port(0).Eval(sys_ctx)
-    np.testing.assert_allclose(out, system.extractor(pctx, X_WO), atol=1e-12)
+    plant, n = s["plant"], s["hand"].num_actuators
+    q = [plant.GetPositions(pctx)[plant.GetJointByName(j, s["hand_instance"]).position_start()]
+         for j in s["hand"].policy_joints]
+    system.GetInputPort("hand_state").FixValue(sys_ctx, np.r_[q, np.zeros(n)])  # measured, in policy order
+    system.GetInputPort("object_pose").FixValue(sys_ctx, pose_vector(X_WO))  # perceived
+    out = system.GetOutputPort("features").Eval(sys_ctx)
+    np.testing.assert_allclose(out, system.extractor(pctx, X_WO), atol=1e-9)
 
 
 def test_manifest_of_shipped_encoder():

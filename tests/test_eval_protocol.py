@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from dexdrake.cli import main
+from dexdrake.episode import EpisodeResult
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy, wilson_interval
+from dexdrake.eval.evaluate import EvalReport, evaluate_policy, wilson_interval
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, TRAINING_SEEDS, check_evaluation_seeds
 from dexdrake.eval.tables import csv_table, markdown_table
 from dexdrake.learn.curves import read_csv

@@ -25,20 +25,20 @@ def test_plan_is_geometry_only_and_tall_objects_are_grasped_deeper(can_env):
     assert plan.grasp[2] == pytest.approx(top - script.tall_palm_depth, abs=1e-9)
     np.testing.assert_allclose(np.linalg.norm((plan.grasp - X_obj.translation())[:2]), abs(script.reach), atol=1e-9)
     assert np.allclose(plan.lift - plan.grasp, [0, 0, script.lift]) and plan.above[2] == pytest.approx(top + script.hover)
-    again = plan_grasp(script, info, X_obj, grasp._palm_pose(grasp.q_open[: grasp.n_arm])[1])
+    again = plan_grasp(script, info, X_obj, grasp.ik.palm_pose(grasp.q_open[: grasp.n_arm])[1])
     np.testing.assert_array_equal(again.grasp, plan.grasp)  # a function of the object's shape and pose
-    np.testing.assert_allclose(grasp._palm_pose(grasp.q_grasp)[0], plan.grasp, atol=1e-3)
+    np.testing.assert_allclose(grasp.ik.palm_pose(grasp.q_grasp)[0], plan.grasp, atol=1e-3)
 
 
 def test_lift_label_is_a_few_jacobian_steps_that_match_the_full_ik(can_env):
     can_env.reset(1)
     expert = ReactiveGrasp(can_env)
     q_arm = expert.q_grasp + np.array([0.01, 0.01, 0.02, 0.05, -0.05, 0.03])  # off the plan, tilted
-    p = expert._palm_pose(q_arm)[0]
+    p = expert.ik.palm_pose(q_arm)[0]
     target = np.array([p[0], p[1], expert.grasp_point[2] + expert.script.lift])
-    full = expert.solve_arm(target, expert.R_grasp, q_arm)
+    full = expert.ik.solve(target, q_arm, expert.R_grasp)
     label = expert._straight_up(q_arm)
-    np.testing.assert_allclose(expert._palm_pose(label)[0], target, atol=1e-3)  # straight up, to the lift height
+    np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target, atol=1e-3)  # straight up, to the lift height
     np.testing.assert_allclose(label, full, atol=5e-3)
 
 
@@ -48,12 +48,12 @@ def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     can_env.reset(0)
     grasp = ScriptedGrasp(can_env)
     low = grasp.plan.grasp - np.array([0.0, 0.0, grasp.plan.grasp[2] - 0.03])
-    q_low = grasp.solve_arm(low, grasp.R_grasp, grasp.q_grasp)
+    q_low = grasp.ik.solve(low, grasp.q_grasp, grasp.R_grasp)
     assert q_low[1] == pytest.approx(grasp.lo[1], abs=1e-6)  # ARTy on its lower limit
     shifted = low + np.array([0.01, -0.01, 0.0])
-    q = grasp.step_arm(shifted, grasp.R_grasp, q_low, 3)
+    q = grasp.ik.step(shifted, grasp.R_grasp, q_low, 3)
     assert grasp.lo[1] <= q[1] <= grasp.hi[1]
-    np.testing.assert_allclose(grasp._palm_pose(q)[0], shifted, atol=2e-3)
+    np.testing.assert_allclose(grasp.ik.palm_pose(q)[0], shifted, atol=2e-3)
 
 
 def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_others():
@@ -102,3 +102,20 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
     finally:
         reactive_grasp._expert_grasps.cache_clear()
+
+
+def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.objects.library import list_objects
+    from dexdrake.systems import reactive_grasp
+
+    reactive_grasp._expert_grasps.cache_clear()
+    table = reactive_grasp._expert_grasps("adroit")
+    assert table["command"].startswith("python scripts/choose_expert_grasps.py")
+    assert not set(table["seeds"]) & set(range(10))  # the expert table's seeds 0..9 stay unseen by the choice
+    assert {o.name for o in list_objects("train")} == set(table["objects"])
+    hand = load_hand("adroit")
+    for name, entry in table["objects"].items():
+        counts = entry["successes"]
+        assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())
+        reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)

@@ -383,4 +383,10 @@ def test_policy_system_in_diagram(tmp_path):
     expected = np.clip(policy.act(obs)[0], -1, 1)
     got = diagram.GetOutputPort("action").Eval(context)
     assert got[0] == 1.0 and np.allclose(got, expected, atol=1e-6)
+    assert ctrl.guard.counts == {"non_finite": 0, "clipped": 5}  # updates at 0, 0.01, ..., 0.04
     assert ctrl.metadata == {"hand": "toy"}
+    src.get_mutable_source_value(src.GetMyMutableContextFromRoot(simulator.get_mutable_context())).set_value(
+        np.full(9, np.nan))  # a NaN observation gives a NaN action: the last action is held
+    simulator.AdvanceTo(0.1)
+    assert np.array_equal(diagram.GetOutputPort("action").Eval(context), got)
+    assert ctrl.guard.counts == {"non_finite": 5, "clipped": 5}  # ... and at 0.05, ..., 0.09

@@ -45,7 +45,7 @@ def _real(path: Path) -> None:
         times = [scenario.control_period * i for i in range(k + 2)]
         logger.log_station_step(env.context.get_time(), env.hand_state(), env.q_command,
                                 pose_vector(env.scene.object_pose(env.plant_context)),
-                                {**period_stats(times), "nan_holds": 0})
+                                {**period_stats(times), "non_finite": 0, "clipped": 0})
     logger.log_fault("Allegro hand fault: watchdog (a fault as the loop reports it)")
     logger.close()
 
@@ -139,7 +139,7 @@ def test_one_blueprint_in_every_mode_adding_only_what_the_mode_has(recordings):
 def test_station_recordings_have_loop_rates_latencies_and_faults(recordings, mode):
     rows = logged_rows(recordings[mode])
     assert rows["/loop/policy/rate_hz"] == 3 and rows["/latency/policy/p99_ms"] > 0
-    assert rows["/faults/policy/nan_holds"] == 3 and rows["/faults/log"] >= 1
+    assert rows["/faults/policy/non_finite"] == rows["/faults/policy/clipped"] == 3 and rows["/faults/log"] >= 1
     if mode == "hil":  # the devices' loops, the world's lag and its object
         for entity in ("/loop/can/rate_hz", "/loop/z1/rate_hz", "/latency/world/lag_ms", "/faults/can/frame_errors",
                        "/world/object_true"):

@@ -54,10 +54,22 @@ def test_reset_places_object_at_rest_on_table(sphere_env):
 def test_hand_state_port_matches_env_state(sphere_env):
     env = sphere_env
     env.reset(0)
-    port = env.scene.diagram.GetOutputPort("hand_state").Eval(env.context)
+    port = env.diagram.GetOutputPort("hand_state").Eval(env.context)
     np.testing.assert_allclose(port, env.hand_state())
-    pose = env.scene.diagram.GetOutputPort("object_pose").Eval(env.context)
+    pose = env.diagram.GetOutputPort("object_pose").Eval(env.context)
     np.testing.assert_allclose(pose[:3], env.object_position())
+
+
+def test_env_steps_the_one_diagram_and_observes_its_features_port():
+    """GraspEnv feeds the built diagram's "command" input and reads its "features" output
+    (DexRepSystem on the hand state and object pose), the same values as the extractor on
+    the plant's own state."""
+    env = GraspEnv(SceneConfig(object="sphere_medium"), feature_set="DexRep", horizon=5)
+    env.reset(3)
+    env.step(np.linspace(-0.3, 0.3, env.action_dim))
+    assert env.diagram.GetInputPort("command") is not None and env.built.controller is None
+    direct = env.built.dexrep.extractor(env.plant_context, env.scene.object_pose(env.plant_context))
+    np.testing.assert_allclose(env.observation(), direct, atol=1e-9)
 
 
 def test_normalised_actions_map_onto_joint_ranges(sphere_env):
@@ -66,8 +78,30 @@ def test_normalised_actions_map_onto_joint_ranges(sphere_env):
     env.step(np.ones(env.action_dim))
     lo, hi = env.scene.hand.joint_limits()
     np.testing.assert_allclose(env.q_command, hi)
-    env.step(np.full(env.action_dim, np.nan))  # NaN actions become the range midpoint
-    np.testing.assert_allclose(env.q_command, (lo + hi) / 2)
+    assert env.command_guard.counts == {"non_finite": 0, "clipped": 0}
+
+
+def test_bad_actions_hold_or_clip_and_are_counted_in_the_env(sphere_env):
+    env = sphere_env
+    env.reset(0)
+    lo, hi = env.scene.hand.joint_limits()
+    a = np.linspace(-0.5, 0.5, env.action_dim)
+    env.step(a)
+    held = env.q_command.copy()
+    bad = a.copy()
+    bad[3] = np.nan
+    env.step(bad)  # non-finite: the last command is held
+    np.testing.assert_array_equal(env.q_command, held)
+    env.step(np.full(env.action_dim + 1, 0.1))  # wrong size: held too
+    np.testing.assert_array_equal(env.q_command, held)
+    big = a.copy()
+    big[0], big[-1] = 3.0, -2.0
+    env.step(big)  # out of range: clipped to the joint limits
+    assert env.q_command[0] == hi[0] and env.q_command[-1] == lo[-1]
+    np.testing.assert_allclose(env.q_command[1:-1], (lo + hi)[1:-1] / 2 + a[1:-1] * (hi - lo)[1:-1] / 2)
+    assert env.command_guard.counts == {"non_finite": 2, "clipped": 1}
+    env.reset(1)
+    assert env.command_guard.counts == {"non_finite": 0, "clipped": 0}
 
 
 def test_fingertip_distances_shrink_when_hand_closes_on_object(sphere_env):

@@ -86,7 +86,7 @@ FINGER_OFFSETS = {"joint_0.0": 0.2, "joint_5.0": 0.5, "joint_10.0": 0.4, "joint_
 def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | None = None):
     """Command FINGER_OFFSETS from the start pose; (start q, end q, offsets, result).
     `world_minus_control` collects world time - control time at every controller call."""
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
 
     hand = station.hand
     offset = np.zeros(hand.num_actuators)
@@ -100,7 +100,7 @@ def _track_finger_offsets(station, steps: int = 40, world_minus_control: list | 
         return hold(t, hand_state, object_pose)
 
     q0 = station.world.robot_positions()
-    result = run_episode(station, controller, steps=steps)
+    result = run_station_episode(station, controller, steps=steps)
     return q0, station.world.robot_positions(), offset, result
 
 
@@ -178,16 +178,17 @@ def test_hil_episode_driven_by_the_shipped_policy():
     and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
     centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
     0.6 m away)."""
-    from dexdrake.cli.station import PolicyController, make_controller, run_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     scenario = hil_scenario()
     controller, description = make_controller(scenario)
-    assert isinstance(controller, PolicyController), description
+    assert controller.get_name() == "policy", description
     with make_station(scenario) as station:
         q0 = station.world.robot_positions()
         p_object = station.world.object_pose().translation()
-        result = run_episode(station, controller, steps=30)
+        result = run_station_episode(station, controller, steps=30)
         q1 = station.world.robot_positions()
     assert result.fault is None and result.steps == 30
     assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
@@ -197,18 +198,52 @@ def test_hil_episode_driven_by_the_shipped_policy():
     assert d1 < d0 - 0.05, (d0, d1)  # the arm moved toward the object
 
 
+def test_controller_slot_holds_non_finite_and_clips_out_of_range_commands():
+    """The station's controller slot applies the one bad-command rule (systems/command_guard.py)."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.station import ControllerSystem
+
+    hand = load_hand("allegro_z1")
+    n, (lo, hi) = hand.num_actuators, hand.joint_limits()
+    q0 = (lo + hi) / 2
+
+    def controller(t, hand_state, object_pose):
+        if t > 0.045:
+            return np.full(n, np.inf)
+        q = q0.copy()
+        q[0] = hi[0] + 1.0
+        return q
+
+    builder = DiagramBuilder()
+    ctrl = builder.AddSystem(ControllerSystem(controller, hand, 0.01))
+    state = builder.AddSystem(ConstantVectorSource(np.concatenate([q0, np.zeros(n)])))
+    pose = builder.AddSystem(ConstantVectorSource(np.array([0, 0, 0, 1.0, 0, 0, 0])))
+    builder.Connect(state.get_output_port(), ctrl.GetInputPort("hand_state"))
+    builder.Connect(pose.get_output_port(), ctrl.GetInputPort("object_pose"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.AdvanceTo(0.085)
+    command = ctrl.get_output_port().Eval(ctrl.GetMyContextFromRoot(simulator.get_context()))
+    assert command[0] == hi[0] and np.array_equal(command[1:], q0[1:])
+    assert ctrl.guard.counts == {"non_finite": 4, "clipped": 5}
+
+
 def test_nan_command_holds_and_is_never_sent():
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
         n = station.hand.num_actuators
         q0 = station.world.robot_positions()
-        result = run_episode(station, _hold_then(np.zeros(n), nan_after=0.1), steps=25)
+        result = run_station_episode(station, _hold_then(np.zeros(n), nan_after=0.1), steps=25)
         q1 = station.world.robot_positions()
         stats = station.stats()
     assert result.fault is None
-    assert result.stats["policy"]["nan_holds"] >= 15
+    assert result.stats["policy"]["non_finite"] >= 15 and result.stats["policy"]["clipped"] == 0
     assert stats["can"]["rejected_commands"] == 0 and stats["z1"]["rejected_commands"] == 0
     n_arm = len(station.hand.arm_joints)
     assert np.max(np.abs(q1[:n_arm] - q0[:n_arm])) < 0.05
@@ -217,14 +252,14 @@ def test_nan_command_holds_and_is_never_sent():
 @pytest.mark.parametrize("device", ["allegro", "z1"])
 def test_stalled_emulator_stream_ends_in_safe_state(device):
     from dexdrake.hardware.z1_udp import ArmFSMState
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     with make_station(hil_scenario()) as station:
         emulator = station.devices[f"{device}_emulator"]
         timer = threading.Timer(0.2, emulator.stall, args=(2.0,))
         timer.start()
-        result = run_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
+        result = run_station_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
         timer.join()
         assert result.fault is not None and result.steps < 100
         assert ("Allegro" if device == "allegro" else "Z1") in result.fault
@@ -292,7 +327,8 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""
-    from dexdrake.cli.station import make_controller, run_episode
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.rerun_logger import RerunLogger
     from dexdrake.systems.station import make_station
 
@@ -312,7 +348,7 @@ def test_full_hil_grasp_with_rendered_perception(tmp_path):
                 estimates.append(np.asarray(log.result["X_WO"])[:3, 3].copy())
 
         station.perception.on_result = on_result
-        result = run_episode(station, controller, steps=150, logger=logger)
+        result = run_station_episode(station, controller, steps=150, logger=logger)
         logger.close()
     assert result.fault is None
     assert estimates
@@ -375,13 +411,13 @@ def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_se
 
 
 def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
-    from dexdrake.cli.station import PolicyController, ScriptedGraspController, make_controller
+    from dexdrake.systems.controllers import OnMeasurements, make_controller
 
     controller, description = make_controller(load_scenario(_hil_config(tmp_path, None)))
-    assert isinstance(controller, ScriptedGraspController) and "no policy in the scenario" in description
+    assert isinstance(controller.controller, OnMeasurements) and "no policy in the scenario" in description
     assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
     controller, description = make_controller(hil_scenario())
-    assert isinstance(controller, PolicyController)
+    assert controller.get_name() == "policy" and controller.HasSubsystemNamed("policy_system")
     assert "allegro_z1_dexrep_policy.pt" in description and "2451 observations -> 22" in description
     with pytest.raises(ScenarioError, match="policy.checkpoint must name"):
         parse_scenario("policy: {checkpoint: ''}")
@@ -443,3 +479,48 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
+
+
+def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_path):
+    """The scripted fallback plans from the pose perception delivers: an object seen away
+    from where its model was placed (and turned) is grasped where it was seen."""
+    from pydrake.math import RigidTransform, RollPitchYaw
+
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.scripted_grasp import plan_grasp
+    from dexdrake.systems.station import pose_vector
+
+    slot, _ = make_controller(load_scenario(_hil_config(tmp_path, None)))
+    controller = slot.controller
+    env = controller.env
+    X_seen = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [-0.04, 0.0, env.scene.object_info.rest_height])
+    assert np.linalg.norm(env.object_position()[:2] - X_seen.translation()[:2]) > 0.05
+    hand_state = np.concatenate([env.scene.hand.pregrasp_vector(), np.zeros(env.action_dim)])
+    controller(0.0, hand_state, pose_vector(X_seen))
+    script = controller._controller
+    R_pregrasp = script.ik.palm_pose(script.q_open[: script.n_arm])[1]
+    expected = plan_grasp(script.script, env.scene.object_info, X_seen, R_pregrasp)
+    np.testing.assert_allclose(script.plan.grasp, expected.grasp, atol=1e-9)
+    assert np.linalg.norm(script.plan.grasp[:2] - X_seen.translation()[:2]) <= abs(script.script.reach) + 1e-9
+    centre = script.ik.palm_pose(script.q_grasp)[0]  # the arm's IK reaches the perceived grasp point
+    assert np.linalg.norm(centre - script.plan.grasp) < 5e-3
+
+
+def test_expert_in_the_controller_slot_reaches_for_the_object():
+    """The state-driven expert as a slot controller (measured state, object pose from the
+    station) on the sim station: the grasp centre closes in on the object."""
+    from dexdrake.systems.controllers import expert_controller
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.station import make_station
+
+    scenario = load_scenario(CONFIGS / "sim.yaml")
+    scenario.policy = None
+    station = make_station(scenario)
+    slot = expert_controller(scenario)
+    result = run_station_episode(station, slot, steps=25)
+    env = slot.controller.env  # the mirror: the last measured state
+    p_object = env.object_position()
+    d0 = np.linalg.norm(_grasp_centre(station.hand, station.hand.pregrasp_vector()) - p_object)
+    d1 = np.linalg.norm(_grasp_centre(station.hand, env.hand_state()[: env.action_dim]) - p_object)
+    assert result.fault is None and result.steps == 25 and result.stats["policy"]["non_finite"] == 0
+    assert d1 < d0 - 0.03, (d0, d1)

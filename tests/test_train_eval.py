@@ -10,7 +10,8 @@ import torch
 from rrd_content import logged_rows
 
 from dexdrake.cli import main
-from dexdrake.eval.evaluate import EpisodeResult, EvalReport, evaluate_policy, run_episode
+from dexdrake.episode import EpisodeResult, run_episode
+from dexdrake.eval.evaluate import EvalReport, evaluate_policy
 from dexdrake.eval.paper import PAPER_UNSEEN
 from dexdrake.eval.tables import csv_table, markdown_table, table_rows, write_report
 from dexdrake.learn.demo_dataset import save_demo_dataset
@@ -189,34 +190,29 @@ def test_evaluate_policy_runs_seeded_episodes(tmp_path, env_blocks):
     assert [e.total_reward for e in again.episodes] == [e.total_reward for e in report.episodes]
 
 
-class _ScriptedAsPolicy:
-    """The scripted grasp as a policy for `run_episode`: planned on the first step after reset."""
+def _scripted(env):
+    """The scripted grasp as `run_episode`'s act: planned on the first step after reset."""
+    controller = None
 
-    def __init__(self, env):
-        self.env, self.controller = env, None
+    def act(obs):
+        nonlocal controller
+        controller = controller or ScriptedGrasp(env)
+        return env.normalise(controller(env))
 
-    def act(self, obs):
-        self.controller = self.controller or ScriptedGrasp(self.env)
-        return self.env.normalise(self.controller(self.env)), None
-
-
-class _HoldStill:
-    def __init__(self, env):
-        self.action = env.normalise(env.scene.hand.pregrasp_vector())
-
-    def act(self, obs):
-        return self.action, None
+    return act
 
 
 def test_success_is_counted_on_a_real_grasp():
     env = GraspEnvFactory("adroit", "Hand2obj", ("sphere_medium",), horizon=150)()
-    grasp = run_episode(env, _ScriptedAsPolicy(env), seed=0, horizon=150)
-    still = run_episode(env, _HoldStill(env), seed=1, horizon=150)
-    assert grasp[0] and grasp[1] > 0.1, grasp  # success, max lift
-    assert not still[0] and abs(still[1]) < 0.01, still
+    grasp = run_episode(env, _scripted(env), seed=0, horizon=150)
+    hold = env.normalise(env.scene.hand.pregrasp_vector())
+    still = run_episode(env, lambda obs: hold, seed=1, horizon=150)
+    assert grasp.success and grasp.max_lift > 0.1, grasp
+    assert not still.success and abs(still.max_lift) < 0.01, still
+    assert (grasp.object, grasp.seed, grasp.steps) == ("sphere_medium", 0, 150)
     report = EvalReport("scripted", "selected", ["sphere_medium", "sphere_small"], 2, 0, 150, "")
-    report.episodes = [EpisodeResult("sphere_medium", 0, *grasp), EpisodeResult("sphere_medium", 1, *still),
-                       EpisodeResult("sphere_small", 0, *still), EpisodeResult("sphere_small", 1, *still)]
+    small = EpisodeResult("sphere_small", 0, still.success, still.max_lift, still.steps, still.total_reward)
+    report.episodes = [grasp, still, small, small]
     rows = report.per_object()
     assert rows["sphere_medium"]["successes"] == 1 and rows["sphere_medium"]["success_pct"] == 50.0
     assert rows["sphere_small"]["successes"] == 0 and report.average_pct() == 25.0

@@ -85,7 +85,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise DexdrakeError(f"policy file {policy_path} not found: {hint}")
     import torch
 
-    from dexdrake.eval.evaluate import run_episode
+    from dexdrake.episode import run_episode
+    from dexdrake.eval.evaluate import mean_actor
     from dexdrake.learn.policy import load_policy
     from dexdrake.learn.samplers import check_env_matches
     from dexdrake.objects.library import get_object
@@ -102,12 +103,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     logger = RerunLogger(args.rrd, "demo")
     start = time.perf_counter()
     try:
-        success, lift, steps, reward = run_episode(logger.wrap(env), policy, args.seed, args.steps)
+        result = run_episode(env, mean_actor(policy), args.seed, args.steps, **logger.hooks(env))
     finally:
         logger.close()
     wall = time.perf_counter() - start
-    print(f"object={name} ({info.split}) seed={args.seed} success={success} max_lift={lift:.3f}m "
-          f"steps={steps} reward={reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
+    print(f"object={name} ({info.split}) seed={args.seed} success={result.success} max_lift={result.max_lift:.3f}m "
+          f"steps={result.steps} reward={result.total_reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
     print(measured_rates(manifest))
     return 0
-

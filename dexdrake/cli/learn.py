@@ -246,7 +246,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         logger = RerunLogger(args.rrd, "eval")
     try:
         report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers,
-                                 args.horizon, label=label, record=None if logger is None else logger.wrap,
+                                 args.horizon, label=label, record=None if logger is None else logger.hooks,
                                  command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
                                                                        "workers", "horizon", "out", "label", "rrd"]))
     finally:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,230 +26,6 @@ def add_parser(subparsers) -> None:
     real.set_defaults(func=run_real)
 
 
-# ----------------------------------------------------------------------------- controllers
-class ScriptedGraspController:
-    """The scripted grasp (systems/scripted_grasp.py) driven by measured state and the
-    perceived object pose: planned once, from the first pose, with the hand's own IK."""
-
-    def __init__(self, scenario):
-        from dexdrake.systems.scene import SceneConfig, build_grasp_scene
-
-        self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
-        self.context = self.scene.diagram.CreateDefaultContext()
-        self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
-        self._p_obj = np.zeros(3)
-        self._script = None
-        self._t0 = 0.0
-
-    def object_position(self) -> np.ndarray:
-        return self._p_obj.copy()
-
-    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
-        from dexdrake.systems.scripted_grasp import ScriptedGrasp
-
-        n = self.scene.hand.num_actuators
-        if self._script is None:
-            q = self.scene.plant.GetPositions(self.plant_context).copy()
-            q[self.scene.q_index] = hand_state[:n]
-            self.scene.plant.SetPositions(self.plant_context, q)
-            self._p_obj = np.asarray(object_pose[:3], float)
-            self._t0 = t
-            self._script = ScriptedGrasp(self)
-        self.context.SetTime(t - self._t0)
-        return self._script(self)
-
-
-class PolicyController:
-    """A trained DexRepNet policy: DexRep features of (measured hand, perceived object).
-
-    Refused (a DexdrakeError naming the checkpoint and the reason) when the checkpoint is
-    missing or unreadable, or was trained for another hand, feature set or action size."""
-
-    def __init__(self, scenario):
-        from dexdrake.dexrep.feature_sets import FeatureExtractor
-        from dexdrake.dexrep.geometry import load_object_geometry
-        from dexdrake.learn.policy import load_policy
-        from dexdrake.paths import resolve_model_path
-        from dexdrake.systems.scene import SceneConfig, build_grasp_scene
-
-        entry = scenario.policy
-        self.path = resolve_model_path(entry.checkpoint)
-        try:
-            self.policy, self.metadata = load_policy(self.path)
-        except DexdrakeError as err:
-            raise DexdrakeError(f"policy refused: {err}") from None
-        cfg = self.policy.config
-        if cfg.hand != scenario.hand:
-            raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
-                                f"the scenario runs {scenario.hand!r}")
-        if cfg.feature_set != entry.feature_set:
-            raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
-                                f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
-        self.scene = build_grasp_scene(SceneConfig(hand=scenario.hand, object=scenario.object))
-        if cfg.action_dim != self.scene.hand.num_actuators:
-            raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
-                                f"{scenario.hand!r} has {self.scene.hand.num_actuators} joints")
-        self.plant_context = self.scene.plant.CreateDefaultContext()
-        geometry = load_object_geometry(self.scene.object_info.mesh_path)
-        self.features = FeatureExtractor(self.scene.hand, self.scene.plant, self.scene.hand_instance,
-                                         geometry, entry.feature_set)
-        if self.features.size != cfg.obs_dim:
-            raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
-                                f"feature set {entry.feature_set!r} gives {self.features.size}")
-        lo, hi = self.scene.hand.joint_limits()
-        self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
-        self.description = (f"policy {entry.checkpoint} (hand {cfg.hand}, feature set {cfg.feature_set}, "
-                            f"{cfg.obs_dim} observations -> {cfg.action_dim} joint targets, "
-                            f"stage {self.metadata.get('stage', 'unknown')})")
-
-    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
-        import torch
-
-        from dexdrake.systems.station import pose_from_vector
-
-        n = self.scene.hand.num_actuators
-        plant = self.scene.plant
-        q = plant.GetPositions(self.plant_context).copy()
-        q[self.scene.q_index] = hand_state[:n]
-        plant.SetPositions(self.plant_context, q)
-        obs = self.features(self.plant_context, pose_from_vector(object_pose))
-        with torch.inference_mode():
-            action, _ = self.policy.act(obs, None)
-        return self.mid + np.asarray(action, float) * self.half
-
-
-def make_controller(scenario):
-    """(controller, description) of what the scenario asks for: its policy (a policy that
-    cannot be run is refused with a DexdrakeError, never replaced), or the scripted grasp
-    when the scenario names no policy."""
-    if scenario.policy is not None:
-        controller = PolicyController(scenario)
-        return controller, controller.description
-    return ScriptedGraspController(scenario), describe_script(scenario.hand)
-
-
-def describe_script(hand_name: str) -> str:
-    """The scripted grasp's plan, from the GraspScript the hand description configures."""
-    from dexdrake.hands.description import load_hand
-    from dexdrake.systems.scripted_grasp import GraspScript, with_overrides
-
-    hand = load_hand(hand_name)
-    g = with_overrides(GraspScript, hand.grasp_script, hand, "grasp_script")
-    return (f"scripted grasp (no policy in the scenario): from the first perceived pose, approach "
-            f"{g.hover:.2f} m above the object by {g.approach_end:.1f} s, descend by {g.descend_end:.1f} s, "
-            f"close by {g.close_end:.1f} s, lift {g.lift:.2f} m by {g.lift_end:.1f} s")
-
-
-# ----------------------------------------------------------------------------- episode
-@dataclass
-class EpisodeResult:
-    success: bool
-    max_lift: float
-    steps: int
-    wall_s: float
-    stats: dict
-    fault: str | None
-
-
-def run_episode(station, controller, steps: int, logger=None) -> EpisodeResult:
-    """Run `steps` control periods of `controller` on a built station, scoring the lift with
-    dexdrake.task: sim as fast as it goes, hil on the world's simulated clock (the world
-    pauses at each control step until the controller has run), real in wall-clock real
-    time. A StationFault
-    ends the episode early (the station is stopped by the caller's context manager)."""
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder
-
-    from dexdrake.hardware.safety import HardwareError
-    from dexdrake.systems.station import ControllerSystem, StationFault
-    from dexdrake.task import SuccessTracker
-
-    sc = station.scenario
-    n = station.hand.num_actuators
-    builder = DiagramBuilder()
-    st = builder.AddNamedSystem("station", station.diagram)
-    ctrl = builder.AddNamedSystem("controller", ControllerSystem(controller, n, sc.control_period))
-    builder.Connect(ctrl.get_output_port(), st.GetInputPort("command"))
-    builder.Connect(st.GetOutputPort("hand_state"), ctrl.GetInputPort("hand_state"))
-    builder.Connect(st.GetOutputPort("object_pose"), ctrl.GetInputPort("object_pose"))
-    diagram = builder.Build()
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    if station.mode == "sim":
-        from dexdrake.systems.scene import ObjectPlacement
-
-        scene = station.scene
-        plant_context = scene.plant.GetMyMutableContextFromRoot(context)
-        placement = ObjectPlacement.sample(np.random.default_rng(sc.seed))
-        scene.set_initial_state(plant_context, placement, scene.hand.pregrasp_vector())
-        object_pose = lambda: scene.object_pose(plant_context).translation()  # noqa: E731
-    elif station.world is None:  # real: the devices run on the wall clock
-        simulator.set_target_realtime_rate(1.0)
-        object_pose = lambda: None  # noqa: E731
-    else:  # hil: the control loop follows the world's simulated clock (systems/hil_world.py)
-        object_pose = lambda: station.world.object_pose().translation()  # noqa: E731
-    if station.perception is not None:
-        _await_first_pose(station)
-    t_world = 0.0
-    if station.world is not None:  # pause the world where the episode starts
-        station.world.advance_to(station.world.time)
-        t_world = station.world.time
-    simulator.Initialize()
-    t_start = context.get_time()
-    p_start = object_pose()
-    tracker = SuccessTracker(p_start) if p_start is not None else None
-    fault = None
-    wall0 = time.perf_counter()
-    done = 0
-    try:
-        for k in range(1, steps + 1):
-            if station.world is not None:  # lockstep: the world pauses at each control step
-                station.world.advance_to(t_world + k * sc.control_period)
-            simulator.AdvanceTo(t_start + k * sc.control_period)
-            done = k
-            p = object_pose()
-            if tracker is not None:
-                tracker.update(p)
-            if logger is not None:
-                st_context = st.GetMyContextFromRoot(context)
-                logger.log_station_step(
-                    context.get_time(), st.GetOutputPort("hand_state").Eval(st_context),
-                    ctrl.get_output_port().Eval(ctrl.GetMyContextFromRoot(context)),
-                    st.GetOutputPort("object_pose").Eval(st_context),
-                    {**ctrl.timer.stats(), "nan_holds": ctrl.nan_holds},
-                    station.world.object_pose() if station.world is not None else None)
-    except (StationFault, HardwareError) as err:
-        fault = str(err)
-    except RuntimeError as err:  # a Python exception raised inside a Drake event
-        if "StationFault" not in repr(err) and "fault" not in str(err).lower():
-            raise
-        fault = str(err)
-    finally:
-        if station.world is not None:
-            station.world.release()
-    if fault is not None and logger is not None:
-        logger.log_fault(fault)
-    wall = time.perf_counter() - wall0
-    stats = station.stats()
-    stats["policy"] = ctrl.timer.stats()
-    stats["policy"]["nan_holds"] = ctrl.nan_holds
-    return EpisodeResult(tracker.success if tracker else False, tracker.max_lift if tracker else float("nan"),
-                         done, wall, stats, fault)
-
-
-def _await_first_pose(station) -> None:
-    """Hold (the drivers keep the measured position) until perception delivers a pose."""
-    from dexdrake.systems.station import StationFault
-
-    def check() -> None:
-        for name in ("allegro", "z1"):
-            dev = station.devices.get(name)
-            if dev is not None and dev.state().fault is not None:
-                raise StationFault(f"{name} fault while waiting for the first pose: {dev.state().fault}")
-
-    station.perception.wait_for_first_pose(check)
-
-
 # ----------------------------------------------------------------------------- commands
 def _fmt_rate(name: str, s: dict) -> str:
     return (f"{name}: {s.get('rate_hz', 0):.0f} Hz, period p50 {s.get('p50_ms', float('nan')):.2f} ms, "
@@ -258,6 +33,8 @@ def _fmt_rate(name: str, s: dict) -> str:
 
 
 def run_hil(args: argparse.Namespace) -> int:
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import ScenarioError, load_scenario
     from dexdrake.systems.station import make_station
 
@@ -276,7 +53,7 @@ def run_hil(args: argparse.Namespace) -> int:
     with make_station(scenario) as station:
         if logger is not None:
             logger.attach(station)
-        result = run_episode(station, controller, args.steps, logger)
+        result = run_station_episode(station, controller, args.steps, logger)
     if logger is not None:
         logger.close()
     print(f"hil: {scenario.object} seed={scenario.seed} controller={description}")
@@ -293,7 +70,8 @@ def run_hil(args: argparse.Namespace) -> int:
               f"(real-time factor {world['real_time_factor']:.2f}), step p50 {world['step_p50_ms']:.2f} ms "
               f"p99 {world['step_p99_ms']:.2f} ms wall, late hand replies {world['late_replies']:.0f}")
     print(f"  policy on the wall clock: {result.stats['policy']['wall_rate_hz']:.1f} Hz, "
-          f"nan_holds={result.stats['policy']['nan_holds']}")
+          f"non-finite commands held {result.stats['policy']['non_finite']}, "
+          f"clipped {result.stats['policy']['clipped']}")
     if result.fault:
         print(f"  stopped safely: {result.fault}")
         return 1
@@ -319,6 +97,7 @@ def dry_run(scenario) -> int:
     from dexdrake.hardware.safety import HardwareError
     from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, z1_model
     from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
+    from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.scenario import driver_configs
     from dexdrake.systems.station import open_can_bus
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.paper import PAPER_AVERAGE
 from dexdrake.eval.seeds import evaluation_seeds_reserved
@@ -41,16 +42,6 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     centre = (p + z * z / (2 * trials)) / denom
     half = z * ((p * (1 - p) / trials + z * z / (4 * trials * trials)) ** 0.5) / denom
     return max(0.0, centre - half), min(1.0, centre + half)
-
-
-@dataclass(frozen=True)
-class EpisodeResult:
-    object: str
-    seed: int
-    success: bool
-    max_lift: float  # m
-    steps: int
-    total_reward: float
 
 
 @dataclass
@@ -115,26 +106,16 @@ class EvalReport:
         return d
 
 
-def run_episode(env, policy, seed: int, horizon: int) -> tuple[bool, float, int, float]:
-    """One deterministic (mean-action) episode; returns (success, max lift, steps, reward)."""
-    obs = env.reset(int(seed))
-    success, max_lift, total, steps = False, 0.0, 0.0, 0
-    for steps in range(1, horizon + 1):
-        action, _ = policy.act(np.asarray(obs, dtype=np.float32))
-        obs, reward, done, info = env.step(action)
-        total += float(reward)
-        success = success or bool(info["success"])
-        max_lift = max(max_lift, float(info["lift"]))
-        if done:
-            break
-    return success, max_lift, steps, total
+def mean_actor(policy) -> Callable[[np.ndarray], np.ndarray]:
+    """The policy's deterministic (mean) action for an observation, as `run_episode`'s `act`."""
+    return lambda observation: policy.act(np.asarray(observation, dtype=np.float32))[0]
 
 
 class _EpisodeRunner:
     """Holds the policy and one single-object env per object name (built on first use)."""
 
     def __init__(self, policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory,
-                 record: Callable[[Any], Any] | None = None):
+                 record: Callable[[Any], dict[str, Callable]] | None = None):
         import torch
 
         from dexdrake.learn.policy import load_policy
@@ -152,9 +133,10 @@ class _EpisodeRunner:
 
             env = self.env_factory_for(self.policy.config, [name], self.horizon)()
             check_env_matches(env, self.policy)
-            self._envs[name] = env if self.record is None else self.record(env)
-        success, lift, steps, reward = run_episode(self._envs[name], self.policy, seed, self.horizon)
-        return EpisodeResult(name, int(seed), success, lift, steps, reward)
+            self._envs[name] = env
+        env = self._envs[name]
+        hooks = {} if self.record is None else self.record(env)
+        return run_episode(env, mean_actor(self.policy), seed, self.horizon, **hooks)
 
 
 _RUNNER: _EpisodeRunner | None = None
@@ -182,11 +164,12 @@ def evaluate_policy(
     label: str = "selected",
     command: str = "",
     progress: bool = True,
-    record: Callable[[Any], Any] | None = None,
+    record: Callable[[Any], dict[str, Callable]] | None = None,
 ) -> EvalReport:
     """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint,
     in envs from `env_factory_for` (picklable: worker processes call it too). `record(env)`
-    returns the env to run instead (e.g. one that logs every step; one worker only)."""
+    returns the `on_reset`/`on_step` hooks of `run_episode` that log the env's episodes
+    (e.g. RerunLogger.hooks; one worker only)."""
     from dexdrake.learn.policy import load_policy
 
     if episodes < 1 or workers < 1 or horizon < 1:

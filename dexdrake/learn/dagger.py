@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from dexdrake.dexrep.feature_sets import observation_blocks
+from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import load_hand
 from dexdrake.learn.bc import BCConfig, train_bc
@@ -97,41 +98,40 @@ MakeExpert = Callable[[Any], Callable[[Any], np.ndarray]]
 joint units. Picklable (systems.reactive_grasp.ReactiveGrasp), as sampler workers call it."""
 
 
-def run_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise: float,
-                make_expert: MakeExpert) -> DaggerData:
-    """One episode on object `name`: the policy acts (the expert if `policy` is None, with OU
-    noise of std `noise` seeded by `seed`), the expert labels every visited state."""
+def labelled_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, noise: float,
+                     make_expert: MakeExpert) -> DaggerData:
+    """One episode on object `name` (the one episode loop, dexdrake/episode.py): the policy
+    acts (the expert if `policy` is None, with OU noise of std `noise` seeded by `seed`), the
+    expert labels every visited state."""
     from dexdrake.eval.action_noise import OUActionNoise
 
-    obs = env.reset(seed, object_name=name)
-    expert = make_expert(env)
     perturb = OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
     positions, observations, labels = [], [], []
-    success = False
-    for _ in range(env.horizon):
+    expert = None
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        nonlocal expert
+        expert = expert or make_expert(env)
         positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
         observations.append(obs)
         label = np.clip(env.normalise(expert(env)), -1.0, 1.0)
         labels.append(label)
         action = label if policy is None else policy.act(obs)[0]
-        if perturb is not None:
-            action = action + perturb.sample()
-        obs, _, done, info = env.step(action)
-        success = success or bool(info["success"])
-        if done:
-            break
+        return action if perturb is None else action + perturb.sample()
+
+    result = run_episode(env, act, seed, object_name=name)
     starts = np.zeros(len(labels), dtype=bool)
     starts[0] = True
-    return DaggerData([name], np.array([seed]), np.array([success]), starts, np.asarray(positions),
+    return DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(positions),
                       np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
 
 
 def dagger_job(make_expert: MakeExpert, noise: float, env, policy: DexRepNetPolicy | None,
                job: tuple[str, int]) -> DaggerData:
-    """`run_episode` as a sampler Episode (job = (object, seed)), with the expert and `noise`
-    bound first."""
+    """`labelled_episode` as a sampler Episode (job = (object, seed)), with the expert and
+    `noise` bound first."""
     name, seed = job
-    return run_episode(env, name, seed, policy, noise, make_expert)
+    return labelled_episode(env, name, seed, policy, noise, make_expert)
 
 
 def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import Env, EnvFactory, observation_dim
 from dexdrake.learn.policy import DexRepNetPolicy, policy_from_payload, policy_payload
@@ -63,39 +64,39 @@ def check_env_matches(env: Env, policy: DexRepNetPolicy) -> None:
 
 
 def rollout(env: Env, policy: DexRepNetPolicy, seed: int, deterministic: bool = False) -> Trajectory:
-    """Run one episode of at most env.horizon steps; seed drives env.reset and action noise."""
+    """Run one episode of at most env.horizon steps (the one episode loop, dexdrake/episode.py);
+    seed drives env.reset and action noise."""
     rng = None if deterministic else np.random.default_rng(seed)
-    obs = np.asarray(env.reset(int(seed)), dtype=np.float32)
     d = policy.config.obs_dim
     observations, actions, rewards, log_probs = [], [], [], []
-    success = terminated = False
-    for t in range(env.horizon):
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float32)
         if obs.shape != (d,) or not np.all(np.isfinite(obs)):
             raise DexdrakeError(
-                f"env returned a bad observation at step {t} of seed {seed}: shape {obs.shape} "
+                f"env returned a bad observation at step {len(actions)} of seed {seed}: shape {obs.shape} "
                 f"(expected ({d},)) or non-finite values"
             )
         action, logp = policy.act(obs, rng)
-        next_obs, reward, done, info = env.step(action)
-        if not math.isfinite(reward):
-            raise DexdrakeError(f"env returned a non-finite reward {reward} at step {t} of seed {seed}")
         observations.append(obs)
         actions.append(action)
-        rewards.append(float(reward))
         log_probs.append(logp)
-        success = success or bool(info.get("success", False))
-        obs = np.asarray(next_obs, dtype=np.float32)
-        if done:
-            terminated = t + 1 < env.horizon
-            break
+        return action
+
+    def record(reward: float, info: dict) -> None:
+        if not math.isfinite(reward):
+            raise DexdrakeError(f"env returned a non-finite reward {reward} at step {len(rewards)} of seed {seed}")
+        rewards.append(float(reward))
+
+    result = run_episode(env, act, seed, on_step=record)
     return Trajectory(
         seed=int(seed),
         observations=np.asarray(observations, dtype=np.float32),
         actions=np.asarray(actions, dtype=np.float32),
         rewards=np.asarray(rewards, dtype=np.float64),
         log_probs=np.asarray(log_probs, dtype=np.float64),
-        success=success,
-        terminated=terminated,
+        success=result.success,
+        terminated=result.steps < env.horizon,
     )
 
 

@@ -1,0 +1,84 @@
+"""The arm's inverse kinematics: arm joint positions that put the palm's grasp centre (hand
+description `palm.centre`) at a point, optionally with the palm near a rotation, on a
+private context of the scene's plant (the fingers stay at their default positions)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.math import RotationMatrix
+from pydrake.multibody.tree import JacobianWrtVariable
+from scipy.optimize import least_squares
+
+
+class ArmIK:
+    """IK over the arm joints of `scene` (a GraspScene). Rotation errors are weighted by
+    `orientation_weight` (m per unit: position wins); `damping` (m) damps `step`."""
+
+    def __init__(self, scene, orientation_weight: float = 0.01, damping: float = 1e-3):
+        hand = scene.hand
+        self.plant, self.ctx = scene.plant, scene.plant.CreateDefaultContext()
+        self.palm_frame = self.plant.GetFrameByName(hand.palm.body, scene.hand_instance)
+        self.world = self.plant.world_frame()
+        self.centre = np.array(hand.palm.centre)
+        self.n_arm = len(hand.arm_joints)
+        self.index = scene.q_index[: self.n_arm]
+        lo, hi = hand.joint_limits()
+        self.lo, self.hi = lo[: self.n_arm], hi[: self.n_arm]
+        self.orientation_weight, self.damping = orientation_weight, damping
+
+    def _set_arm(self, q_arm: np.ndarray):
+        """Puts the arm of the private context at q_arm; returns the palm body's pose in the world."""
+        q = self.plant.GetPositions(self.ctx)
+        q[self.index] = q_arm
+        self.plant.SetPositions(self.ctx, q)
+        return self.palm_frame.CalcPoseInWorld(self.ctx)
+
+    def palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grasp-centre position and palm rotation in the world for arm positions q_arm."""
+        X = self._set_arm(q_arm)
+        return X.multiply(self.centre), X.rotation().matrix()
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray, R_target: np.ndarray | None = None,
+              stay: float = 0.0) -> np.ndarray:
+        """Arm positions that put the grasp centre at `target`, with the palm rotation near
+        `R_target` (when given) and, weighted by `stay` (m per rad), near q_seed."""
+        seed = np.clip(q_seed, self.lo, self.hi)
+
+        def residual(q_arm):
+            p, R = self.palm_pose(q_arm)
+            parts = [p - target]
+            if R_target is not None:
+                parts.append(self.orientation_weight * (R - R_target)[:, 1:].ravel())
+            if stay:
+                parts.append(stay * (q_arm - seed))
+            return np.concatenate(parts)
+
+        margin = 1e-3 * (self.hi - self.lo)  # start strictly inside the bounds: trf stalls on them
+        start = np.clip(seed, self.lo + margin, self.hi - margin)
+        return least_squares(residual, start, bounds=(self.lo, self.hi), xtol=1e-8).x
+
+    def step(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
+        """`solve` near q_arm, cheaply: a fixed number of damped least-squares steps on the
+        grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
+        push past a limit stay on it and the others take the step."""
+        w = np.r_[np.full(3, self.orientation_weight), np.ones(3)]  # rotation (m per rad), position
+        lo, hi, n = self.lo, self.hi, self.n_arm
+        q = np.clip(q_arm, lo, hi)
+        for _ in range(steps):
+            X = self._set_arm(q)
+            rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
+            error = w * np.r_[rotation.angle() * rotation.axis(), target - X.multiply(self.centre)]
+            J = w[:, None] * self.plant.CalcJacobianSpatialVelocity(
+                self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
+            )[:, self.index]
+            free, dq = np.ones(n, dtype=bool), np.zeros(n)
+            while free.any():
+                Jf = J[:, free]
+                dq[:] = 0.0
+                dq[free] = np.linalg.solve(Jf.T @ Jf + self.damping**2 * np.eye(int(free.sum())), Jf.T @ error)
+                blocked = free & ((q + dq < lo) | (q + dq > hi))
+                if not blocked.any():
+                    break
+                free &= ~blocked
+            q = np.clip(q + dq, lo, hi)
+        return q

@@ -1,0 +1,116 @@
+"""The controllers of the diagram's slot (systems/diagram.py): the scenario's torch policy
+(PolicySystem and the map of its normalised actions to joint set-points), the scripted grasp
+and the state-driven expert (env controllers driven by the station's measurements through a
+mirroring GraspEnv). Every one outputs "command" and reads some of "features",
+"hand_state" and "object_pose"."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import AffineSystem, PassThrough
+
+from dexdrake.errors import DexdrakeError
+from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.systems.diagram import joint_map
+from dexdrake.systems.grasp_env import GraspEnv
+from dexdrake.systems.reactive_grasp import ReactiveGrasp
+from dexdrake.systems.scenario import Scenario
+from dexdrake.systems.scripted_grasp import ScriptedGrasp, script_for
+from dexdrake.systems.station import ControllerSystem, pose_from_vector, scene_config
+
+
+def policy_controller(scenario: Scenario, hand: HandDescription) -> tuple[Diagram, str]:
+    """The scenario's policy in the slot: PolicySystem (features -> normalised action) and
+    the map to joint set-points; refused (a DexdrakeError naming the checkpoint and the
+    reason) when the checkpoint is missing or unreadable, or was trained for another hand,
+    feature set or action size."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.learn.policy import load_policy
+    from dexdrake.paths import resolve_model_path
+    from dexdrake.systems.policy_system import PolicySystem
+
+    entry = scenario.policy
+    try:
+        policy, metadata = load_policy(resolve_model_path(entry.checkpoint))
+    except DexdrakeError as err:
+        raise DexdrakeError(f"policy refused: {err}") from None
+    cfg = policy.config
+    if cfg.hand != scenario.hand:
+        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
+                            f"the scenario runs {scenario.hand!r}")
+    if cfg.feature_set != entry.feature_set:
+        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
+                            f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
+    if cfg.action_dim != hand.num_actuators:
+        raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
+                            f"{scenario.hand!r} has {hand.num_actuators} joints")
+    size = sum(observation_blocks(hand, entry.feature_set).values())
+    if size != cfg.obs_dim:
+        raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
+                            f"feature set {entry.feature_set!r} gives {size}")
+    n = hand.num_actuators
+    mid, half = joint_map(hand)
+    builder = DiagramBuilder()
+    system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period))
+    to_command = builder.AddNamedSystem("action_to_command", AffineSystem(
+        np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0), np.zeros((n, 0)), np.diag(half), mid))
+    builder.Connect(system.GetOutputPort("action"), to_command.get_input_port())
+    builder.ExportInput(system.GetInputPort("observation"), "features")
+    for name, size in (("hand_state", 2 * n), ("object_pose", 7)):  # read by loggers only
+        builder.ExportInput(builder.AddNamedSystem(name, PassThrough(size)).get_input_port(), name)
+    builder.ExportOutput(to_command.get_output_port(), "command")
+    description = (f"policy {entry.checkpoint} (hand {cfg.hand}, feature set {cfg.feature_set}, "
+                   f"{cfg.obs_dim} observations -> {cfg.action_dim} joint targets, "
+                   f"stage {metadata.get('stage', 'unknown')})")
+    slot = builder.Build()
+    slot.set_name("policy")
+    return slot, description
+
+
+class OnMeasurements:
+    """An env controller (`make(env)` once, then `controller(env) -> set-points`: the
+    scripted grasp, the state-driven expert) driven by the station's measurements, as a
+    ControllerSystem callback: a GraspEnv without features mirrors the measured hand state
+    and the perceived object pose (the scripted grasp plans on the first one); the env's
+    clock starts at the first call."""
+
+    def __init__(self, scenario: Scenario, make: Callable):
+        self.env = GraspEnv(scene_config(scenario), feature_set=None, horizon=1)
+        self.env.reset(scenario.seed)
+        self._make, self._controller, self._t0 = make, None, 0.0
+
+    def __call__(self, t: float, hand_state: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
+        env = self.env
+        env.mirror(hand_state, pose_from_vector(object_pose))
+        if self._controller is None:
+            self._t0 = t
+            self._controller = self._make(env)
+        env.context.SetTime(t - self._t0)
+        return self._controller(env)
+
+
+def describe_script(hand: HandDescription) -> str:
+    """The scripted grasp's plan, from the GraspScript the hand description configures."""
+    g = script_for(hand)
+    return (f"scripted grasp (no policy in the scenario): from the first perceived pose, approach "
+            f"{g.hover:.2f} m above the object by {g.approach_end:.1f} s, descend by {g.descend_end:.1f} s, "
+            f"close by {g.close_end:.1f} s, lift {g.lift:.2f} m by {g.lift_end:.1f} s")
+
+
+def make_controller(scenario: Scenario):
+    """(controller slot system, description) of what the scenario asks for: its policy (a
+    policy that cannot be run is refused with a DexdrakeError, never replaced), or the
+    scripted grasp when the scenario names no policy."""
+    hand = load_hand(scenario.hand)
+    if scenario.policy is not None:
+        return policy_controller(scenario, hand)
+    system = ControllerSystem(OnMeasurements(scenario, ScriptedGrasp), hand, scenario.control_period)
+    return system, describe_script(hand)
+
+
+def expert_controller(scenario: Scenario) -> ControllerSystem:
+    """The state-driven grasp expert (systems/reactive_grasp.py) in the slot."""
+    return ControllerSystem(OnMeasurements(scenario, ReactiveGrasp), load_hand(scenario.hand), scenario.control_period)

@@ -1,0 +1,240 @@
+"""The one diagram of every mode, built from a Scenario (systems/scenario.py):
+
+    station (systems/station.py)                       controller slot
+      sim:  grasp scene (plant + SceneGraph, PD)       policy:   PolicySystem -> set-points
+      hil:  drivers, emulators, HIL world, perception  scripted: ControllerSystem(scripted grasp)
+      real: drivers, devices, perception               external: the diagram's "command" input
+        |  hand_state, object_pose                        ^  |
+        +-------> DexRepSystem --- features --------------+  |
+        +---------------------------------------------------+  |  (hand_state, object_pose)
+        <------------------------- command ----------------------+
+
+Every controller slot has the output "command" (joint set-points, policy order) and the
+inputs "features", "hand_state" and "object_pose" that it reads (connected by name). With
+no controller (training rollouts: systems/grasp_env.py) the diagram exports "command" as an
+input and "features" as an output. The built diagram's outputs: "hand_state",
+"object_pose", "features", and "command" when a controller is in the slot.
+
+The slot's controllers are made in systems/controllers.py; `run_station_episode` builds the
+diagram around a station and runs it through the one episode loop (dexdrake/episode.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
+
+from dexdrake.episode import EpisodeResult, run_episode
+from dexdrake.errors import DexdrakeError
+from dexdrake.hands.description import HandDescription
+from dexdrake.systems.dexrep_system import DexRepSystem
+from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault
+
+SLOT_INPUTS = ("features", "hand_state", "object_pose")
+
+
+def joint_map(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
+    """(mid, half) of each joint's range: set-point = mid + action * half (policy order)."""
+    lo, hi = hand.joint_limits()
+    return (hi + lo) / 2, (hi - lo) / 2
+
+
+# ----------------------------------------------------------------------------- builder
+@dataclass
+class BuiltDiagram:
+    """The diagram of one mode and its parts (`controller` None: the "command" input is free)."""
+
+    station: Station
+    diagram: Diagram
+    dexrep: DexRepSystem | None
+    controller: object = None
+
+    @property
+    def policy_system(self):
+        """The slot's PolicySystem, if a policy is in the slot."""
+        c = self.controller
+        return c.GetSubsystemByName("policy_system") if isinstance(c, Diagram) and c.HasSubsystemNamed(
+            "policy_system") else None
+
+    def hold_measured(self, context: Context) -> None:
+        """Make the slot's first command the measured position (a policy's held action
+        otherwise starts at zero, the middle of every joint's range)."""
+        policy = self.policy_system
+        if policy is not None:
+            q = self.diagram.GetOutputPort("hand_state").Eval(context)[: self.station.hand.num_actuators]
+            mid, half = joint_map(self.station.hand)
+            policy.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).SetFromVector(
+                np.clip((q - mid) / half, -1.0, 1.0))
+
+    @property
+    def timer(self) -> LoopTimer:
+        return self.policy_system.timer if self.policy_system is not None else self.controller.timer
+
+    @property
+    def command_counts(self) -> dict[str, int]:
+        """Bad commands the slot held or clipped (systems/command_guard.py)."""
+        return (self.policy_system or self.controller).guard.counts
+
+
+def build_diagram(station: Station, controller=None, feature_set: str | None = "DexRep") -> BuiltDiagram:
+    """The station of a scenario with DexRepSystem computing `feature_set` (None: no
+    DexRepSystem, for controllers that read no features) and `controller` in the slot (see
+    the module doc; None leaves the slot's "command" as the diagram's input)."""
+    builder = DiagramBuilder()
+    st = builder.AddNamedSystem("station", station.diagram)
+    dexrep = None
+    if feature_set is not None:
+        from dexdrake.dexrep.geometry import object_geometry
+        from dexdrake.systems.scene import build_grasp_scene
+        from dexdrake.systems.station import scene_config
+
+        scene = station.scene or build_grasp_scene(scene_config(station.scenario))  # hil/real: kinematics only
+        dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(scene.hand, scene.plant, scene.hand_instance,
+                                                               object_geometry(station.scenario.object), feature_set))
+        for name in ("hand_state", "object_pose"):
+            builder.Connect(st.GetOutputPort(name), dexrep.GetInputPort(name))
+        builder.ExportOutput(dexrep.GetOutputPort("features"), "features")
+    for name in ("hand_state", "object_pose"):
+        builder.ExportOutput(st.GetOutputPort(name), name)
+    if controller is None:
+        builder.ExportInput(st.GetInputPort("command"), "command")
+    else:
+        slot = builder.AddNamedSystem("controller", controller)
+        for name in SLOT_INPUTS:
+            if slot.HasInputPort(name):
+                source = dexrep.GetOutputPort(name) if name == "features" else st.GetOutputPort(name)
+                builder.Connect(source, slot.GetInputPort(name))
+        builder.Connect(slot.GetOutputPort("command"), st.GetInputPort("command"))
+        builder.ExportOutput(slot.GetOutputPort("command"), "command")
+    return BuiltDiagram(station, builder.Build(), dexrep, controller)
+
+
+# ----------------------------------------------------------------------------- episodes
+class StationEpisode:
+    """A built diagram with a controller in its slot as an env of the one episode loop: each
+    `step` advances one control period (the slot acts; the loop's action is unused). Scored
+    with dexdrake.task on the object's true pose (sim: the plant, hil: the world; real: not
+    known, lift NaN). A StationFault or HardwareError ends the episode (info["fault"]); the
+    station is stopped by its owner's context manager. A `logger` (a RerunLogger attached to
+    the station) records every control step and the fault that ended the episode."""
+
+    def __init__(self, built: BuiltDiagram, steps: int, logger=None):
+        self.built, self.horizon, self.logger = built, steps, logger
+        self.object_name = built.station.scenario.object
+        self.simulator = Simulator(built.diagram)
+        self.context = self.simulator.get_mutable_context()
+        self._world_paused = False
+
+    def _object_position(self) -> np.ndarray | None:
+        station = self.built.station
+        if station.scene is not None:
+            return station.scene.object_pose(station.scene.plant.GetMyContextFromRoot(self.context)).translation()
+        if station.world is not None:
+            return station.world.object_pose().translation()
+        return None
+
+    def reset(self, seed: int) -> None:
+        from dexdrake.systems.scene import ObjectPlacement
+        from dexdrake.task import SuccessTracker
+
+        station, period = self.built.station, self.built.station.scenario.control_period
+        if station.scene is not None:
+            scene = station.scene
+            placement = ObjectPlacement.sample(np.random.default_rng(seed))
+            scene.set_initial_state(scene.plant.GetMyMutableContextFromRoot(self.context), placement,
+                                    scene.hand.pregrasp_vector())
+        elif station.world is None:  # real: the devices run on the wall clock
+            self.simulator.set_target_realtime_rate(1.0)
+        if station.perception is not None:
+            _await_first_pose(station)
+        if station.world is not None:  # pause the world where the episode starts (lockstep)
+            station.world.advance_to(station.world.time)
+            self._world_paused = True
+        self.built.hold_measured(self.context)
+        self.simulator.Initialize()
+        self.t_start, self.k, self.period = self.context.get_time(), 0, period
+        self.t_world = station.world.time if station.world is not None else 0.0
+        p = self._object_position()
+        self.tracker = None if p is None else SuccessTracker(p)
+
+    def step(self, action=None) -> tuple[None, float, bool, dict]:
+        from dexdrake.hardware.safety import HardwareError
+
+        station = self.built.station
+        k = self.k + 1
+        fault = None
+        try:
+            if station.world is not None:  # lockstep: the world pauses at each control step
+                station.world.advance_to(self.t_world + k * self.period)
+            self.simulator.AdvanceTo(self.t_start + k * self.period)
+        except (StationFault, HardwareError) as err:
+            fault = str(err)
+        except RuntimeError as err:  # a Python exception raised inside a Drake event
+            if "StationFault" not in repr(err) and "fault" not in str(err).lower():
+                raise
+            fault = str(err)
+        if fault is None:
+            self.k = k
+            if self.tracker is not None:
+                self.tracker.update(self._object_position())
+            if self.logger is not None:
+                self._log(station)
+        elif self.logger is not None:
+            self.logger.log_fault(fault)
+        info = {"success": self.tracker.success if self.tracker else False,
+                "lift": self.tracker.max_lift if self.tracker else float("nan"), "fault": fault}
+        return None, 0.0, k >= self.horizon, info
+
+    def _log(self, station: Station) -> None:
+        """This control step to the logger (systems/rerun_logger.RerunLogger.log_station_step)."""
+        built, port = self.built, self.built.diagram.GetOutputPort
+        self.logger.log_station_step(
+            self.context.get_time(), port("hand_state").Eval(self.context), port("command").Eval(self.context),
+            port("object_pose").Eval(self.context), {**built.timer.stats(), **built.command_counts},
+            station.world.object_pose() if station.world is not None else None)
+
+    def close(self) -> None:
+        if self._world_paused:
+            self.built.station.world.release()
+            self._world_paused = False
+
+
+def _await_first_pose(station: Station) -> None:
+    """Hold (the drivers keep the measured position) until perception delivers a pose."""
+
+    def check() -> None:
+        for name in ("allegro", "z1"):
+            dev = station.devices.get(name)
+            if dev is not None and dev.state().fault is not None:
+                raise StationFault(f"{name} fault while waiting for the first pose: {dev.state().fault}")
+
+    station.perception.wait_for_first_pose(check)
+
+
+def run_station_episode(station: Station, controller, steps: int, logger=None) -> EpisodeResult:
+    """`steps` control periods of `controller` (a slot system, or a callback
+    `controller(t, hand_state, object_pose) -> q_command` run in ControllerSystem) in the
+    station's diagram (`build_diagram`), through the one episode loop: sim as fast as it
+    goes, hil on the world's simulated clock (the world pauses at each control step until
+    the controller has run), real in wall-clock real time. `stats`: the devices' loop
+    statistics and the controller's ("policy": rate, bad commands held or clipped). `logger`:
+    a RerunLogger (systems/rerun_logger.py) attached to the station, or None."""
+    if steps < 1:
+        raise DexdrakeError(f"steps must be >= 1, got {steps}")
+    if not isinstance(controller, System):
+        controller = ControllerSystem(controller, station.hand, station.scenario.control_period)
+    policy = station.scenario.policy
+    feature_set = (policy.feature_set if policy is not None else "DexRep") if controller.HasInputPort("features") else None
+    built = build_diagram(station, controller, feature_set)
+    env = StationEpisode(built, steps, logger)
+    try:
+        result = run_episode(env, lambda observation: None, station.scenario.seed)
+    finally:
+        env.close()
+    result.steps = env.k  # control periods completed (a fault ends the episode inside one)
+    result.stats = station.stats()
+    result.stats["policy"] = {**built.timer.stats(), **built.command_counts}
+    return result

@@ -19,6 +19,18 @@ def logged_rows(path: Path) -> dict[str, int]:
     return rows
 
 
+def text_logs(path: Path, entity: str) -> list[tuple[str | None, str]]:
+    """(level, text) of every TextLog row logged at `entity`, in the order logged."""
+    out = []
+    for chunk in RrdReader(path).stream().collect().stream():
+        if chunk.entity_path == entity:
+            batch = chunk.to_record_batch()
+            levels = batch.column("TextLog:level").to_pylist() if "TextLog:level" in batch.schema.names else None
+            for i, text in enumerate(batch.column("TextLog:text").to_pylist()):
+                out.append(((levels[i] or [None])[0] if levels else None, text[0]))
+    return out
+
+
 @dataclass
 class Node:
     """A view or container of a blueprint: `kind` is a view class ("3D", "TimeSeries", ...)

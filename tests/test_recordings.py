@@ -1,11 +1,12 @@
 """Recordings a person can read at a glance: every mode's .rrd carries the one logger's
 blueprint, and every view of it shows data the recording holds."""
 
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from rrd_content import blueprint_tree, logged_rows, matches
+from rrd_content import blueprint_tree, logged_rows, matches, text_logs
 
 from dexdrake.cli import main
 
@@ -146,3 +147,28 @@ def test_station_recordings_have_loop_rates_latencies_and_faults(recordings, mod
             assert rows[entity] == 3, entity
     else:
         assert rows["/faults/log"] == 2 and "/world/object_true" not in rows  # start, then the fault
+
+
+def test_a_station_episode_records_each_control_step_and_the_fault_that_ends_it(tmp_path):
+    """run_station_episode hands its logger every control step it completes, then the fault."""
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.rerun_logger import RerunLogger
+    from dexdrake.systems.scenario import load_scenario
+    from dexdrake.systems.station import make_station
+
+    scenario = load_scenario(CONFIGS / "hil.yaml")
+    scenario.drivers.camera.kind = "sim"
+    rrd = tmp_path / "fault.rrd"
+    logger = RerunLogger(rrd, "hil", scenario=scenario)
+    with make_station(scenario) as station:
+        logger.attach(station)
+        stall = threading.Timer(0.2, station.devices["allegro_emulator"].stall, args=(2.0,))
+        stall.start()  # the hand's replies stop
+        n = station.hand.num_actuators
+        result = run_station_episode(station, lambda t, hand_state, object_pose: hand_state[:n], 100, logger)
+        stall.join()
+    logger.close()
+    assert result.fault is not None and 0 < result.steps < 100
+    rows = logged_rows(rrd)
+    assert rows["/loop/policy/rate_hz"] == rows["/task/lift"] == result.steps
+    assert ("CRITICAL", result.fault) == text_logs(rrd, "/faults/log")[-1]

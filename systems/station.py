@@ -4,7 +4,9 @@ Every mode exposes the same ports (policy joint order of the hand description):
   input  "command"      joint position set-points (n)
   output "hand_state"   measured [q; v] (2n)
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
-sim:  the Drake grasp scene (systems/scene.py).
+sim:  the Drake grasp scene (systems/scene.py); built by make_station, its set-points are
+      clamped and rate-limited as the drivers would (systems/target_limits.py), so that
+      sim and hil agree.
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
@@ -354,7 +356,7 @@ def make_station(scenario: Scenario) -> Station:
     For hil/real the devices run from here on: use the result as a context manager (or call
     `stop()`) so that they are stopped safely."""
     if scenario.mode == "sim":
-        return sim_station(scenario)
+        return sim_station(scenario, driver_limits=True)
     stack = contextlib.ExitStack()
     try:
         return _device_station(scenario, stack)
@@ -371,15 +373,25 @@ def scene_config(scenario: Scenario):
                        time_step=scenario.time_step, control_period=scenario.control_period)
 
 
-def sim_station(scenario: Scenario, scene=None) -> Station:
+def sim_station(scenario: Scenario, scene=None, driver_limits: bool = False) -> Station:
     """The sim station of `scenario` around its grasp scene (`scene`, default: built from
-    the scenario's scene_config)."""
+    the scenario's scene_config). With `driver_limits` (make_station) its set-points pass
+    the drivers' limits and target rates (systems/target_limits.py), so that sim and hil
+    agree; GraspEnv (training) does not limit them yet."""
     from dexdrake.systems.scene import build_grasp_scene
+    from dexdrake.systems.target_limits import TargetLimiter, target_limits
 
     scene = scene or build_grasp_scene(scene_config(scenario))
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
-    builder.ExportInput(sub.GetInputPort("command"), "command")
+    if driver_limits:
+        limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
+            *target_limits(scenario, scene.hand), scenario.time_step))
+        builder.ExportInput(limiter.GetInputPort("command"), "command")
+        builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
+        builder.Connect(limiter.GetOutputPort("target"), sub.GetInputPort("command"))
+    else:
+        builder.ExportInput(sub.GetInputPort("command"), "command")
     for name in PORTS["outputs"]:
         builder.ExportOutput(sub.GetOutputPort(name), name)
     return Station(scenario, builder.Build(), scene.hand, scene=scene)

@@ -13,7 +13,8 @@ hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus,
       every device and the control loop run on its simulated clock, in lockstep with the
       hand's PD loop and never faster than real time: see systems/hil_world.py); object
       pose from PerceptionSystem (rendered RGB-D of the world -> segmentation ->
-      registration, in a worker process; it paces itself on the wall clock) or, with
+      registration, in a worker process; during the episode on the simulated clock, each
+      pose used one camera period after its frame) or, with
       camera kind "sim", straight from the world.
 real: the same driver systems on socketcan / the real z1_controller, and a K4A camera.
 
@@ -178,14 +179,23 @@ class PerceptionLog:
 class PerceptionSystem(LeafSystem):
     """Object pose from a camera: every `period_s` a frame is read (`read_frame()`) and
     handed to `executor` (`_worker_estimate`); results arrive asynchronously. Output
-    "object_pose" (7) holds the last good pose; see the module doc for the failure rules."""
+    "object_pose" (7) holds the last good pose; see the module doc for the failure rules.
+
+    With `simulated_clock` (hil) the episode's frames are paced on the diagram's simulated
+    clock and each estimate is used exactly `period_s` of simulated time after its frame
+    (an update that finds it unfinished waits: the world is paused at the control step), so
+    the pose latency does not depend on the host's speed. Otherwise (real, and while
+    waiting for the first pose) the wall clock paces it and estimates are used on arrival."""
 
     def __init__(self, read_frame: Callable[[], object], executor: cf.Executor,
                  camera: CameraDriver, estimate: Callable = _worker_estimate,
-                 on_result: Callable[[PerceptionLog], None] | None = None):
+                 on_result: Callable[[PerceptionLog], None] | None = None,
+                 simulated_clock: bool = False):
         super().__init__()
         self._read_frame, self._executor, self._estimate = read_frame, executor, estimate
         self.camera = camera
+        self.simulated_clock = simulated_clock
+        self._due = -np.inf  # simulated_clock: when the pending estimate is to be used
         self.on_result = on_result
         self.log = PerceptionLog()
         self._future: cf.Future | None = None
@@ -207,13 +217,19 @@ class PerceptionSystem(LeafSystem):
         self._future = self._executor.submit(self._estimate, frame.color, frame.depth,
                                              (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC)
 
-    def poll(self, sim_time: float = 0.0) -> None:
-        """Collect a finished estimate and start the next one when due (plain method)."""
-        now = time.monotonic()
+    def poll(self, sim_time: float | None = None) -> None:
+        """Collect a finished estimate and start the next one when due (plain method);
+        `sim_time` is the diagram's time (it paces the system with `simulated_clock`)."""
+        wall = time.monotonic()
         if self._t0 is None:
-            self._t0 = now
+            self._t0 = wall
+        on_sim = self.simulated_clock and sim_time is not None
+        now = sim_time if on_sim else wall
         cam, log = self.camera, self.log
-        if self._future is not None and self._future.done():
+        due = not on_sim or now >= self._due - 1e-9
+        if on_sim and due and self._future is not None:
+            cf.wait([self._future])
+        if self._future is not None and self._future.done() and due:
             try:
                 result = self._future.result()
             except Exception as err:  # a crashed worker is a perception failure
@@ -228,17 +244,17 @@ class PerceptionSystem(LeafSystem):
             else:
                 log.failures += 1
                 log.consecutive_failures += 1
-                log.events.append(f"t={sim_time:.2f}s: {result['reason']}")
+                log.events.append(f"t={sim_time or 0.0:.2f}s: {result['reason']}")
                 if log.consecutive_failures >= cam.max_consecutive_failures and (
                         cam.on_failure == "stop" or not self.has_pose):
                     raise StationFault(f"perception failed {log.consecutive_failures} times in a "
                                        f"row (last: {result['reason']})")
             if self.on_result is not None:
                 self.on_result(log)
-        if not self.has_pose and now - self._t0 > cam.first_pose_timeout_s:
+        if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
             raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
-        if self._future is None and now >= self._next_request:
-            self._next_request = now + cam.period_s
+        if self._future is None and now >= self._next_request - 1e-9:
+            self._next_request = self._due = now + cam.period_s
             self._submit()
 
     def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
@@ -250,6 +266,8 @@ class PerceptionSystem(LeafSystem):
             time.sleep(0.02)
 
     def _init(self, context: Context, state: DiscreteValues) -> None:
+        if self.simulated_clock:  # the episode starts: pace on the simulated clock from here
+            self._next_request = self._due = context.get_time()
         state.set_value(0, self.pose)
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
@@ -529,7 +547,8 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
         read_frame = _camera_reader(scenario, world, stack)
         executor = perception_executor(str(get_object(scenario.object).mesh_path))
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
-        perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(read_frame, executor, cam))
+        perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
+            read_frame, executor, cam, simulated_clock=scenario.mode == "hil"))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
     station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
     station._stop = stack.pop_all()

@@ -9,8 +9,10 @@ station models the same limits (systems/target_limits.py). HIL uses rendered per
 (`--camera rendered`, the default: a pose one camera period after its frame, on the
 simulated clock) or the world's pose (`sim`); simulation uses the true pose.
 
-Episodes run mode by mode (simulation, then each scale in the order given), and the table
-is rewritten after every episode, so a run stopped early still leaves a consistent table.
+Episodes run in simulation first, then in HIL at the first scale, then at the other scales
+(the sensitivity to the PWM assumption) interleaved episode by episode; the table is
+rewritten after every episode, so a run stopped early leaves a consistent table whose
+"sim, same episodes" column compares each row with simulation on exactly its episodes.
 
     .venv/bin/python scripts/parity_hil.py --objects can_soda lightbulb --seeds 0 1 \
         --steps 150 --scales 1 0.5 2 [--out models/weights/parity_hil.md]
@@ -56,16 +58,19 @@ def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config
     hand = load_scenario(config).drivers
     lines = [f"Command: `{command}`", "",
              "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults | "
-             "successes (object/seed) |",
-             "|---|---|---|---|---|---|---|"]
+             "sim, same episodes: success / lift (m) | successes (object/seed) |",
+             "|---|---|---|---|---|---|---|---|"]
+    sim = {(r["object"], r["seed"]): r for r in rows if r["mode"] == "sim"}
     for mode, scale in modes:
         sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale]
         if not sel:
             continue
+        same = [sim[r["object"], r["seed"]] for r in sel if (r["object"], r["seed"]) in sim]
         wins = " ".join(f"{r['object']}/{r['seed']}" for r in sel if r["success"]) or "-"
         lines.append(f"| {mode} | {'-' if mode == 'sim' else f'{scale:g} x'} | {len(sel)} | "
                      f"{np.mean([r['success'] for r in sel]):.0%} | "
                      f"{np.nanmean([r['lift'] for r in sel]):.3f} | {sum(bool(r['fault']) for r in sel)} | "
+                     f"{np.mean([r['success'] for r in same]):.0%} / {np.nanmean([r['lift'] for r in same]):.3f} | "
                      f"{wins} |")
     rate = hand.hand.max_target_rate
     lines += ["", f"NM_PER_PWM = 1/{1 / NM_PER_PWM:g} N*m per PWM count (dexdrake/hands/allegro_units.py). "
@@ -100,17 +105,18 @@ def main() -> int:
                + " --seeds " + " ".join(map(str, args.seeds)) + f" --steps {args.steps} --scales "
                + " ".join(f"{s:g}" for s in args.scales) + f" --camera {args.camera}")
     modes = [("sim", 1.0)] + [("hil", s) for s in args.scales]
+    episodes = [(obj, seed) for seed in args.seeds for obj in args.objects]
+    order = [(mode, scale, obj, seed) for mode, scale in modes[:2] for obj, seed in episodes]
+    order += [(mode, scale, obj, seed) for obj, seed in episodes for mode, scale in modes[2:]]
     rows: list[dict] = []
-    for mode, scale in modes:
-        for obj in args.objects:
-            for seed in args.seeds:
-                row = run(args.config, obj, seed, args.steps, mode, scale, args.camera)
-                rows.append(row)
-                print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
-                      f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
-                      f"{row['cpu_s']:.0f} s CPU)", flush=True)
-                if args.out:
-                    write_atomic(args.out, table(rows, modes, command, args.config))
+    for mode, scale, obj, seed in order:
+        row = run(args.config, obj, seed, args.steps, mode, scale, args.camera)
+        rows.append(row)
+        print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
+              f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
+              f"{row['cpu_s']:.0f} s CPU)", flush=True)
+        if args.out:
+            write_atomic(args.out, table(rows, modes, command, args.config))
     print(table(rows, modes, command, args.config))
     return 0
 

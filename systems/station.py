@@ -138,15 +138,16 @@ def _worker_init(mesh_path: str) -> None:
 
 
 def _worker_estimate(color: np.ndarray, depth: np.ndarray, intrinsics: tuple,
-                     X_WC: np.ndarray | None) -> dict:
-    """Segment + register one frame (in the perception worker process)."""
+                     X_WC: np.ndarray | None, prior: np.ndarray | None = None) -> dict:
+    """Segment + register one frame (in the perception worker process); of a symmetric
+    object's twins the pose nearest `prior` (the last pose, 4x4) is kept."""
     from dexdrake.hardware.kinect import CameraIntrinsics, RgbdFrame
     from dexdrake.hardware.perception import backproject, segment_object, transform_points
 
     est = _WORKER["estimator"]
     pose_C = None if X_WC is None else RigidTransform(X_WC)
     frame = RgbdFrame(color, depth, CameraIntrinsics(*intrinsics), 0.0, pose_C)
-    result = est.estimate(frame)
+    result = est.estimate(frame, None if prior is None else RigidTransform(prior))
     mask = segment_object(frame, est.segmentation)
     cloud = backproject(frame.depth, frame.intrinsics, mask)
     if pose_C is not None and len(cloud):
@@ -214,8 +215,9 @@ class PerceptionSystem(LeafSystem):
         self._pending_frame = frame
         k = frame.intrinsics
         X_WC = None if frame.X_WC is None else frame.X_WC.GetAsMatrix4()
+        prior = pose_from_vector(self.pose).GetAsMatrix4() if self.has_pose else None
         self._future = self._executor.submit(self._estimate, frame.color, frame.depth,
-                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC)
+                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC, prior)
 
     def poll(self, sim_time: float | None = None) -> None:
         """Collect a finished estimate and start the next one when due (plain method);

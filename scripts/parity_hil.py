@@ -77,7 +77,8 @@ def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config
               f"Set-points in both modes: joint limits, Allegro target rate "
               f"{'driver default' if rate is None else f'{rate:g} rad/s'}, Z1 "
               f"{'model velocity limit' if hand.arm.max_velocity is None else f'{hand.arm.max_velocity:g} rad/s'} "
-              f"({config}); load average {os.getloadavg()[0]:.1f}; CPU per episode: "
+              f"({config}); load average {os.getloadavg()[0]:.1f}; CPU per episode (this process, not the "
+              "perception worker): "
               + ", ".join(f"{m}{'' if m == 'sim' else f' {s:g}x'} "
                           f"{np.mean([r['cpu_s'] for r in rows if r['mode'] == m and r['scale'] == s]):.0f} s"
                           for m, s in modes if any(r["mode"] == m and r["scale"] == s for r in rows)) + "."]

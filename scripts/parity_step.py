@@ -17,7 +17,7 @@ import numpy as np
 
 def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
     """Measured joint positions (steps x n, policy order) under the step commands."""
-    from dexdrake.station_commands import run_episode
+    from dexdrake.cli.station import run_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 

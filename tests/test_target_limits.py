@@ -51,7 +51,7 @@ def test_limits_and_rates_are_the_drivers():
 
 def test_sim_station_moves_fingers_no_faster_than_the_hil_drivers_allow():
     """A set-point jump reaches the simulated hand as the drivers' ramp, not as a step."""
-    from dexdrake.station_commands import run_episode
+    from dexdrake.cli.station import run_episode
     from dexdrake.systems.station import make_station
 
     scenario = load_scenario(CONFIGS / "sim.yaml")

@@ -17,7 +17,7 @@ import numpy as np
 
 def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
     """Measured joint positions (steps x n, policy order) under the step commands."""
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario
     from dexdrake.systems.station import make_station
 
@@ -40,7 +40,7 @@ def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
                 q[n_arm:] += 1.0
             return np.clip(q, lo, hi)
 
-        run_episode(station, controller, steps)
+        run_station_episode(station, controller, steps)
     return np.array(qs)
 
 

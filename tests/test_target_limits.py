@@ -51,7 +51,7 @@ def test_limits_and_rates_are_the_drivers():
 
 def test_sim_station_moves_fingers_no_faster_than_the_hil_drivers_allow():
     """A set-point jump reaches the simulated hand as the drivers' ramp, not as a step."""
-    from dexdrake.cli.station import run_episode
+    from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
 
     scenario = load_scenario(CONFIGS / "sim.yaml")
@@ -69,7 +69,7 @@ def test_sim_station_moves_fingers_no_faster_than_the_hil_drivers_allow():
         out[j] += 1.0
         return out
 
-    run_episode(station, controller, steps=30)
+    run_station_episode(station, controller, 30)
     rate = 3.0  # configs/sim.yaml: the Allegro driver's default max_target_rate
     speeds = np.diff(seen) / scenario.control_period
     assert speeds.max() <= rate * 1.1, f"finger moved at {speeds.max():.2f} rad/s"

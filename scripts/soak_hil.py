@@ -26,8 +26,6 @@ import time
 
 import numpy as np
 
-from dexdrake.systems.station import StationFault
-
 
 def rss_mb() -> float:
     """Resident set size of this process (MiB), from /proc/self/status."""
@@ -63,8 +61,8 @@ class _Periods:
                 "max_ms": float(p.max()), "missed": int(np.sum(p > self.deadline_s * 1e3))}
 
 
-class WallTimeUp(StationFault):
-    """The soak's wall-time bound was reached (ends the episode like a fault, but is none)."""
+class WallTimeUp(Exception):
+    """The soak's wall-time bound was reached (ends the run; not a fault)."""
 
 
 class SoakMonitor:
@@ -143,18 +141,19 @@ def main() -> int:
             controller = sine_controller(station.hand, station.hand.pregrasp_vector())
         monitor = SoakMonitor(station, args.sample_s, args.wall_minutes * 60)
         monitor.rss[0] = (0.0, rss0)
-        result = run_station_episode(station, controller, steps, logger=monitor)
+        try:
+            result = run_station_episode(station, controller, steps, logger=monitor)
+            done, fault, policy, note = result.steps, result.fault, result.stats["policy"], ""
+        except WallTimeUp as err:  # the station's exit stops the devices as after any episode
+            done, fault, policy, note = len(monitor.step_walls), None, None, f" ({err})"
         monitor.close()
         world = station.world.stats()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     walls = np.asarray(monitor.step_walls[1:]) * 1e3
-    policy = result.stats["policy"]
-    print(f"soak: {scenario.name} {args.minutes:g} simulated min ({result.steps}/{steps} control steps), "
+    print(f"soak: {scenario.name} {args.minutes:g} simulated min ({done}/{steps} control steps), "
           f"controller {'scenario' if args.policy else 'sine'}; wall {wall:.0f} s, CPU {cpu:.0f} s, "
           f"real-time factor {world['real_time_factor']:.2f}")
-    timed_out = result.fault is not None and result.fault.startswith("wall-time limit")
-    fault = None if timed_out else result.fault
-    print(f"  fault: {fault or 'none'}" + (f" ({result.fault})" if timed_out else ""))
+    print(f"  fault: {fault or 'none'}{note}")
     for name, per in (("CAN PD loop (sim clock, deadline 6 ms)", monitor.can),
                       ("Z1 UDP loop (sim clock, deadline 4 ms)", monitor.z1)):
         r = per.report()
@@ -163,8 +162,9 @@ def main() -> int:
     period_ms = scenario.control_period * 1e3
     print(f"  control step (wall, deadline {period_ms:.0f} ms): p50 {np.percentile(walls, 50):.1f} "
           f"p90 {np.percentile(walls, 90):.1f} p99 {np.percentile(walls, 99):.1f} max {walls.max():.1f} ms, "
-          f"missed {int(np.sum(walls > period_ms))} of {walls.size}; sim-clock period p99 "
-          f"{policy['p99_ms']:.2f} ms, non-finite held {policy['non_finite']}, clipped {policy['clipped']}")
+          f"missed {int(np.sum(walls > period_ms))} of {walls.size}"
+          + ("" if policy is None else f"; sim-clock period p99 {policy['p99_ms']:.2f} ms, non-finite held "
+             f"{policy['non_finite']}, clipped {policy['clipped']}"))
     r = monitor.world.report()
     print(f"  world step (wall): p50 {r['p50_ms']:.2f} p99 {r['p99_ms']:.2f} max {r['max_ms']:.2f} ms; "
           f"late hand replies {world['late_replies']:.0f}, late arm commands {world['late_arm_commands']:.0f}")

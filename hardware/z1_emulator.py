@@ -290,6 +290,12 @@ class Z1Emulator:
             self._tau = self._torque()  # the reply reports the torque of the new command
             self._last_cmd = now
 
+    @property
+    def last_command_time(self) -> float:
+        """When (emulator clock) the last valid command was applied; -inf before any."""
+        with self._lock:
+            return self._last_cmd
+
     def command(self) -> ArmCommand:
         """The command the controller is tracking now (a copy)."""
         with self._lock:

@@ -110,7 +110,7 @@ def test_round_trips_and_layout():
     (lambda: JointState(motors=(MotorState(temperature=300), MotorState())).pack(), "range"),
 ])
 def test_validation_errors(make, kind):
-    with pytest.raises(PacketError) as err:
+    with pytest.raises(PacketError, match=rf"^bad Z1 packet \({kind}\): ") as err:
         make()
     assert err.value.kind == kind
 
@@ -119,6 +119,33 @@ def test_flange_posture_at_zero_matches_spec_origins():
     rx, ry, rz, x, y, z = flange_posture(np.zeros(6))
     assert (rx, ry, rz) == pytest.approx((0, 0, 0))
     assert (x, y, z) == pytest.approx((-0.35 + 0.218 + 0.07 + 0.0492, 0.0, 0.0585 + 0.045 + 0.057))
+
+
+def test_flange_posture_matches_the_model_file_away_from_zero():
+    """Roll-pitch-yaw and position of link06 in link00 agree with Drake's kinematics of the
+    allegro_z1 model at random joint angles (at zero every rotation is the identity)."""
+    from pydrake.math import RollPitchYaw
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    from dexdrake.hands.description import load_hand
+
+    plant = MultibodyPlant(0.0)
+    (robot,) = Parser(plant).AddModels(str(load_hand("allegro_z1").model_path))
+    plant.Finalize()
+    ctx = plant.CreateDefaultContext()
+    joints = [plant.GetJointByName(f"joint{i}", robot) for i in range(1, 7)]
+    base, flange = plant.GetFrameByName("link00", robot), plant.GetFrameByName("link06", robot)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        q = rng.uniform(LOWER, UPPER)
+        for joint, angle in zip(joints, q):
+            joint.set_angle(ctx, angle)
+        X = plant.CalcRelativeTransform(ctx, base, flange)
+        rpy = RollPitchYaw(X.rotation()).vector()
+        posture = flange_posture(q)
+        np.testing.assert_allclose(posture[3:], X.translation(), atol=1e-9)
+        np.testing.assert_allclose(posture[:3], rpy, atol=1e-9)
 
 
 def test_default_limits_from_description():
@@ -219,6 +246,35 @@ def test_client_tracks_target(emulator, mode):
     assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
 
 
+def test_state_reports_the_measured_joints_and_posture(emulator):
+    """Before start: INVALID and NaN everywhere, the target held at the clamped zero. While
+    moving toward UPPER: joint velocities of that sign; at rest: the gravity torques the
+    arm holds, the flange posture of the reported q, a fresh time stamp."""
+    from dexdrake.hardware.z1_model import z1_model
+
+    arm = make_arm(emulator)
+    st = arm.state()
+    assert st.fsm == ArmFSMState.INVALID and math.isnan(st.t) and st.fault is None
+    for v, n in ((st.q, 6), (st.dq, 6), (st.tau, 6), (st.posture, 6)):
+        assert v.shape == (n,) and np.all(np.isnan(v))
+    np.testing.assert_array_equal(st.q_target, np.zeros(6))
+    with arm:
+        arm.command_positions(UPPER)
+        assert wait_for(lambda: np.min(arm.state().dq[[0, 1, 3, 4, 5]]) > 0.2, 2.0), arm.state().dq
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(arm.state().q - TARGET)) < 0.002, 4.0)
+        time.sleep(0.1)
+        st = arm.state()
+        assert time.monotonic() - 0.1 < st.t <= time.monotonic()
+        np.testing.assert_allclose(st.dq, 0.0, atol=0.01)
+        np.testing.assert_allclose(st.tau, z1_model().gravity(TARGET), atol=0.05)
+        np.testing.assert_allclose(st.posture, flange_posture(st.q), atol=1e-5)  # q is float32 on the wire
+        np.testing.assert_allclose(st.q_target, TARGET)
+        stats = arm.stats()
+        assert stats["packets_received"] > 10 and stats["packet_errors"] == {}
+        assert stats["fault"] is None and stats["torque_clamped"] == 0
+
+
 def test_velocity_limit_on_targets(emulator):
     """The target moves at the velocity limit (pi rad/s from the model): no faster than the
     elapsed time allows, and not stuck (at least half that rate)."""
@@ -266,7 +322,7 @@ def test_motor_error_trips(emulator):
     with arm:
         emulator.motor_error = (2, 0x04)
         assert wait_for(lambda: arm.state().fault is not None, 1.0)
-        assert "joint3" in arm.state().fault
+        assert "joint3" in arm.state().fault and arm.stats()["fault"] == arm.state().fault
         assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 0.5)
 
 
@@ -288,6 +344,57 @@ def test_malformed_packets_are_counted(emulator):
         assert arm.running
 
 
+def test_restart_holds_where_the_arm_is_not_the_old_target(emulator):
+    """A second session starts from the measured position: the first one's target and
+    reference are forgotten, so the arm does not jump back to them."""
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.01, 3.0)
+    # PASSIVE: the unheld arm sags away from TARGET under gravity
+    assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)
+    with arm:
+        q_start = arm.state().q
+        assert np.max(np.abs(q_start - TARGET)) > 0.3
+        time.sleep(0.3)
+        np.testing.assert_allclose(arm.state().q_target, q_start, atol=0.05)
+        np.testing.assert_allclose(emulator.q, q_start, atol=0.05)
+
+
+def test_start_refusals_name_the_cause(emulator):
+    arm = make_arm(emulator)
+    with arm:
+        with pytest.raises(HardwareError, match="Z1: already started"):
+            arm.start()
+        busy = arm.local_port
+        with pytest.raises(HardwareError, match=f"Z1: cannot bind UDP 127.0.0.1:{busy}"):
+            Z1Arm(Z1Config(local_port=busy, controller_port=emulator.port, lower=LOWER, upper=UPPER)).start()
+        emulator.motor_error = (0, 0x01)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+    emulator.motor_error = None
+    with pytest.raises(HardwareError, match=r"Z1: fault latched \(joint1 motor error 0x01 link 0\); call reset_fault"):
+        arm.start()
+    arm.reset_fault()  # stopped: only the latch clears
+    with arm:
+        assert arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD
+
+
+def test_given_velocity_is_fed_forward_within_the_limit(emulator):
+    """LOWCMD: a caller's dq goes out as the joints' W, clipped to +-max_velocity; without
+    one the reference's own velocity (zero at rest) is sent. Bad dq / tau_ff are refused."""
+    arm = make_arm(emulator, max_velocity=2.0)
+    with arm:
+        dq = np.array([10.0, -10.0, 1.0, -1.0, 0.0, 0.5])
+        arm.command_positions(np.zeros(6), dq=dq)
+        assert wait_for(lambda: np.allclose(emulator.command().dq_d, np.clip(dq, -2.0, 2.0), atol=1e-6), 1.0), \
+            emulator.command().dq_d
+        arm.command_positions(np.zeros(6))
+        assert wait_for(lambda: np.allclose(emulator.command().dq_d, 0.0, atol=1e-6), 1.0)
+        for bad in ({"dq": [math.nan] * 6}, {"dq": [0.0] * 5}, {"tau_ff": [math.inf] * 6}):
+            with pytest.raises(HardwareError, match=f"Z1 {next(iter(bad))}: need 6 finite values"):
+                arm.command_positions(np.zeros(6), **bad)
+
+
 def test_start_without_controller_fails_cleanly():
     free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     free.bind(("127.0.0.1", 0))
@@ -303,6 +410,65 @@ def test_start_without_controller_fails_cleanly():
 def test_official_backend_explains_missing_module():
     with pytest.raises(HardwareError, match="unitree_arm_interface"):
         OfficialZ1(lower=LOWER, upper=UPPER)
+
+
+class FakeSdk:
+    """Stands in for Unitree's `unitree_arm_interface` binding: records every call."""
+
+    class ArmFSMState:
+        PASSIVE = "PASSIVE"
+
+    def __init__(self, q, qd):
+        sdk = self
+        self.calls: list[tuple] = []
+
+        class LowState:
+            def getQ(self):
+                return list(q)
+
+            def getQd(self):
+                return list(qd)
+
+        class ArmInterface:
+            def __init__(self, hasGripper):
+                sdk.calls.append(("init", hasGripper))
+                self.lowstate = LowState()
+
+            def __getattr__(self, name):
+                return lambda *args: sdk.calls.append((name, *args))
+
+        self.ArmInterface = ArmInterface
+
+
+def test_official_backend_clamps_and_passes_the_sdk_calls(monkeypatch):
+    """With the vendor binding importable: LOWCMD from start(), targets clamped into the
+    model's limits (NaN holds the last safe one), zeros for missing dq/tau, PASSIVE on stop."""
+    q_now, qd_now = [0.1, 0.2, -0.3, 0.4, -0.5, 0.6], [0.01] * 6
+    sdk = FakeSdk(q_now, qd_now)
+    monkeypatch.setitem(__import__("sys").modules, "unitree_arm_interface", sdk)
+    arm = OfficialZ1(has_gripper=True)
+    assert sdk.calls == [("init", True)]
+    np.testing.assert_allclose(arm.start(), q_now)
+    assert sdk.calls[-1] == ("setFsmLowcmd",)
+    q, qd = arm.step(np.full(6, 9.0))
+    np.testing.assert_allclose(q, q_now)
+    np.testing.assert_allclose(qd, qd_now)
+    name, q_sent, dq_sent, tau_sent = sdk.calls[-2]
+    assert name == "setArmCmd" and sdk.calls[-1] == ("sendRecv",)
+    np.testing.assert_allclose(q_sent, UPPER, atol=1e-4)  # the model's limits
+    np.testing.assert_array_equal(dq_sent, np.zeros(6))
+    np.testing.assert_array_equal(tau_sent, np.zeros(6))
+    arm.step([math.nan] * 6, dq=np.full(6, 0.5), tau=np.full(6, -2.0))
+    _, q_sent, dq_sent, tau_sent = sdk.calls[-2]
+    np.testing.assert_allclose(q_sent, UPPER, atol=1e-4)  # held
+    np.testing.assert_array_equal(dq_sent, np.full(6, 0.5))
+    np.testing.assert_array_equal(tau_sent, np.full(6, -2.0))
+    arm.stop()
+    assert sdk.calls[-2:] == [("loopOff",), ("setFsm", "PASSIVE")]
+    arm = OfficialZ1(lower=LOWER + 0.5, upper=UPPER - 0.5)
+    arm.start()
+    arm.step([math.nan] * 6)
+    np.testing.assert_allclose(sdk.calls[-2][1], np.clip(q_now, LOWER + 0.5, UPPER - 0.5))  # start's q, clamped
 
 
 # ------------------------------------------------------------------ vendor wire rules
@@ -385,6 +551,20 @@ def test_client_packets_pass_the_controller_checks(mode):
     assert in_mode and all(c.track == (mode == ArmFSMState.JOINTCTRL) for c in in_mode)
 
 
+def settled(emulator: Z1Emulator, timeout: float = 5.0) -> np.ndarray:
+    """The emulated arm's q once it has stopped moving: three 0.1 s windows in a row, each
+    with commands arriving (both threads ran) and every joint moving less than 2e-5 rad."""
+    end, still, q = time.monotonic() + timeout, 0, emulator.q
+    while still < 3:
+        assert time.monotonic() < end, "the arm did not settle"
+        n0, q0 = emulator.commands_received, q
+        time.sleep(0.1)
+        q = emulator.q
+        busy = emulator.commands_received - n0 >= 5
+        still = still + 1 if busy and np.max(np.abs(q - q0)) < 2e-5 else 0
+    return q
+
+
 def test_lowcmd_gravity_feedforward_holds_the_arm_up(emulator):
     """The emulated arm weighs what the model says: without the feed-forward it sags by
     g/(kp*25.6) (about 0.012 rad on joint3 at TARGET), with it it holds the target."""
@@ -399,8 +579,7 @@ def test_lowcmd_gravity_feedforward_holds_the_arm_up(emulator):
         with arm:
             arm.command_positions(TARGET)
             assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.03, 4.0)
-            time.sleep(0.5)
-            errors[ff] = np.abs(emulator.q - TARGET)
+            errors[ff] = np.abs(settled(emulator) - TARGET)
         emulator.stall(0)  # back to PASSIVE between the two runs
         assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
     np.testing.assert_allclose(errors[False][1:4], sag[1:4], rtol=0.2)
@@ -443,6 +622,8 @@ def test_model_gives_limits_gains_and_payload():
     ({"max_velocity": 1e9}, r"max_velocity 1e\+09 rad/s must be in \(0, 3.14159\]"),
     ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
     ({"kp": ("a",) * 6}, "need 6 numbers"),
+    ({"kd": (2000,) * 5}, r"Z1 kd: need 6 finite values"),
+    ({"kp": (-1, 30, 30, 20, 15, 10)}, r"Z1 kp must be >= 0"),
     ({"watchdog_timeout_s": 0.0}, "watchdog_timeout_s must be > 0"),
 ])
 def test_config_beyond_the_model_limits_is_refused(kw, message):

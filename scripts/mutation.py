@@ -62,6 +62,9 @@ TARGETS: dict[str, Target] = {
                                      "x_gaussian_kl*", "x_policy_kl*", "x_fisher_vector_product*"]),
     "dexdrake/learn/dapg.py": Target([LEARN + "test_demo_weight_and_seeds", "tests/test_learn_maths.py"],
                                      ["x_demo_weight*", "x_rollout_seeds*"]),
+    "hardware/z1_udp.py": Target(["tests/test_z1_udp.py", "tests/test_z1_emulator.py", "tests/test_safety.py"]),
+    "hardware/z1_emulator.py": Target(["tests/test_z1_emulator.py", "tests/test_z1_udp.py"]),
+    "hardware/safety.py": Target(["tests/test_safety.py"]),
     # The CAN codec only (the driver loop has its own tests, with threads and timing).
     "hardware/allegro_can.py": Target(
         [CAN + t for t in ("test_codec_round_trip", "test_ids_match_spec_table", "test_spec_real_frames",

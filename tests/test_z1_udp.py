@@ -361,6 +361,99 @@ def test_restart_holds_where_the_arm_is_not_the_old_target(emulator):
         np.testing.assert_allclose(emulator.q, q_start, atol=0.05)
 
 
+def quiet_emulator() -> Z1Emulator:
+    """An emulator that never drops to PASSIVE on its own: what it does, the client asked."""
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, command_timeout_s=30.0))
+    emu.start()
+    return emu
+
+
+def test_stop_commands_passive_and_closes_the_socket():
+    emu = quiet_emulator()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            assert emu.fsm == ArmFSMState.LOWCMD
+        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)  # told, not timed out (30 s)
+        with pytest.raises(HardwareError, match="Z1: not started"):
+            arm.local_port
+    finally:
+        emu.stop()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_crashing_loop_latches_a_fault_and_commands_passive():
+    emu = quiet_emulator()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            def broken(dt):
+                raise RuntimeError("bug in the loop")
+
+            arm._command = broken
+            assert wait_for(lambda: arm.state().fault is not None, 1.0)
+            assert arm.state().fault == "client loop failed: RuntimeError('bug in the loop')"
+            assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)
+            assert wait_for(lambda: not arm.running, 0.5)
+    finally:
+        emu.stop()
+
+
+def test_reset_after_a_fault_holds_where_the_arm_fell(emulator):
+    """While faulted the arm is PASSIVE and sags; reset_fault() re-enters the mode holding
+    that measured position: no jump back to the old reference or target."""
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.01, 3.0)
+        emulator.stall(0.3)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        ms = float(arm.state().fault.split()[-2])
+        assert 200 <= ms < 1000, arm.state().fault  # the silence, in ms (watchdog 0.2 s)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)  # sagged, PASSIVE
+        time.sleep(0.3)  # replies are back
+        arm.reset_fault()
+        assert wait_for(lambda: arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD, 1.0)
+        q_reset = arm.state().q
+        assert np.max(np.abs(q_reset - TARGET)) > 0.3
+        time.sleep(0.3)
+        np.testing.assert_allclose(arm.state().q_target, q_reset, atol=0.05)
+        np.testing.assert_allclose(emulator.q, q_reset, atol=0.05)
+
+
+def test_commands_stay_inside_the_configured_limits_when_the_arm_starts_outside():
+    """The arm rests beyond a lowered limit: the reference starts clamped into the limits
+    and no command ever leaves them."""
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, gravity=False,
+                                      q0=[1.0, 0.5, -0.5, 0.0, 0.0, 0.0]))
+    emu.start()
+    lower, upper = LOWER.copy(), UPPER.copy()
+    upper[0], lower[1], upper[2] = 0.5, 1.0, -1.0
+    try:
+        arm = Z1Arm(Z1Config(local_port=0, controller_port=emu.port, lower=lower, upper=upper,
+                             watchdog_timeout_s=0.2))
+        seen = []
+        with arm:
+            for _ in range(40):
+                cmd = emu.command()
+                if cmd.fsm == ArmFSMState.LOWCMD:
+                    seen.append(cmd.q_d)
+                time.sleep(0.005)
+        seen = np.array(seen)
+        assert len(seen) > 10
+        assert np.all(seen >= lower - 1e-6) and np.all(seen <= upper + 1e-6), (seen.min(0), seen.max(0))
+    finally:
+        emu.stop()
+
+
+def test_loop_runs_at_the_configured_rate(emulator):
+    arm = make_arm(emulator, rate_hz=100.0)
+    with arm:
+        time.sleep(0.5)
+        stats = arm.stats()
+    assert 8.0 < stats["p50_ms"] < 14.0, stats
+
+
 def test_start_refusals_name_the_cause(emulator):
     arm = make_arm(emulator)
     with arm:
@@ -401,10 +494,14 @@ def test_start_without_controller_fails_cleanly():
     port = free.getsockname()[1]
     free.close()
     arm = Z1Arm(Z1Config(local_port=0, controller_port=port, lower=LOWER, upper=UPPER,
-                          mode_timeout_s=0.3))
-    with pytest.raises(HardwareError, match="start failed"):
+                          mode_timeout_s=0.3, watchdog_timeout_s=1.0))
+    with pytest.raises(HardwareError, match=r"^Z1: start failed: controller did not enter LOWCMD "
+                                            rf"\(is z1_controller running on 127.0.0.1:{port}\?\)$"):
         arm.start()
     assert not arm.running
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=port, lower=LOWER, upper=UPPER, mode_timeout_s=0.3))
+    with pytest.raises(HardwareError, match=r"start failed: no Z1 state for \d+ ms"):  # the watchdog first
+        arm.start()
 
 
 def test_official_backend_explains_missing_module():
@@ -596,6 +693,8 @@ def test_feedforward_torque_is_capped_by_the_effort_limits(emulator):
         assert wait_for(lambda: arm.stats()["torque_clamped"] > 5, 1.0)
         cmd = emulator.command()
         np.testing.assert_allclose(cmd.tau_ff, effort)
+        arm.command_positions(np.zeros(6), tau_ff=np.full(6, -1e4))
+        assert wait_for(lambda: np.allclose(emulator.command().tau_ff, -effort), 1.0), emulator.command().tau_ff
     assert arm.state().fault is None
 
 

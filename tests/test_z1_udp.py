@@ -107,6 +107,8 @@ def test_round_trips_and_layout():
     (lambda: SendCmd.unpack(b"\x00\x00" + (1).to_bytes(4, "little") + b"\x00"
                             + struct.pack("<5f", math.nan, 0, 0, 0, 0) + b"\x00" * 120), "nonfinite"),
     (lambda: JointCmd(Pos=math.inf).pack(), "nonfinite"),
+    (lambda: JointCmd.unpack(b"\x00" * 19), "size"),
+    (lambda: JointState.unpack(b"\x00" * 23), "size"),
     (lambda: JointState(motors=(MotorState(temperature=300), MotorState())).pack(), "range"),
 ])
 def test_validation_errors(make, kind):
@@ -258,6 +260,8 @@ def test_state_reports_the_measured_joints_and_posture(emulator):
     for v, n in ((st.q, 6), (st.dq, 6), (st.tau, 6), (st.posture, 6)):
         assert v.shape == (n,) and np.all(np.isnan(v))
     np.testing.assert_array_equal(st.q_target, np.zeros(6))
+    stats = arm.stats()
+    assert stats["packets_received"] == 0 and stats["cycles"] == 0 and stats["packet_errors"] == {}
     with arm:
         arm.command_positions(UPPER)
         assert wait_for(lambda: np.min(arm.state().dq[[0, 1, 3, 4, 5]]) > 0.2, 2.0), arm.state().dq
@@ -720,7 +724,13 @@ def test_model_gives_limits_gains_and_payload():
     ({"kd": (2000,) * 5 + (2500,)}, r"kd\[5\] = 2500 exceeds"),
     ({"max_velocity": 1e9}, r"max_velocity 1e\+09 rad/s must be in \(0, 3.14159\]"),
     ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
-    ({"kp": ("a",) * 6}, "need 6 numbers"),
+    ({"lower": LOWER, "upper": UPPER + 0.1}, "reach outside the model"),
+    ({"max_velocity": math.pi + 0.1}, r"max_velocity 3.24159 rad/s must be in"),
+    ({"max_velocity": 0.0}, r"max_velocity 0 rad/s must be in"),
+    ({"kd": (-1,) * 6}, r"Z1 kd must be >= 0"),
+    ({"lower": LOWER[:5]}, r"Z1 lower: need 6 finite values"),
+    ({"upper": UPPER[:5]}, r"Z1 upper: need 6 finite values"),
+    ({"kp": ("a",) * 6}, "Z1 kp: need 6 numbers"),
     ({"kd": (2000,) * 5}, r"Z1 kd: need 6 finite values"),
     ({"kp": (-1, 30, 30, 20, 15, 10)}, r"Z1 kp must be >= 0"),
     ({"watchdog_timeout_s": 0.0}, "watchdog_timeout_s must be > 0"),
@@ -728,6 +738,27 @@ def test_model_gives_limits_gains_and_payload():
 def test_config_beyond_the_model_limits_is_refused(kw, message):
     with pytest.raises(HardwareError, match=message):
         Z1Arm(Z1Config(local_port=0, **kw))
+
+
+def test_config_at_the_model_limits_and_zero_gains_is_accepted():
+    arm = Z1Arm(Z1Config(local_port=0, kp=(0,) * 6, kd=(0,) * 6, max_velocity=math.pi, lower=LOWER, upper=UPPER))
+    np.testing.assert_array_equal(arm.kp, 0.0)
+    assert arm.settings.max_velocity == math.pi
+    np.testing.assert_array_equal(arm.limits.upper, UPPER)
+    with pytest.raises(HardwareError, match="Z1: not started"):
+        arm.local_port
+
+
+def test_the_injected_clock_drives_the_loop_watchdog_and_time_stamps(emulator):
+    """A clock 1000 s ahead of time.monotonic(): the watchdog and the state's time stamp use
+    it too (a watchdog on another clock would trip at once)."""
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=emulator.port, lower=LOWER, upper=UPPER,
+                         watchdog_timeout_s=0.2), clock=lambda: time.monotonic() + 1000.0)
+    with arm:
+        time.sleep(0.3)
+        st = arm.state()
+        assert st.fault is None and emulator.fsm == ArmFSMState.LOWCMD
+        assert abs(st.t - (time.monotonic() + 1000.0)) < 0.1
 
 
 def test_non_numeric_target_raises_the_drivers_error(emulator):

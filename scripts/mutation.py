@@ -8,7 +8,8 @@ Needs the `mutation` extra (`pip install -e '.[mutation]'`). Each module is muta
 staging copy under `--workdir` (default `.mutation/`), laid out as the package is installed
 (`hardware/` -> `dexdrake/hardware/`, ...) so the tests import the mutated file; only the test
 files that cover the module run. Survivors can be inspected afterwards with
-`cd .mutation/<module> && ../../.venv/bin/mutmut show <name>`. CPU-heavy: run it under `nice`.
+`cd .mutation/<module> && ../../.venv/bin/mutmut show <name>`; every verdict so far is kept in
+`.mutation/<module>.verdicts.json` for `--recheck`. CPU-heavy: run it under `nice`.
 """
 
 from __future__ import annotations
@@ -163,8 +164,12 @@ def main(argv: list[str] | None = None) -> int:
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
         names = [module_prefix(module) + f for f in target.functions]
         before: dict[str, int | None] = {}
-        saved = stage_dir / "verdicts.json"  # every verdict so far (a recheck's mutmut run holds only its own)
+        # every verdict so far (a recheck's mutmut run holds only its own); beside the staging
+        # copy, which each run replaces, so that a failed run loses none
+        saved = stage_dir.with_name(stage_dir.name + ".verdicts.json")
         if args.recheck:  # killed mutants stay killed when tests are only added: re-run the others
+            if not saved.exists():
+                parser.error(f"--recheck: no earlier run of {module} in {args.workdir}")
             before = json.loads(saved.read_text())
             names = [name for name, code in before.items() if code not in KILLED]
         stage(module, tests, stage_dir)

@@ -516,8 +516,11 @@ def test_start_without_controller_fails_cleanly():
 
 
 def test_official_backend_explains_missing_module():
-    with pytest.raises(HardwareError, match="unitree_arm_interface"):
+    with pytest.raises(HardwareError) as err:
         OfficialZ1(lower=LOWER, upper=UPPER)
+    assert str(err.value) == (
+        "unitree_arm_interface is not importable: build it from Unitree's z1_sdk (pybind11, Python 3.8) "
+        "and put its lib folder on sys.path, or use Z1Arm, which speaks the same UDP protocol")
 
 
 class FakeSdk:
@@ -574,9 +577,20 @@ def test_official_backend_clamps_and_passes_the_sdk_calls(monkeypatch):
     arm.stop()
     assert sdk.calls[-2:] == [("loopOff",), ("setFsm", "PASSIVE")]
     arm = OfficialZ1(lower=LOWER + 0.5, upper=UPPER - 0.5)
+    assert sdk.calls[-1] == ("init", False)  # no gripper unless asked
     arm.start()
     arm.step([math.nan] * 6)
     np.testing.assert_allclose(sdk.calls[-2][1], np.clip(q_now, LOWER + 0.5, UPPER - 0.5))  # start's q, clamped
+    for name in ("dq", "tau"):
+        with pytest.raises(HardwareError, match=f"Z1 {name}: need 6 finite values"):
+            arm.step(np.zeros(6), **{name: [math.nan] * 6})
+    # one bound given: it applies, the other comes from the model
+    OfficialZ1(upper=UPPER - 0.5).step(np.full(6, 9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], UPPER - 0.5)
+    OfficialZ1(lower=LOWER + 0.5).step(np.full(6, -9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], LOWER + 0.5)
+    OfficialZ1(lower=LOWER + 0.5).step(np.full(6, 9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], UPPER, atol=1e-4)
 
 
 # ------------------------------------------------------------------ vendor wire rules

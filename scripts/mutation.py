@@ -3,6 +3,7 @@
     .venv/bin/python scripts/mutation.py                       # the default targets below
     .venv/bin/python scripts/mutation.py dexdrake/task.py      # one module, its default tests
     .venv/bin/python scripts/mutation.py hardware/allegro_can.py --tests tests/test_allegro_can.py
+    .venv/bin/python scripts/mutation.py hardware/z1_udp.py --recheck --functions 'xǁOfficialZ1ǁ*'
 
 Needs the `mutation` extra (`pip install -e '.[mutation]'`). Each module is mutated in its own
 staging copy under `--workdir` (default `.mutation/`), laid out as the package is installed
@@ -154,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-children", type=int, default=1, help="parallel test processes")
     parser.add_argument("--recheck", action="store_true",
                         help="re-run only the mutants the last run in --workdir left alive (after adding tests)")
+    parser.add_argument("--functions", nargs="+", metavar="GLOB",
+                        help="only the mutants of these functions, as mutmut names them "
+                             "(e.g. 'x_encode*', 'xǁZ1Armǁstart*'; default: the module's)")
     args = parser.parse_args(argv)
     rows = []
     for module in args.modules:
@@ -162,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
         if not tests:
             parser.error(f"no default tests for {module}; pass --tests")
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
-        names = [module_prefix(module) + f for f in target.functions]
+        functions = args.functions or target.functions
+        names = [module_prefix(module) + f for f in functions]
         before: dict[str, int | None] = {}
         # every verdict so far (a recheck's mutmut run holds only its own); beside the staging
         # copy, which each run replaces, so that a failed run loses none
@@ -171,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
             if not saved.exists():
                 parser.error(f"--recheck: no earlier run of {module} in {args.workdir}")
             before = json.loads(saved.read_text())
-            names = [name for name, code in before.items() if code not in KILLED]
+            names = [name for name, code in before.items()
+                     if code not in KILLED and any(fnmatch(name, pattern) for pattern in names)]
         stage(module, tests, stage_dir)
         log = stage_dir / "mutmut-run.log"
         if names:
@@ -179,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (stage_dir / "mutants" / "mutmut-stats.json").exists():
                 print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
                 return 1
-        rerun = verdicts(stage_dir, module, target.functions) if names else {}
+        rerun = verdicts(stage_dir, module, functions) if names else {}
         codes = before | ({name: rerun[name] for name in names} if args.recheck else rerun)
         saved.write_text(json.dumps(codes, indent=0))
         killed = sum(code in KILLED for code in codes.values())

@@ -282,3 +282,53 @@ def test_period_stats_percentiles_and_empty():
     empty = period_stats([])
     assert empty["cycles"] == 0 and empty["rate_hz"] == 0.0
     assert all(np.isnan(empty[k]) for k in ("mean_ms", "p50_ms", "p99_ms", "max_ms"))
+
+
+def test_joint_limits_more_edges():
+    """Initial holds below the lower limit and for limits that exclude 0, equal limits (a
+    locked joint), a reset above the upper limit, counts over several commands."""
+    lim = JointLimits([-1.0, -1.0], [1.0, 1.0], initial=[-5.0, 0.5])
+    assert lim.last_rejected is False
+    np.testing.assert_array_equal(lim.last_safe, [-1.0, 0.5])
+    np.testing.assert_array_equal(JointLimits([-2.0], [-1.0], initial=[np.nan]).last_safe, [-1.0])
+    np.testing.assert_array_equal(JointLimits([-2.0], [-1.0]).last_safe, [-1.0])
+    locked = JointLimits([0.5, 0.0], [0.5, 1.0])
+    np.testing.assert_array_equal(locked.apply([0.0, 0.5]), [0.5, 0.5])
+    with pytest.raises(HardwareError, match=r"^limits: lower > upper at joints \[1\]$"):
+        JointLimits([0.0, 1.0, 0.5], [1.0, 0.5, 0.5])
+    with pytest.raises(HardwareError, match="^limits: lower and upper must be finite$"):
+        JointLimits([0.0], [np.inf])
+    lim.reset([0.0, 3.0])
+    np.testing.assert_array_equal(lim.apply([np.nan, 0.0]), [0.0, 1.0])
+    lim.apply([2.0, 0.0])
+    lim.apply([0.0, -2.0])
+    assert lim.clamped == 2
+    for bad, name in (("reset", "reset"), ("apply", "command")):
+        with pytest.raises(HardwareError, match=rf"^{name}: expected 2 values, got shape \(3,\)$"):
+            getattr(lim, bad)([0.0, 0.0, 0.0])
+    with pytest.raises(HardwareError, match=r"^initial: expected 2 values"):
+        JointLimits([0, 0], [1, 1], initial=[0.0])
+    with pytest.raises(HardwareError, match="^limits: reset value must be finite$"):
+        lim.reset([np.nan, 0.0])
+
+
+def test_rate_limiter_and_watchdog_messages_and_counts():
+    rl = RateLimiter(1.0, initial=[0.0, 0.0])
+    for call, name in ((rl.reset, "reset"), (lambda v: rl.step(v, 0.1), "target")):
+        with pytest.raises(HardwareError, match=rf"^{name}: expected 2 values"):
+            call([0.0])
+    with pytest.raises(HardwareError, match=r"^rate limiter: reset value must be finite$"):
+        rl.reset([np.nan, 0.0])
+    with pytest.raises(HardwareError, match=r"^rate limiter: target must be finite \(clamp it first\)$"):
+        rl.step([np.inf, 0.0], 0.1)
+    clock = FakeClock(10.2)
+    wd = Watchdog(0.05, clock=clock)
+    wd.feed(now=10.1)  # the given time, not the clock's
+    assert wd.since_last() == pytest.approx(0.1) and wd.expired()
+    wd.feed()
+    assert wd.feeds == 2 and not wd.expired()
+
+
+def test_period_stats_of_two_stamps():
+    s = period_stats([0.0, 0.002])
+    assert s["cycles"] == 2 and s["rate_hz"] == pytest.approx(500.0) and s["max_ms"] == pytest.approx(2.0)

@@ -200,15 +200,15 @@ def test_rate_limiter_reset_and_refusals():
     out[:] = 5.0
     np.testing.assert_allclose(rl.output, [0.32, -0.4])
     for bad in ({"dt": -0.01}, {"dt": np.nan}, {"dt": np.inf}):
-        with pytest.raises(HardwareError, match="dt must be finite and >= 0"):
+        with pytest.raises(HardwareError, match=r"^rate limiter: dt must be finite and >= 0, got "):
             rl.step([0.0, 0.0], **bad)
     with pytest.raises(HardwareError, match="reset value must be finite"):
         rl.reset([np.nan, 0.0])
     for initial in ([[0.0]], [np.nan]):
-        with pytest.raises(HardwareError, match="initial must be a finite 1-D vector"):
+        with pytest.raises(HardwareError, match=r"^rate limiter: initial must be a finite 1-D vector$"):
             RateLimiter(1.0, initial=initial)
     for rate in (np.inf, -1.0, [1.0, 0.0]):
-        with pytest.raises(HardwareError, match="max_rate must be finite and > 0"):
+        with pytest.raises(HardwareError, match=r"^rate limiter: max_rate must be finite and > 0$"):
             RateLimiter(rate, initial=[0.0, 0.0])
 
 
@@ -226,7 +226,7 @@ def test_watchdog_boundary_reset_and_bad_timeouts():
     wd.feed(now=10.2)
     assert wd.since_last() == 0.0 and wd.feeds == 1
     for timeout in (0.0, -1.0, np.nan, np.inf):
-        with pytest.raises(HardwareError, match="timeout must be > 0 s"):
+        with pytest.raises(HardwareError, match=r"^watchdog: timeout must be > 0 s, got "):
             Watchdog(timeout, clock=clock)
 
 

@@ -156,8 +156,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--recheck", action="store_true",
                         help="re-run only the mutants the last run in --workdir left alive (after adding tests)")
     parser.add_argument("--functions", nargs="+", metavar="GLOB",
-                        help="only the mutants of these functions, as mutmut names them "
-                             "(e.g. 'x_encode*', 'xǁZ1Armǁstart*'; default: the module's)")
+                        help="only the mutants of these functions, as mutmut names them (e.g. "
+                             "'x_encode*', 'xǁZ1Armǁstart*'; default: the module's); without --recheck "
+                             "they are run afresh and the module's other verdicts are kept")
     args = parser.parse_args(argv)
     rows = []
     for module in args.modules:
@@ -178,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
             before = json.loads(saved.read_text())
             names = [name for name, code in before.items()
                      if code not in KILLED and any(fnmatch(name, pattern) for pattern in names)]
+        elif args.functions and saved.exists():  # these functions afresh (their code changed), the rest kept
+            before = {name: code for name, code in json.loads(saved.read_text()).items()
+                      if not any(fnmatch(name, pattern) for pattern in names)}
         stage(module, tests, stage_dir)
         log = stage_dir / "mutmut-run.log"
         if names:

@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from dexdrake.hardware.safety import HardwareError
-from dexdrake.hardware.z1_emulator import ArmCommand, SimpleArmDynamics, Z1Emulator, Z1EmulatorConfig
+from dexdrake.hardware.z1_emulator import (
+    ArmCommand,
+    SimpleArmDynamics,
+    Z1Emulator,
+    Z1EmulatorConfig,
+    flange_posture,
+)
 from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
 from dexdrake.hardware.z1_udp import ArmFSMState, JointCmd, PacketError, RecvState, SendCmd
 
@@ -63,6 +69,39 @@ def test_dynamics_stop_at_the_joint_limits():
         np.testing.assert_array_equal(dq, 0.0)  # no velocity into the stop
     q0 = SimpleArmDynamics(np.full(6, 9.0), LOWER, UPPER, [0.05] * 6, 0.5, 5.0, EFFORT).q
     np.testing.assert_allclose(q0, UPPER)
+
+
+def test_flange_posture_at_zero_matches_spec_origins():
+    rx, ry, rz, x, y, z = flange_posture(np.zeros(6))
+    assert (rx, ry, rz) == pytest.approx((0, 0, 0))
+    assert (x, y, z) == pytest.approx((-0.35 + 0.218 + 0.07 + 0.0492, 0.0, 0.0585 + 0.045 + 0.057))
+
+
+def test_flange_posture_matches_the_model_file_away_from_zero():
+    """Roll-pitch-yaw and position of link06 in link00 agree with Drake's kinematics of the
+    allegro_z1 model at random joint angles (at zero every rotation is the identity)."""
+    from pydrake.math import RollPitchYaw
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    from dexdrake.hands.description import load_hand
+
+    plant = MultibodyPlant(0.0)
+    (robot,) = Parser(plant).AddModels(str(load_hand("allegro_z1").model_path))
+    plant.Finalize()
+    ctx = plant.CreateDefaultContext()
+    joints = [plant.GetJointByName(f"joint{i}", robot) for i in range(1, 7)]
+    base, flange = plant.GetFrameByName("link00", robot), plant.GetFrameByName("link06", robot)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        q = rng.uniform(LOWER, UPPER)
+        for joint, angle in zip(joints, q):
+            joint.set_angle(ctx, angle)
+        X = plant.CalcRelativeTransform(ctx, base, flange)
+        rpy = RollPitchYaw(X.rotation()).vector()
+        posture = flange_posture(q)
+        np.testing.assert_allclose(posture[3:], X.translation(), atol=1e-9)
+        np.testing.assert_allclose(posture[:3], rpy, atol=1e-9)
 
 
 class Link:
@@ -241,3 +280,25 @@ def test_socket_life_cycle_errors():
         emu.close()
     with pytest.raises(HardwareError, match="q0 needs 6 values"):
         Z1Emulator(Z1EmulatorConfig(port=0, q0=[0.0] * 5))
+
+
+def test_thread_start_stop_and_context_manager():
+    """In its own thread: answers while running; stop() joins it and closes the socket."""
+    with Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER)) as emu:
+        assert emu._thread is not None and emu._thread.is_alive()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.settimeout(1.0)
+        try:
+            sock.sendto(SendCmd(ArmFSMState.LOWCMD).pack(), ("127.0.0.1", emu.port))
+            assert RecvState.unpack(sock.recv(4096)).state == ArmFSMState.LOWCMD
+        finally:
+            sock.close()
+        thread = emu._thread
+    assert not thread.is_alive() and emu._thread is None
+    with pytest.raises(HardwareError, match="not started"):
+        emu.port
+    emu.start()  # a stopped emulator starts again
+    try:
+        assert emu._thread.is_alive()
+    finally:
+        emu.stop()

@@ -132,39 +132,6 @@ def test_validation_errors(make, kind, detail):
     assert str(err.value).startswith(f"bad Z1 packet ({kind}): {detail}"), str(err.value)
 
 
-def test_flange_posture_at_zero_matches_spec_origins():
-    rx, ry, rz, x, y, z = flange_posture(np.zeros(6))
-    assert (rx, ry, rz) == pytest.approx((0, 0, 0))
-    assert (x, y, z) == pytest.approx((-0.35 + 0.218 + 0.07 + 0.0492, 0.0, 0.0585 + 0.045 + 0.057))
-
-
-def test_flange_posture_matches_the_model_file_away_from_zero():
-    """Roll-pitch-yaw and position of link06 in link00 agree with Drake's kinematics of the
-    allegro_z1 model at random joint angles (at zero every rotation is the identity)."""
-    from pydrake.math import RollPitchYaw
-    from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import MultibodyPlant
-
-    from dexdrake.hands.description import load_hand
-
-    plant = MultibodyPlant(0.0)
-    (robot,) = Parser(plant).AddModels(str(load_hand("allegro_z1").model_path))
-    plant.Finalize()
-    ctx = plant.CreateDefaultContext()
-    joints = [plant.GetJointByName(f"joint{i}", robot) for i in range(1, 7)]
-    base, flange = plant.GetFrameByName("link00", robot), plant.GetFrameByName("link06", robot)
-    rng = np.random.default_rng(4)
-    for _ in range(5):
-        q = rng.uniform(LOWER, UPPER)
-        for joint, angle in zip(joints, q):
-            joint.set_angle(ctx, angle)
-        X = plant.CalcRelativeTransform(ctx, base, flange)
-        rpy = RollPitchYaw(X.rotation()).vector()
-        posture = flange_posture(q)
-        np.testing.assert_allclose(posture[3:], X.translation(), atol=1e-9)
-        np.testing.assert_allclose(posture[:3], rpy, atol=1e-9)
-
-
 def test_default_limits_from_description():
     lo, hi = default_joint_limits()
     np.testing.assert_allclose(lo, LOWER, atol=1e-4)

@@ -302,3 +302,35 @@ def test_thread_start_stop_and_context_manager():
         assert emu._thread.is_alive()
     finally:
         emu.stop()
+
+
+def test_limits_q0_and_state_machine_counts():
+    assert Z1Emulator(Z1EmulatorConfig(port=0)).upper == pytest.approx(UPPER, abs=1e-4)  # the model's
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER + 0.1, upper=UPPER - 0.1, q0=[9.0] * 6))
+    np.testing.assert_allclose(emu.lower, LOWER + 0.1)
+    np.testing.assert_allclose(emu.q, UPPER - 0.1)  # q0 clipped into the limits
+    np.testing.assert_allclose(Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, q0=[-9.0] * 6)).q,
+                               LOWER)
+    link = Link()
+    try:
+        assert link.emu.fsm == ArmFSMState.PASSIVE
+        link.send(SendCmd(ArmFSMState.JOINTCTRL), at=1.0)
+        for _ in range(2):
+            assert link.send(SendCmd(ArmFSMState.LOWCMD), at=1.001).state == ArmFSMState.JOINTCTRL
+        assert link.emu.rejected_transitions == {"JOINTCTRL->LOWCMD": 2}
+        link.sock.sendto(b"\x00" * 5, ("127.0.0.1", link.emu.port))
+        link.emu.poll(1.002, timeout=0.5)
+        assert link.emu.packet_errors == {"size": 1}
+        st = link.send(SendCmd(ArmFSMState.PASSIVE), at=1.003)
+        assert all(j.Acc == 0.0 for j in st.joints)
+        np.testing.assert_allclose(st.posture, flange_posture([j.Pos for j in st.joints[:6]]), atol=1e-5)
+    finally:
+        link.close()
+
+
+def test_one_sub_step_when_the_tick_is_shorter_than_the_physics_step():
+    mid = 0.5 * (LOWER + UPPER)
+    dyn = SimpleArmDynamics(mid, LOWER, UPPER, [0.1] * 6, 0.0, 5.0, EFFORT, physics_dt_s=0.001)
+    q, dq, _ = dyn.step(command(tau_ff=1.0), 0.0005)
+    np.testing.assert_allclose(dq, 10.0 * 0.0005)
+    np.testing.assert_allclose(q - mid, 10.0 * 0.0005**2)  # one semi-implicit Euler step

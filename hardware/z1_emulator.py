@@ -169,10 +169,10 @@ class Z1Emulator:
         lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
                   else (cfg.lower, cfg.upper))
         self.lower, self.upper = np.asarray(lo, float), np.asarray(hi, float)
-        q0 = np.clip(np.zeros(NUM_ARM_JOINTS) if cfg.q0 is None else np.asarray(cfg.q0, float),
-                     self.lower, self.upper)
+        q0 = np.zeros(NUM_ARM_JOINTS) if cfg.q0 is None else np.asarray(cfg.q0, float)
         if q0.shape != (NUM_ARM_JOINTS,):
             raise HardwareError(f"Z1 emulator q0 needs {NUM_ARM_JOINTS} values")
+        q0 = np.clip(q0, self.lower, self.upper)
         self._effort = model.limits.effort.copy()
         self._lock = threading.Lock()
         self._q, self._dq, self._tau = q0, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS)

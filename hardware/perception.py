@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 from pydrake.math import RigidTransform
+from scipy.spatial import cKDTree
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hardware.kinect import CameraIntrinsics, FrameError, RgbdFrame, validate_frame
@@ -323,8 +324,41 @@ def register_model(points_C: np.ndarray, model: ModelCloud,
     return np.linalg.inv(T_OC), fitness, rmse, n, tuple(run_fitness)
 
 
+def model_symmetries(points: np.ndarray, tolerance: float) -> np.ndarray:
+    """The half turns (4x4 in the model frame, about the cloud's centre; the identity first)
+    that map the model cloud onto itself: nearest-neighbour distances below `tolerance` on
+    average and below twice it for 99 % of the points (a handle is no symmetry): twins that
+    registration cannot tell apart (a can upside down)."""
+    tree = cKDTree(points)
+    c = points.mean(axis=0)
+    out = [np.eye(4)]
+    for axis in _HALF_TURN_AXES:
+        F = np.eye(4)
+        F[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)
+        F[:3, 3] = c - F[:3, :3] @ c
+        d = tree.query(points @ F[:3, :3].T + F[:3, 3])[0]
+        if d.mean() < tolerance and np.percentile(d, 99) < 2 * tolerance:
+            out.append(F)
+    return np.array(out)
+
+
+def nearest_twin(X_WO: RigidTransform, symmetries: np.ndarray, prior: RigidTransform | None
+                 ) -> RigidTransform:
+    """Of the poses X_WO * S (S in `symmetries`), the one whose rotation is nearest the
+    prior's or, without a prior, the most upright one (object z nearest world z: library
+    objects start at rest upright); ties keep the first (X_WO itself)."""
+    twins = X_WO.GetAsMatrix4() @ symmetries
+    if prior is None:
+        score = -twins[:, 2, 2]
+    else:
+        score = np.linalg.norm(twins[:, :3, :3] - prior.rotation().matrix(), axis=(1, 2))
+    return RigidTransform(twins[int(np.argmin(score + 1e-9 * np.arange(len(twins))))])
+
+
 class ObjectPoseEstimator:
-    """Segment -> back-project -> register one known CAD mesh; failures become results."""
+    """Segment -> back-project -> register one known CAD mesh; failures become results.
+    Of the model's symmetric twins (`model_symmetries`) the pose nearest a prior is reported
+    (`nearest_twin`), so that a symmetric object does not flip between estimates."""
 
     def __init__(self, mesh_path: str | Path,
                  segmentation: GreenScreenConfig = GreenScreenConfig(),
@@ -333,9 +367,11 @@ class ObjectPoseEstimator:
         self.segmentation = segmentation
         self.registration = registration
         self.model = model_cloud(self.mesh_path, registration)
+        self.symmetries = model_symmetries(self.model.points, 0.5 * registration.voxel)
 
-    def estimate(self, frame: RgbdFrame) -> PoseEstimate:
-        """The object pose in `frame`; invalid input or a poor fit gives success=False."""
+    def estimate(self, frame: RgbdFrame, prior: RigidTransform | None = None) -> PoseEstimate:
+        """The object pose in `frame` (the twin nearest `prior`, a previous pose in the
+        world, or the upright one); invalid input or a poor fit gives success=False."""
         t0 = time.perf_counter()
         try:
             validate_frame(frame)
@@ -357,7 +393,10 @@ class ObjectPoseEstimator:
                                 f"{self.registration.min_points})", num_mask_pixels=n_mask,
                                 num_points=n, elapsed_s=elapsed)
         X_CO = RigidTransform(T_CO)
-        X_WO = frame.X_WC @ X_CO if frame.X_WC is not None else None
+        X_WO = None
+        if frame.X_WC is not None:
+            X_WO = nearest_twin(frame.X_WC @ X_CO, self.symmetries, prior)
+            X_CO = frame.X_WC.inverse() @ X_WO
         ok = fitness >= self.registration.min_fitness
         reason = "" if ok else (f"low fitness {fitness:.2f} < "
                                 f"{self.registration.min_fitness:.2f}")

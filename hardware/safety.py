@@ -125,9 +125,16 @@ class RateLimiter:
             raise HardwareError("rate limiter: target must be finite (clamp it first)")
         if not (np.isfinite(dt) and dt >= 0):
             raise HardwareError(f"rate limiter: dt must be finite and >= 0, got {dt}")
-        delta = np.clip(target - self._out, -self.max_rate * dt, self.max_rate * dt)
-        self._out = self._out + delta
+        self._out = rate_limited(self._out, target, self.max_rate, dt)
         return self._out.copy()
+
+
+def rate_limited(output: np.ndarray, target: np.ndarray, max_rate: np.ndarray | float, dt: float) -> np.ndarray:
+    """`output` moved toward `target` by at most `max_rate * dt` per element: one step of
+    the drivers' target rate limit (RateLimiter), also modelled in simulation
+    (systems/target_limits.py)."""
+    step = np.asarray(max_rate, dtype=float) * dt
+    return output + np.clip(target - output, -step, step)
 
 
 class Watchdog:

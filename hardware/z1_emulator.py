@@ -169,10 +169,10 @@ class Z1Emulator:
         lo, hi = (default_joint_limits() if cfg.lower is None or cfg.upper is None
                   else (cfg.lower, cfg.upper))
         self.lower, self.upper = np.asarray(lo, float), np.asarray(hi, float)
-        q0 = np.clip(np.zeros(NUM_ARM_JOINTS) if cfg.q0 is None else np.asarray(cfg.q0, float),
-                     self.lower, self.upper)
+        q0 = np.zeros(NUM_ARM_JOINTS) if cfg.q0 is None else np.asarray(cfg.q0, float)
         if q0.shape != (NUM_ARM_JOINTS,):
             raise HardwareError(f"Z1 emulator q0 needs {NUM_ARM_JOINTS} values")
+        q0 = np.clip(q0, self.lower, self.upper)
         self._effort = model.limits.effort.copy()
         self._lock = threading.Lock()
         self._q, self._dq, self._tau = q0, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS)
@@ -289,6 +289,12 @@ class Z1Emulator:
                 self._tau_ff = self._own_gravity(self._q_d)
             self._tau = self._torque()  # the reply reports the torque of the new command
             self._last_cmd = now
+
+    @property
+    def last_command_time(self) -> float:
+        """When (emulator clock) the last valid command was applied; -inf before any."""
+        with self._lock:
+            return self._last_cmd
 
     def command(self) -> ArmCommand:
         """The command the controller is tracking now (a copy)."""

@@ -601,8 +601,8 @@ class OfficialZ1:
                 "(pybind11, Python 3.8) and put its lib folder on sys.path, or use Z1Arm, "
                 "which speaks the same UDP protocol") from err
         self._sdk = unitree_arm_interface
-        lo, hi = default_joint_limits() if lower is None or upper is None else (lower, upper)
-        self.limits = JointLimits(lo, hi)
+        lo, hi = default_joint_limits()  # each bound the caller gives replaces the model's
+        self.limits = JointLimits(lo if lower is None else lower, hi if upper is None else upper)
         self.arm = unitree_arm_interface.ArmInterface(hasGripper=has_gripper)
 
     def start(self) -> np.ndarray:

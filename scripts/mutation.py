@@ -3,12 +3,14 @@
     .venv/bin/python scripts/mutation.py                       # the default targets below
     .venv/bin/python scripts/mutation.py dexdrake/task.py      # one module, its default tests
     .venv/bin/python scripts/mutation.py hardware/allegro_can.py --tests tests/test_allegro_can.py
+    .venv/bin/python scripts/mutation.py hardware/z1_udp.py --recheck --functions 'xǁOfficialZ1ǁ*'
 
 Needs the `mutation` extra (`pip install -e '.[mutation]'`). Each module is mutated in its own
 staging copy under `--workdir` (default `.mutation/`), laid out as the package is installed
 (`hardware/` -> `dexdrake/hardware/`, ...) so the tests import the mutated file; only the test
 files that cover the module run. Survivors can be inspected afterwards with
-`cd .mutation/<module> && ../../.venv/bin/mutmut show <name>`. CPU-heavy: run it under `nice`.
+`cd .mutation/<module> && ../../.venv/bin/mutmut show <name>`; every verdict so far is kept in
+`.mutation/<module>.verdicts.json` for `--recheck`. CPU-heavy: run it under `nice`.
 """
 
 from __future__ import annotations
@@ -62,6 +64,9 @@ TARGETS: dict[str, Target] = {
                                      "x_gaussian_kl*", "x_policy_kl*", "x_fisher_vector_product*"]),
     "dexdrake/learn/dapg.py": Target([LEARN + "test_demo_weight_and_seeds", "tests/test_learn_maths.py"],
                                      ["x_demo_weight*", "x_rollout_seeds*"]),
+    "hardware/z1_udp.py": Target(["tests/test_z1_udp.py", "tests/test_z1_emulator.py", "tests/test_safety.py"]),
+    "hardware/z1_emulator.py": Target(["tests/test_z1_emulator.py", "tests/test_z1_udp.py"]),
+    "hardware/safety.py": Target(["tests/test_safety.py"]),
     # The CAN codec only (the driver loop has its own tests, with threads and timing).
     "hardware/allegro_can.py": Target(
         [CAN + t for t in ("test_codec_round_trip", "test_ids_match_spec_table", "test_spec_real_frames",
@@ -150,6 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-children", type=int, default=1, help="parallel test processes")
     parser.add_argument("--recheck", action="store_true",
                         help="re-run only the mutants the last run in --workdir left alive (after adding tests)")
+    parser.add_argument("--functions", nargs="+", metavar="GLOB",
+                        help="only the mutants of these functions, as mutmut names them (e.g. "
+                             "'x_encode*', 'xǁZ1Armǁstart*'; default: the module's); without --recheck "
+                             "they are run afresh and the module's other verdicts are kept")
     args = parser.parse_args(argv)
     rows = []
     for module in args.modules:
@@ -158,12 +167,21 @@ def main(argv: list[str] | None = None) -> int:
         if not tests:
             parser.error(f"no default tests for {module}; pass --tests")
         stage_dir = args.workdir / Path(module).with_suffix("").as_posix().replace("/", "_")
-        names = [module_prefix(module) + f for f in target.functions]
+        functions = args.functions or target.functions
+        names = [module_prefix(module) + f for f in functions]
         before: dict[str, int | None] = {}
-        saved = stage_dir / "verdicts.json"  # every verdict so far (a recheck's mutmut run holds only its own)
+        # every verdict so far (a recheck's mutmut run holds only its own); beside the staging
+        # copy, which each run replaces, so that a failed run loses none
+        saved = stage_dir.with_name(stage_dir.name + ".verdicts.json")
         if args.recheck:  # killed mutants stay killed when tests are only added: re-run the others
+            if not saved.exists():
+                parser.error(f"--recheck: no earlier run of {module} in {args.workdir}")
             before = json.loads(saved.read_text())
-            names = [name for name, code in before.items() if code not in KILLED]
+            names = [name for name, code in before.items()
+                     if code not in KILLED and any(fnmatch(name, pattern) for pattern in names)]
+        elif args.functions and saved.exists():  # these functions afresh (their code changed), the rest kept
+            before = {name: code for name, code in json.loads(saved.read_text()).items()
+                      if not any(fnmatch(name, pattern) for pattern in names)}
         stage(module, tests, stage_dir)
         log = stage_dir / "mutmut-run.log"
         if names:
@@ -171,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (stage_dir / "mutants" / "mutmut-stats.json").exists():
                 print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
                 return 1
-        rerun = verdicts(stage_dir, module, target.functions) if names else {}
+        rerun = verdicts(stage_dir, module, functions) if names else {}
         codes = before | ({name: rerun[name] for name in names} if args.recheck else rerun)
         saved.write_text(json.dumps(codes, indent=0))
         killed = sum(code in KILLED for code in codes.values())

@@ -2,10 +2,20 @@
 and success rule (dexdrake.systems.diagram.run_station_episode, dexdrake.task) on the same objects
 and seeds, once in simulation and once hardware-in-the-loop at each PWM -> N*m scale
 (`--scales`, multiples of allegro_units.NM_PER_PWM, the one place that assumption lives).
-HIL uses rendered perception (`--camera rendered`, the default) or the world's pose (`sim`).
 
-    .venv/bin/python scripts/parity_hil.py --objects box_cube sphere_small --seeds 0 1 \
-        --steps 150 --scales 0.5 1 2 [--out models/weights/parity_hil.md]
+Both sides see the same set-point path: in HIL the drivers clamp and rate-limit the
+set-points (Allegro `max_target_rate`, Z1 `max_velocity` of `--config`); the simulated
+station models the same limits (systems/target_limits.py). HIL uses rendered perception
+(`--camera rendered`, the default: a pose one camera period after its frame, on the
+simulated clock) or the world's pose (`sim`); simulation uses the true pose.
+
+Episodes run in simulation first, then in HIL at the first scale, then at the other scales
+(the sensitivity to the PWM assumption) interleaved episode by episode; the table is
+rewritten after every episode, so a run stopped early leaves a consistent table whose
+"sim, same episodes" column compares each row with simulation on exactly its episodes.
+
+    .venv/bin/python scripts/parity_hil.py --objects can_soda lightbulb --seeds 0 1 \
+        --steps 150 --scales 1 0.5 2 [--out models/weights/parity_hil.md]
 """
 
 from __future__ import annotations
@@ -32,11 +42,54 @@ def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, c
         scenario.hil.pwm_torque_scale = scale
         scenario.drivers.camera.kind = camera
     controller, _ = make_controller(scenario)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     with make_station(scenario) as station:
         result = run_station_episode(station, controller, steps)
     return {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": result.success,
-            "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0}
+            "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0,
+            "cpu_s": time.process_time() - cpu0}
+
+
+def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
+    """The parity table (markdown) of the episodes in `rows`."""
+    from dexdrake.hands.allegro_units import NM_PER_PWM
+    from dexdrake.systems.scenario import load_scenario
+
+    hand = load_scenario(config).drivers
+    lines = [f"Command: `{command}`", "",
+             "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults | "
+             "sim, same episodes: success / lift (m) | successes (object/seed) |",
+             "|---|---|---|---|---|---|---|---|"]
+    sim = {(r["object"], r["seed"]): r for r in rows if r["mode"] == "sim"}
+    for mode, scale in modes:
+        sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale]
+        if not sel:
+            continue
+        same = [sim[r["object"], r["seed"]] for r in sel if (r["object"], r["seed"]) in sim]
+        wins = " ".join(f"{r['object']}/{r['seed']}" for r in sel if r["success"]) or "-"
+        lines.append(f"| {mode} | {'-' if mode == 'sim' else f'{scale:g} x'} | {len(sel)} | "
+                     f"{np.mean([r['success'] for r in sel]):.0%} | "
+                     f"{np.nanmean([r['lift'] for r in sel]):.3f} | {sum(bool(r['fault']) for r in sel)} | "
+                     f"{np.mean([r['success'] for r in same]):.0%} / {np.nanmean([r['lift'] for r in same]):.3f} | "
+                     f"{wins} |")
+    rate = hand.hand.max_target_rate
+    lines += ["", f"NM_PER_PWM = 1/{1 / NM_PER_PWM:g} N*m per PWM count (dexdrake/hands/allegro_units.py). "
+              f"Set-points in both modes: joint limits, Allegro target rate "
+              f"{'driver default' if rate is None else f'{rate:g} rad/s'}, Z1 "
+              f"{'model velocity limit' if hand.arm.max_velocity is None else f'{hand.arm.max_velocity:g} rad/s'} "
+              f"({config}); load average {os.getloadavg()[0]:.1f}; CPU per episode (this process, not the "
+              "perception worker): "
+              + ", ".join(f"{m}{'' if m == 'sim' else f' {s:g}x'} "
+                          f"{np.mean([r['cpu_s'] for r in rows if r['mode'] == m and r['scale'] == s]):.0f} s"
+                          for m, s in modes if any(r["mode"] == m and r["scale"] == s for r in rows)) + "."]
+    return "\n".join(lines)
+
+
+def write_atomic(path: str, text: str) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        f.write(text + "\n")
+    os.replace(tmp, path)
 
 
 def main() -> int:
@@ -45,38 +98,27 @@ def main() -> int:
     parser.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--scales", nargs="+", type=float, default=[0.5, 1.0, 2.0])
+    parser.add_argument("--scales", nargs="+", type=float, default=[1.0, 0.5, 2.0])
     parser.add_argument("--camera", choices=["rendered", "sim"], default="rendered")
-    parser.add_argument("--out", help="write the table (markdown) here as well")
+    parser.add_argument("--out", help="write the table (markdown) here as well, after every episode")
     args = parser.parse_args()
-    rows = []
-    for obj in args.objects:
-        for seed in args.seeds:
-            for mode, scale in [("sim", 1.0)] + [("hil", s) for s in args.scales]:
-                row = run(args.config, obj, seed, args.steps, mode, scale, args.camera)
-                rows.append(row)
-                print(f"  {obj:14s} seed {seed} {mode} x{scale:g}: success {row['success']} lift "
-                      f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s)", flush=True)
-    command = ("python scripts/parity_hil.py --objects " + " ".join(args.objects) + " --seeds "
-               + " ".join(map(str, args.seeds)) + f" --steps {args.steps} --scales "
+    command = ("python scripts/parity_hil.py --config " + args.config + " --objects " + " ".join(args.objects)
+               + " --seeds " + " ".join(map(str, args.seeds)) + f" --steps {args.steps} --scales "
                + " ".join(f"{s:g}" for s in args.scales) + f" --camera {args.camera}")
-    lines = [f"Command: `{command}`", "",
-             "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults |",
-             "|---|---|---|---|---|---|"]
-    for mode, scale in [("sim", 1.0)] + [("hil", s) for s in args.scales]:
-        sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale]
-        lines.append(f"| {mode} | {'-' if mode == 'sim' else f'{scale:g} x'} | {len(sel)} | "
-                     f"{np.mean([r['success'] for r in sel]):.0%} | "
-                     f"{np.nanmean([r['lift'] for r in sel]):.3f} | {sum(bool(r['fault']) for r in sel)} |")
-    lines += ["", f"NM_PER_PWM = 1/200 N*m per PWM count (dexdrake/hands/allegro_units.py); "
-                  f"load average {os.getloadavg()[0]:.1f}."]
-    table = "\n".join(lines)
-    print(table)
-    if args.out:
-        tmp = args.out + ".tmp"
-        with open(tmp, "w") as f:
-            f.write(table + "\n")
-        os.replace(tmp, args.out)
+    modes = [("sim", 1.0)] + [("hil", s) for s in args.scales]
+    episodes = [(obj, seed) for seed in args.seeds for obj in args.objects]
+    order = [(mode, scale, obj, seed) for mode, scale in modes[:2] for obj, seed in episodes]
+    order += [(mode, scale, obj, seed) for obj, seed in episodes for mode, scale in modes[2:]]
+    rows: list[dict] = []
+    for mode, scale, obj, seed in order:
+        row = run(args.config, obj, seed, args.steps, mode, scale, args.camera)
+        rows.append(row)
+        print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
+              f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
+              f"{row['cpu_s']:.0f} s CPU)", flush=True)
+        if args.out:
+            write_atomic(args.out, table(rows, modes, command, args.config))
+    print(table(rows, modes, command, args.config))
     return 0
 
 

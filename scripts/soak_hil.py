@@ -11,9 +11,11 @@ with --policy, the scenario's own controller. Sampled every `--sample-s` of simu
            time) and its period on the simulated clock;
   world: the wall time of each plant step and the late hand replies it counted;
   memory: resident set size (VmRSS) of this process.
-Faults end the run early and are reported.
+Faults end the run early and are reported. `--wall-minutes` bounds the run's wall time as
+well (a loaded host runs the world slower than real time): the run then ends at the
+control step where it is reached, and says how much simulated time it covered.
 
-    .venv/bin/python scripts/soak_hil.py --minutes 10 [--config configs/hil.yaml] [--policy]
+    .venv/bin/python scripts/soak_hil.py --minutes 10 [--wall-minutes 40] [--config configs/hil.yaml] [--policy]
 """
 
 from __future__ import annotations
@@ -59,11 +61,17 @@ class _Periods:
                 "max_ms": float(p.max()), "missed": int(np.sum(p > self.deadline_s * 1e3))}
 
 
-class SoakMonitor:
-    """Duck-types the episode logger (`log_step`): samples the loops every `sample_s`."""
+class WallTimeUp(Exception):
+    """The soak's wall-time bound was reached (ends the run; not a fault)."""
 
-    def __init__(self, station, sample_s: float):
+
+class SoakMonitor:
+    """Duck-types the episode logger (`log_step`): samples the loops every `sample_s` and
+    ends the run (WallTimeUp) once `wall_limit_s` of wall time have passed."""
+
+    def __init__(self, station, sample_s: float, wall_limit_s: float = np.inf):
         self.station = station
+        self.wall_end = time.perf_counter() + wall_limit_s
         self.every = max(1, round(sample_s / station.scenario.control_period))
         self.can = _Periods(2 * 0.003)
         self.z1 = _Periods(2 * 0.002)
@@ -85,6 +93,8 @@ class SoakMonitor:
         if k % self.every == 0:
             self.sample()
             self.rss.append((context.get_time(), rss_mb()))
+        if now > self.wall_end:
+            raise WallTimeUp(f"wall-time limit reached at t = {context.get_time():.1f} s simulated")
 
     def close(self) -> None:
         self.sample()
@@ -109,6 +119,8 @@ def main() -> int:
     parser.add_argument("--minutes", type=float, default=10.0, help="simulated minutes")
     parser.add_argument("--policy", action="store_true", help="the scenario's controller, not the sine")
     parser.add_argument("--perception", action="store_true", help="keep the scenario's camera")
+    parser.add_argument("--wall-minutes", type=float, default=np.inf,
+                        help="end the run after this much wall time even if --minutes is not reached")
     parser.add_argument("--sample-s", type=float, default=5.0)
     args = parser.parse_args()
 
@@ -127,18 +139,21 @@ def main() -> int:
     with make_station(scenario) as station:
         if controller is None:
             controller = sine_controller(station.hand, station.hand.pregrasp_vector())
-        monitor = SoakMonitor(station, args.sample_s)
+        monitor = SoakMonitor(station, args.sample_s, args.wall_minutes * 60)
         monitor.rss[0] = (0.0, rss0)
-        result = run_station_episode(station, controller, steps, logger=monitor)
+        try:
+            result = run_station_episode(station, controller, steps, logger=monitor)
+            done, fault, policy, note = result.steps, result.fault, result.stats["policy"], ""
+        except WallTimeUp as err:  # the station's exit stops the devices as after any episode
+            done, fault, policy, note = len(monitor.step_walls), None, None, f" ({err})"
         monitor.close()
         world = station.world.stats()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     walls = np.asarray(monitor.step_walls[1:]) * 1e3
-    policy = result.stats["policy"]
-    print(f"soak: {scenario.name} {args.minutes:g} simulated min ({result.steps}/{steps} control steps), "
+    print(f"soak: {scenario.name} {args.minutes:g} simulated min ({done}/{steps} control steps), "
           f"controller {'scenario' if args.policy else 'sine'}; wall {wall:.0f} s, CPU {cpu:.0f} s, "
           f"real-time factor {world['real_time_factor']:.2f}")
-    print(f"  fault: {result.fault or 'none'}")
+    print(f"  fault: {fault or 'none'}{note}")
     for name, per in (("CAN PD loop (sim clock, deadline 6 ms)", monitor.can),
                       ("Z1 UDP loop (sim clock, deadline 4 ms)", monitor.z1)):
         r = per.report()
@@ -147,18 +162,20 @@ def main() -> int:
     period_ms = scenario.control_period * 1e3
     print(f"  control step (wall, deadline {period_ms:.0f} ms): p50 {np.percentile(walls, 50):.1f} "
           f"p90 {np.percentile(walls, 90):.1f} p99 {np.percentile(walls, 99):.1f} max {walls.max():.1f} ms, "
-          f"missed {int(np.sum(walls > period_ms))} of {walls.size}; sim-clock period p99 "
-          f"{policy['p99_ms']:.2f} ms, non-finite held {policy['non_finite']}, clipped {policy['clipped']}")
+          f"missed {int(np.sum(walls > period_ms))} of {walls.size}"
+          + ("" if policy is None else f"; sim-clock period p99 {policy['p99_ms']:.2f} ms, non-finite held "
+             f"{policy['non_finite']}, clipped {policy['clipped']}"))
     r = monitor.world.report()
     print(f"  world step (wall): p50 {r['p50_ms']:.2f} p99 {r['p99_ms']:.2f} max {r['max_ms']:.2f} ms; "
-          f"late hand replies {world['late_replies']:.0f}")
+          f"late hand replies {world['late_replies']:.0f}, late arm commands {world['late_arm_commands']:.0f}")
     rss = [m for _, m in monitor.rss]
     print(f"  memory (RSS): start {rss[0]:.0f} MiB, after set-up {rss[1]:.0f} MiB, end {rss[-1]:.0f} MiB "
           f"(growth after set-up {rss[-1] - rss[1]:+.1f} MiB over {len(rss) - 2} samples)")
     print(f"  load average {__import__('os').getloadavg()[0]:.1f}")
     print(f"command: .venv/bin/python scripts/soak_hil.py --config {args.config} --minutes {args.minutes:g}"
+          + (f" --wall-minutes {args.wall_minutes:g}" if np.isfinite(args.wall_minutes) else "")
           + (" --policy" if args.policy else "") + (" --perception" if args.perception else ""))
-    return 1 if result.fault else 0
+    return 1 if fault else 0
 
 
 if __name__ == "__main__":

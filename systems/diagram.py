@@ -148,11 +148,11 @@ class StationEpisode:
                                     scene.hand.pregrasp_vector())
         elif station.world is None:  # real: the devices run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
+        if station.world is not None:  # pause the world where the episode starts (lockstep;
+            station.world.advance_to(station.world.time)  # the drivers run on its clock)
+            self._world_paused = True
         if station.perception is not None:
             _await_first_pose(station)
-        if station.world is not None:  # pause the world where the episode starts (lockstep)
-            station.world.advance_to(station.world.time)
-            self._world_paused = True
         self.built.hold_measured(self.context)
         self.simulator.Initialize()
         self.t_start, self.k, self.period = self.context.get_time(), 0, period

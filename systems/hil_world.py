@@ -24,7 +24,9 @@ Timing design (correctness must not depend on how the host schedules threads):
   services both emulators (they stream the frames that are due on the simulated clock),
   and, when a position batch went out with the servo on, waits (at most `reply_timeout_s`
   of wall time) for the driver's 4 torque frames before the next step: the PD always acts on
-  the newest positions, exactly one CAN cycle old, however slow the host is.
+  the newest positions, exactly one CAN cycle old, however slow the host is. Likewise, once
+  the Z1 client talks, a step at which its next tick is due waits (as long) for its command,
+  so the arm's set-points reach the world on the client's 2 ms ticks on a loaded host too.
 - Lockstep with the control loop. `advance_to(t)` lets the world run up to `t` and waits
   for it there: the station's control loop calls it once per control period, so each
   policy step sees the world at the same simulated time whatever the host's speed
@@ -53,7 +55,7 @@ from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.safety import HardwareError, period_stats
 from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConfig
 from dexdrake.hardware.z1_model import z1_model
-from dexdrake.hardware.z1_udp import ArmFSMState
+from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config
 from dexdrake.systems.scenario import Scenario
 
 
@@ -130,6 +132,8 @@ class HilWorld:
         self._horizon = math.inf  # the world pauses here (advance_to)
         self.steps = 0
         self.late_replies = 0  # hand cycles whose torques did not come within reply_timeout_s
+        self.late_arm_commands = 0  # Z1 ticks whose command did not come within reply_timeout_s
+        self._arm_period = 1.0 / Z1Config.rate_hz  # the Z1 client's tick (it sends one command)
         self._wall0: float | None = None
         self._step_walls: collections.deque[float] = collections.deque(maxlen=20000)
         self._push_inputs()
@@ -161,7 +165,8 @@ class HilWorld:
         wall = 0.0 if self._wall0 is None else time.monotonic() - self._wall0
         out = {"steps": float(self.steps), "sim_time_s": self._t, "wall_s": wall,
                "real_time_factor": self._t / wall if wall > 0 else float("nan"),
-               "lag_s": max(wall - self._t, 0.0), "late_replies": float(self.late_replies)}
+               "lag_s": max(wall - self._t, 0.0), "late_replies": float(self.late_replies),
+               "late_arm_commands": float(self.late_arm_commands)}
         step = period_stats(list(self._step_walls))
         out.update(step_p50_ms=step["p50_ms"], step_p99_ms=step["p99_ms"], step_max_ms=step["max_ms"])
         return out
@@ -251,6 +256,13 @@ class HilWorld:
                 hand.poll(now, left)
             if hand.torque_pending:
                 self.late_replies += 1
+        if arm.commands_received and now - arm.last_command_time >= self._arm_period - 1e-9:
+            n = arm.commands_received  # the client talks: wait for its command of this tick
+            deadline = time.monotonic() + self.scenario.hil.reply_timeout_s
+            while arm.commands_received == n and (left := deadline - time.monotonic()) > 0:
+                arm.poll(now, left)
+            if arm.commands_received == n:
+                self.late_arm_commands += 1
         self.steps += 1
 
     # -------------------------------------------------------------- thread

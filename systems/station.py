@@ -4,14 +4,17 @@ Every mode exposes the same ports (policy joint order of the hand description):
   input  "command"      joint position set-points (n)
   output "hand_state"   measured [q; v] (2n)
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
-sim:  the Drake grasp scene (systems/scene.py).
+sim:  the Drake grasp scene (systems/scene.py); built by make_station, its set-points are
+      clamped and rate-limited as the drivers would (systems/target_limits.py), so that
+      sim and hil agree.
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
       every device and the control loop run on its simulated clock, in lockstep with the
       hand's PD loop and never faster than real time: see systems/hil_world.py); object
       pose from PerceptionSystem (rendered RGB-D of the world -> segmentation ->
-      registration, in a worker process; it paces itself on the wall clock) or, with
+      registration, in a worker process; during the episode on the simulated clock, each
+      pose used one camera period after its frame) or, with
       camera kind "sim", straight from the world.
 real: the same driver systems on socketcan / the real z1_controller, and a K4A camera.
 
@@ -135,15 +138,16 @@ def _worker_init(mesh_path: str) -> None:
 
 
 def _worker_estimate(color: np.ndarray, depth: np.ndarray, intrinsics: tuple,
-                     X_WC: np.ndarray | None) -> dict:
-    """Segment + register one frame (in the perception worker process)."""
+                     X_WC: np.ndarray | None, prior: np.ndarray | None = None) -> dict:
+    """Segment + register one frame (in the perception worker process); of a symmetric
+    object's twins the pose nearest `prior` (the last pose, 4x4) is kept."""
     from dexdrake.hardware.kinect import CameraIntrinsics, RgbdFrame
     from dexdrake.hardware.perception import backproject, segment_object, transform_points
 
     est = _WORKER["estimator"]
     pose_C = None if X_WC is None else RigidTransform(X_WC)
     frame = RgbdFrame(color, depth, CameraIntrinsics(*intrinsics), 0.0, pose_C)
-    result = est.estimate(frame)
+    result = est.estimate(frame, None if prior is None else RigidTransform(prior))
     mask = segment_object(frame, est.segmentation)
     cloud = backproject(frame.depth, frame.intrinsics, mask)
     if pose_C is not None and len(cloud):
@@ -176,14 +180,23 @@ class PerceptionLog:
 class PerceptionSystem(LeafSystem):
     """Object pose from a camera: every `period_s` a frame is read (`read_frame()`) and
     handed to `executor` (`_worker_estimate`); results arrive asynchronously. Output
-    "object_pose" (7) holds the last good pose; see the module doc for the failure rules."""
+    "object_pose" (7) holds the last good pose; see the module doc for the failure rules.
+
+    With `simulated_clock` (hil) the episode's frames are paced on the diagram's simulated
+    clock and each estimate is used exactly `period_s` of simulated time after its frame
+    (an update that finds it unfinished waits: the world is paused at the control step), so
+    the pose latency does not depend on the host's speed. Otherwise (real, and while
+    waiting for the first pose) the wall clock paces it and estimates are used on arrival."""
 
     def __init__(self, read_frame: Callable[[], object], executor: cf.Executor,
                  camera: CameraDriver, estimate: Callable = _worker_estimate,
-                 on_result: Callable[[PerceptionLog], None] | None = None):
+                 on_result: Callable[[PerceptionLog], None] | None = None,
+                 simulated_clock: bool = False):
         super().__init__()
         self._read_frame, self._executor, self._estimate = read_frame, executor, estimate
         self.camera = camera
+        self.simulated_clock = simulated_clock
+        self._due = -np.inf  # simulated_clock: when the pending estimate is to be used
         self.on_result = on_result
         self.log = PerceptionLog()
         self._future: cf.Future | None = None
@@ -202,16 +215,23 @@ class PerceptionSystem(LeafSystem):
         self._pending_frame = frame
         k = frame.intrinsics
         X_WC = None if frame.X_WC is None else frame.X_WC.GetAsMatrix4()
+        prior = pose_from_vector(self.pose).GetAsMatrix4() if self.has_pose else None
         self._future = self._executor.submit(self._estimate, frame.color, frame.depth,
-                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC)
+                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC, prior)
 
-    def poll(self, sim_time: float = 0.0) -> None:
-        """Collect a finished estimate and start the next one when due (plain method)."""
-        now = time.monotonic()
+    def poll(self, sim_time: float | None = None) -> None:
+        """Collect a finished estimate and start the next one when due (plain method);
+        `sim_time` is the diagram's time (it paces the system with `simulated_clock`)."""
+        wall = time.monotonic()
         if self._t0 is None:
-            self._t0 = now
+            self._t0 = wall
+        on_sim = self.simulated_clock and sim_time is not None
+        now = sim_time if on_sim else wall
         cam, log = self.camera, self.log
-        if self._future is not None and self._future.done():
+        due = not on_sim or now >= self._due - 1e-9
+        if on_sim and due and self._future is not None:
+            cf.wait([self._future])
+        if self._future is not None and self._future.done() and due:
             try:
                 result = self._future.result()
             except Exception as err:  # a crashed worker is a perception failure
@@ -226,17 +246,17 @@ class PerceptionSystem(LeafSystem):
             else:
                 log.failures += 1
                 log.consecutive_failures += 1
-                log.events.append(f"t={sim_time:.2f}s: {result['reason']}")
+                log.events.append(f"t={sim_time or 0.0:.2f}s: {result['reason']}")
                 if log.consecutive_failures >= cam.max_consecutive_failures and (
                         cam.on_failure == "stop" or not self.has_pose):
                     raise StationFault(f"perception failed {log.consecutive_failures} times in a "
                                        f"row (last: {result['reason']})")
             if self.on_result is not None:
                 self.on_result(log)
-        if not self.has_pose and now - self._t0 > cam.first_pose_timeout_s:
+        if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
             raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
-        if self._future is None and now >= self._next_request:
-            self._next_request = now + cam.period_s
+        if self._future is None and now >= self._next_request - 1e-9:
+            self._next_request = self._due = now + cam.period_s
             self._submit()
 
     def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
@@ -248,6 +268,8 @@ class PerceptionSystem(LeafSystem):
             time.sleep(0.02)
 
     def _init(self, context: Context, state: DiscreteValues) -> None:
+        if self.simulated_clock:  # the episode starts: pace on the simulated clock from here
+            self._next_request = self._due = context.get_time()
         state.set_value(0, self.pose)
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
@@ -354,7 +376,7 @@ def make_station(scenario: Scenario) -> Station:
     For hil/real the devices run from here on: use the result as a context manager (or call
     `stop()`) so that they are stopped safely."""
     if scenario.mode == "sim":
-        return sim_station(scenario)
+        return sim_station(scenario, driver_limits=True)
     stack = contextlib.ExitStack()
     try:
         return _device_station(scenario, stack)
@@ -371,15 +393,25 @@ def scene_config(scenario: Scenario):
                        time_step=scenario.time_step, control_period=scenario.control_period)
 
 
-def sim_station(scenario: Scenario, scene=None) -> Station:
+def sim_station(scenario: Scenario, scene=None, driver_limits: bool = False) -> Station:
     """The sim station of `scenario` around its grasp scene (`scene`, default: built from
-    the scenario's scene_config)."""
+    the scenario's scene_config). With `driver_limits` (make_station) its set-points pass
+    the drivers' limits and target rates (systems/target_limits.py), so that sim and hil
+    agree; GraspEnv (training) does not limit them yet."""
     from dexdrake.systems.scene import build_grasp_scene
+    from dexdrake.systems.target_limits import TargetLimiter, target_limits
 
     scene = scene or build_grasp_scene(scene_config(scenario))
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
-    builder.ExportInput(sub.GetInputPort("command"), "command")
+    if driver_limits:
+        limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
+            *target_limits(scenario, scene.hand), scenario.time_step))
+        builder.ExportInput(limiter.GetInputPort("command"), "command")
+        builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
+        builder.Connect(limiter.GetOutputPort("target"), sub.GetInputPort("command"))
+    else:
+        builder.ExportInput(sub.GetInputPort("command"), "command")
     for name in PORTS["outputs"]:
         builder.ExportOutput(sub.GetOutputPort(name), name)
     return Station(scenario, builder.Build(), scene.hand, scene=scene)
@@ -517,7 +549,8 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
         read_frame = _camera_reader(scenario, world, stack)
         executor = perception_executor(str(get_object(scenario.object).mesh_path))
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
-        perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(read_frame, executor, cam))
+        perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
+            read_frame, executor, cam, simulated_clock=scenario.mode == "hil"))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
     station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
     station._stop = stack.pop_all()

@@ -215,8 +215,9 @@ def test_rate_limit_on_targets(rig):
         time.sleep(0.1)
         step = np.max(np.abs(hand.state().q_target - start))
         elapsed = time.monotonic() - t0
-        # joint 1 is commanded 1.6 rad away: far more than 0.1 s at 3 rad/s
-        assert 0.5 * 3.0 * 0.1 <= step <= 3.0 * elapsed + 0.01, (step, elapsed)
+        # joint 1 is commanded 1.6 rad away: far more than 0.1 s at 3 rad/s. The upper bound
+        # allows 20 ms for `start`, a snapshot up to one (possibly delayed) cycle old
+        assert 0.5 * 3.0 * 0.1 <= step <= 3.0 * (elapsed + 0.02), (step, elapsed)
 
 
 def test_watchdog_on_stalled_stream_then_reset(rig):
@@ -510,7 +511,7 @@ def test_restart_refused_while_fault_latched(rig):
     hand.reset_fault()
     time.sleep(0.6)  # the stall is over
     hand.start()
-    assert wait_for(lambda: hand.stats()["cycles"] > 3 and emu.servo_on, 1.0)
+    assert wait_for(lambda: hand.stats()["cycles"] > 3 and emu.servo_on, 3.0)  # generous: a loaded host
     assert hand.state().fault is None
 
 

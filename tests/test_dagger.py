@@ -96,6 +96,7 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert [r["driver"] for r in rows] == ["expert", "policy"]
     assert [int(r["samples_total"]) for r in rows] == [100, 200]  # aggregated
     assert float(rows[0]["success_rate"]) == 1.0  # the expert grasps the small sphere
+    assert all(float(r["hold_val_loss"]) > 0 and float(r["train_loss"]) > 0 for r in rows)
     policy, meta = load_policy(final)
     assert policy.config.feature_set == "Hand2obj" and meta["iteration"] == 0  # the only measured policy
     before = (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns
@@ -108,6 +109,23 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert (tmp_path / "c" / "dagger_policy.pt").is_file()
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
+
+
+def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.learn.dagger import hold_still_loss
+    from dexdrake.learn.demo_dataset import DemoDataset
+
+    hand = load_hand("adroit")
+    lo, hi = hand.joint_limits()
+    q = np.random.default_rng(0).uniform(lo, hi, (4, len(lo)))
+    obs = np.hstack([q, np.ones((4, 5))]).astype(np.float32)  # joint positions lead the observation
+    held = (q - (hi + lo) / 2) / ((hi - lo) / 2)
+    actions = held.copy()
+    actions[1, 0] += 0.5  # one sample's first set-point off by 0.5 (normalised)
+    data = DemoDataset(obs, actions.astype(np.float32))
+    assert hold_still_loss(data, np.array([0, 2, 3]), hand) == pytest.approx(0.0, abs=1e-9)
+    assert hold_still_loss(data, np.array([0, 1]), hand) == pytest.approx(0.25 / 2, rel=1e-4)
 
 
 def test_best_measured_iteration(tmp_path):

@@ -314,3 +314,27 @@ def test_registration_recovers_a_rendered_pose(rendered, l_shape, cache):
     assert np.degrees(err.rotation().ToAngleAxis().angle()) < 2.0
     np.testing.assert_allclose((frame.X_WC @ result.X_CO).GetAsMatrix4(),
                                result.X_WO.GetAsMatrix4())
+
+
+def test_symmetric_twins_are_found_and_the_one_nearest_the_prior_is_reported():
+    """A cylinder registers equally well upside down: the estimator reports the upright twin
+    (library objects start upright) and later the twin nearest the previous pose."""
+    from dexdrake.hardware.perception import model_symmetries, nearest_twin
+
+    rng = np.random.default_rng(0)
+    theta, z = rng.uniform(-np.pi, np.pi, 3000), rng.uniform(-0.05, 0.05, 3000)
+    cyl = np.c_[0.03 * np.cos(theta), 0.03 * np.sin(theta), z]
+    twins = model_symmetries(cyl, 0.004)
+    assert len(twins) > 2  # half turns about z and horizontal axes
+    flips = [F for F in twins if F[2, 2] < 0]
+    assert flips and np.all([np.allclose(F[:3, :3] @ F[:3, :3].T, np.eye(3)) for F in twins])
+    lumpy = np.r_[cyl, [[0.05, 0.0, 0.04]] * 200]  # a handle-like lump: no symmetry left
+    assert len(model_symmetries(lumpy, 0.004)) == 1
+    upright = RigidTransform(RollPitchYaw(0.0, 0.0, 0.7), [0.0, 0.0, 0.05])
+    flipped = upright @ RigidTransform(flips[0])
+    chosen = nearest_twin(flipped, twins, prior=None)
+    assert chosen.rotation().matrix()[2, 2] > 0.999
+    tilted = RigidTransform(RollPitchYaw(0.0, np.pi - 0.3, 0.0), [0.0, 0.0, 0.05])
+    kept = nearest_twin(tilted, twins, prior=tilted)  # the prior wins over uprightness
+    assert np.allclose(kept.GetAsMatrix4(), tilted.GetAsMatrix4())
+    assert np.allclose(nearest_twin(upright, twins, None).GetAsMatrix4(), upright.GetAsMatrix4())

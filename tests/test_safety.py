@@ -153,3 +153,182 @@ def test_fuzzed_udp_datagrams_are_counted_and_faults_latched():
     assert result["client_bad"] > 100 and result["emulator_bad"] > 100
     assert result["client_fault"] > 0 and any("motor error" in k for k in result["faults_latched"])
     assert {"size", "head", "nonfinite"} <= set(result["emulator_packet_errors"])
+
+
+# ------------------------------------------------------------------ edges (from surviving mutants)
+def test_vectors_broadcast_scalars_and_name_bad_input():
+    rl = RateLimiter(0.5, initial=[0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(rl.max_rate, [0.5, 0.5, 0.5])
+    with pytest.raises(HardwareError, match=r"^max_rate: expected 3 values, got shape \(2,\)$"):
+        RateLimiter([1.0, 1.0], initial=[0.0, 0.0, 0.0])
+    with pytest.raises(HardwareError, match=r"^command: expected 2 numbers, got 'ab'$"):
+        JointLimits([0, 0], [1, 1]).apply("ab")
+    with pytest.raises(HardwareError, match="expected 2 numbers"):
+        JointLimits([0, 0], [1, 1]).apply([None, [1]])
+
+
+def test_joint_limits_initial_reset_and_copies():
+    lim = JointLimits([-1.0, -1.0], [1.0, 1.0], initial=[5.0, -0.5])
+    np.testing.assert_array_equal(lim.last_safe, [1.0, -0.5])  # clamped into the limits
+    np.testing.assert_array_equal(JointLimits([0.5], [1.0], initial=[np.nan]).last_safe, [0.5])
+    held = lim.last_safe
+    held[:] = 9.0  # a copy: the driver's hold value is not changed through it
+    np.testing.assert_array_equal(lim.apply([np.nan, 0.0]), [1.0, -0.5])
+    lim.reset([-3.0, 0.25])
+    np.testing.assert_array_equal(lim.apply([np.nan, 0.0]), [-1.0, 0.25])
+    with pytest.raises(HardwareError, match="reset value must be finite"):
+        lim.reset([np.inf, 0.0])
+    out = lim.apply([0.5, 0.5])
+    out[:] = 7.0
+    np.testing.assert_array_equal(lim.apply([np.nan, np.nan]), [0.5, 0.5])
+    assert lim.size == 2 and lim.clamped == 0 and lim.rejected == 3
+    with pytest.raises(HardwareError, match="must be equal 1-D"):
+        JointLimits(np.zeros((2, 2)), np.ones((2, 2)))
+    with pytest.raises(HardwareError, match=r"lower > upper at joints \[1\]"):
+        JointLimits([0.0, 1.0], [1.0, 0.5])
+    with pytest.raises(HardwareError, match="finite"):
+        JointLimits([0.0], [np.inf])
+
+
+def test_rate_limiter_reset_and_refusals():
+    rl = RateLimiter([1.0, 1.0], initial=[0.0, 0.0])
+    rl.reset([0.3, -0.3])
+    np.testing.assert_allclose(rl.step([0.3, -0.3], dt=0.1), [0.3, -0.3])  # at the target: stays
+    np.testing.assert_allclose(rl.step([0.32, -0.5], dt=0.1), [0.32, -0.4])  # within the step: reached
+    np.testing.assert_allclose(rl.step([0.32, -0.4], dt=0.0), [0.32, -0.4])
+    out = rl.output
+    out[:] = 5.0
+    np.testing.assert_allclose(rl.output, [0.32, -0.4])
+    for bad in ({"dt": -0.01}, {"dt": np.nan}, {"dt": np.inf}):
+        with pytest.raises(HardwareError, match=r"^rate limiter: dt must be finite and >= 0, got "):
+            rl.step([0.0, 0.0], **bad)
+    with pytest.raises(HardwareError, match="reset value must be finite"):
+        rl.reset([np.nan, 0.0])
+    for initial in ([[0.0]], [np.nan]):
+        with pytest.raises(HardwareError, match=r"^rate limiter: initial must be a finite 1-D vector$"):
+            RateLimiter(1.0, initial=initial)
+    for rate in (np.inf, -1.0, [1.0, 0.0]):
+        with pytest.raises(HardwareError, match=r"^rate limiter: max_rate must be finite and > 0$"):
+            RateLimiter(rate, initial=[0.0, 0.0])
+
+
+def test_watchdog_boundary_reset_and_bad_timeouts():
+    clock = FakeClock(0.0)
+    wd = Watchdog(0.05, clock=clock)
+    clock.t = 0.05
+    assert not wd.expired() and wd.since_last() == 0.05  # expires only after the timeout
+    clock.t = 10.2
+    assert wd.expired()
+    wd.reset()
+    assert not wd.expired() and wd.feeds == 0
+    wd.reset(now=10.0)
+    assert wd.since_last(now=10.03) == pytest.approx(0.03) and wd.expired()
+    wd.feed(now=10.2)
+    assert wd.since_last() == 0.0 and wd.feeds == 1
+    for timeout in (0.0, -1.0, np.nan, np.inf):
+        with pytest.raises(HardwareError, match=r"^watchdog: timeout must be > 0 s, got "):
+            Watchdog(timeout, clock=clock)
+
+
+def test_safe_stop_on_sigterm_and_restores_even_if_stop_fails():
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        with safe_stop_on_exit(lambda: None):
+            os.kill(os.getpid(), signal.SIGTERM)
+    assert signal.getsignal(signal.SIGTERM) is before
+
+    def failing_stop():
+        raise RuntimeError("stop failed")
+
+    with pytest.raises(RuntimeError, match="stop failed"):
+        with safe_stop_on_exit(failing_stop):
+            assert signal.getsignal(signal.SIGINT) is not before
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_safe_stop_context_starts_stops_and_stops_after_a_failed_start():
+    from dexdrake.hardware.safety import SafeStopContext
+
+    class Driver(SafeStopContext):
+        def __init__(self, fail=False):
+            self.calls, self.fail = [], fail
+
+        def start(self):
+            self.calls.append("start")
+            if self.fail:
+                raise HardwareError("no device")
+
+        def stop(self):
+            self.calls.append("stop")
+
+    driver = Driver()
+    with driver as entered:
+        assert entered is driver and driver.calls == ["start"]
+    assert driver.calls == ["start", "stop"]
+    driver.__exit__(None, None, None)  # a second exit stops nothing more
+    assert driver.calls == ["start", "stop"]
+    failing = Driver(fail=True)
+    with pytest.raises(HardwareError, match="no device"):
+        with failing:
+            pass
+    assert failing.calls == ["start", "stop"]
+
+
+def test_period_stats_percentiles_and_empty():
+    times = np.cumsum([0.0] + [0.002] * 98 + [0.012])
+    s = period_stats(times)
+    assert s["cycles"] == 100 and s["p50_ms"] == pytest.approx(2.0) and s["max_ms"] == pytest.approx(12.0)
+    assert 2.0 < s["p99_ms"] < 12.0
+    empty = period_stats([])
+    assert empty["cycles"] == 0 and empty["rate_hz"] == 0.0
+    assert all(np.isnan(empty[k]) for k in ("mean_ms", "p50_ms", "p99_ms", "max_ms"))
+
+
+def test_joint_limits_more_edges():
+    """Initial holds below the lower limit and for limits that exclude 0, equal limits (a
+    locked joint), a reset above the upper limit, counts over several commands."""
+    lim = JointLimits([-1.0, -1.0], [1.0, 1.0], initial=[-5.0, 0.5])
+    assert lim.last_rejected is False
+    np.testing.assert_array_equal(lim.last_safe, [-1.0, 0.5])
+    np.testing.assert_array_equal(JointLimits([-2.0], [-1.0], initial=[np.nan]).last_safe, [-1.0])
+    np.testing.assert_array_equal(JointLimits([-2.0], [-1.0]).last_safe, [-1.0])
+    locked = JointLimits([0.5, 0.0], [0.5, 1.0])
+    np.testing.assert_array_equal(locked.apply([0.0, 0.5]), [0.5, 0.5])
+    with pytest.raises(HardwareError, match=r"^limits: lower > upper at joints \[1\]$"):
+        JointLimits([0.0, 1.0, 0.5], [1.0, 0.5, 0.5])
+    with pytest.raises(HardwareError, match="^limits: lower and upper must be finite$"):
+        JointLimits([0.0], [np.inf])
+    lim.reset([0.0, 3.0])
+    np.testing.assert_array_equal(lim.apply([np.nan, 0.0]), [0.0, 1.0])
+    lim.apply([2.0, 0.0])
+    lim.apply([0.0, -2.0])
+    assert lim.clamped == 2
+    for bad, name in (("reset", "reset"), ("apply", "command")):
+        with pytest.raises(HardwareError, match=rf"^{name}: expected 2 values, got shape \(3,\)$"):
+            getattr(lim, bad)([0.0, 0.0, 0.0])
+    with pytest.raises(HardwareError, match=r"^initial: expected 2 values"):
+        JointLimits([0, 0], [1, 1], initial=[0.0])
+    with pytest.raises(HardwareError, match="^limits: reset value must be finite$"):
+        lim.reset([np.nan, 0.0])
+
+
+def test_rate_limiter_and_watchdog_messages_and_counts():
+    rl = RateLimiter(1.0, initial=[0.0, 0.0])
+    for call, name in ((rl.reset, "reset"), (lambda v: rl.step(v, 0.1), "target")):
+        with pytest.raises(HardwareError, match=rf"^{name}: expected 2 values"):
+            call([0.0])
+    with pytest.raises(HardwareError, match=r"^rate limiter: reset value must be finite$"):
+        rl.reset([np.nan, 0.0])
+    with pytest.raises(HardwareError, match=r"^rate limiter: target must be finite \(clamp it first\)$"):
+        rl.step([np.inf, 0.0], 0.1)
+    clock = FakeClock(10.2)
+    wd = Watchdog(0.05, clock=clock)
+    wd.feed(now=10.1)  # the given time, not the clock's
+    assert wd.since_last() == pytest.approx(0.1) and wd.expired()
+    wd.feed()
+    assert wd.feeds == 2 and not wd.expired()
+
+
+def test_period_stats_of_two_stamps():
+    s = period_stats([0.0, 0.002])
+    assert s["cycles"] == 2 and s["rate_hz"] == pytest.approx(500.0) and s["max_ms"] == pytest.approx(2.0)

@@ -288,7 +288,7 @@ def _perception(outcomes, on_failure="hold", max_failures=2):
 
     results = iter(outcomes)
 
-    def estimate(color, depth, intrinsics, X_WC):
+    def estimate(color, depth, intrinsics, X_WC, prior=None):
         X = next(results)
         return {"success": X is not None, "reason": "segmentation found no object" if X is None else "",
                 "X_WO": X, "fitness": 0.9 if X is not None else 0.0}
@@ -296,6 +296,45 @@ def _perception(outcomes, on_failure="hold", max_failures=2):
     camera = CameraDriver(kind="rendered", period_s=1e-6, first_pose_timeout_s=5.0,
                           max_consecutive_failures=max_failures, on_failure=on_failure)
     return PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate)
+
+
+def test_perception_on_the_simulated_clock_uses_each_pose_one_period_after_its_frame():
+    """hil: the latency is period_s of simulated time, however fast or slow the worker."""
+    import threading
+
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem
+
+    frames, release = [], threading.Event()
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None):
+        release.wait(5.0)  # the first estimate finishes only when the test says so
+        X = np.eye(4)
+        X[0, 3] = len(frames)
+        return {"success": True, "reason": "", "X_WO": X, "fitness": 1.0}
+
+    def read_frame():
+        frames.append(1)
+        return _Frame()
+
+    camera = CameraDriver(kind="rendered", period_s=0.1)
+    system = PerceptionSystem(read_frame, cf.ThreadPoolExecutor(1), camera, estimate,
+                              simulated_clock=True)
+    system.poll(0.0)  # frame 1 at t = 0
+    release.set()
+    cf.wait([system._future])
+    system.poll(0.05)  # finished, but not due yet: not used
+    assert not system.has_pose and len(frames) == 1
+    release.clear()
+    threading.Timer(0.2, release.set).start()
+    system.poll(0.1)  # due: waits for the worker, uses it, takes frame 2
+    assert system.has_pose and system.pose[0] == 1 and len(frames) == 2
+    release.set()
+    cf.wait([system._future])
+    system.poll(0.15)
+    assert system.pose[0] == 1
+    system.poll(0.2)
+    assert system.pose[0] == 2 and len(frames) == 3
 
 
 def _drain(system, polls: int):

@@ -92,33 +92,44 @@ def test_round_trips_and_layout():
     js = JointState(T=2.0, W=0.5, Acc=-1.0, Pos=0.25,
                     motors=(MotorState(40, 0x04, 0x40), MotorState(-5, 0, 0)))
     assert JointState.unpack(js.pack()) == js and js.motors[0].link == 1
-    st = RecvState(ArmFSMState.JOINTCTRL, (js,) * 7, (0.1, 0.2, 0.3, 0.4, 0.5, 0.75))
+    st = RecvState(ArmFSMState.JOINTCTRL, (js,) * 7, (0.1, 0.2, 0.3, 0.4, 0.5, 0.75), head=(3, 4))
     raw = st.pack()
     assert struct.unpack_from("<6d", raw, 208 - 48) == st.posture
     assert RecvState.unpack(raw) == st
 
 
-@pytest.mark.parametrize("make, kind", [
-    (lambda: SendCmd.unpack(b"\x00" * 146), "size"),
-    (lambda: RecvState.unpack(b"\x00" * 209), "size"),
-    (lambda: SendCmd.unpack(b"\x00\x00" + (17).to_bytes(4, "little") + b"\x00" * 141), "enum"),
-    (lambda: RecvState.unpack(b"\x00\x00" + (2**31 - 1).to_bytes(4, "little") + b"\x00" * 202), "enum"),
-    (lambda: SendCmd.unpack(b"\x00\x00" + (1).to_bytes(4, "little") + b"\x02" + b"\x00" * 140), "range"),
+NAN_POSTURE = RecvState(ArmFSMState.PASSIVE).pack()[:-8] + struct.pack("<d", math.nan)
+
+
+@pytest.mark.parametrize("make, kind, detail", [
+    (lambda: SendCmd.unpack(b"\x00" * 146), "size", "SendCmd is 147 bytes, got 146"),
+    (lambda: RecvState.unpack(b"\x00" * 209), "size", "RecvState is 208 bytes, got 209"),
+    (lambda: JointCmd.unpack(b"\x00" * 19), "size", "JointCmd is 20 bytes, got 19"),
+    (lambda: JointState.unpack(b"\x00" * 23), "size", "JointState is 22 bytes, got 23"),
+    (lambda: SendCmd(ArmFSMState.PASSIVE, (JointCmd(),) * 6).pack(), "size", "SendCmd needs 7 JointCmd, got 6"),
+    (lambda: RecvState(ArmFSMState.PASSIVE, posture=(0.0,) * 5).pack(), "size",
+     "RecvState needs 7 joint states and a 6-value posture"),
+    (lambda: SendCmd.unpack(b"\x00\x00" + (17).to_bytes(4, "little") + b"\x00" * 141), "enum",
+     "ArmFSMState 17 outside 0..16"),
+    (lambda: RecvState.unpack(b"\x00\x00" + (2**31 - 1).to_bytes(4, "little") + b"\x00" * 202), "enum",
+     "ArmFSMState 2147483647 outside 0..16"),
+    (lambda: SendCmd.unpack(b"\x00\x00" + (1).to_bytes(4, "little") + b"\x02" + b"\x00" * 140), "range",
+     "SendCmd track byte 2 is not a bool"),
     (lambda: SendCmd.unpack(b"\x00\x00" + (1).to_bytes(4, "little") + b"\x00"
-                            + struct.pack("<5f", math.nan, 0, 0, 0, 0) + b"\x00" * 120), "nonfinite"),
-    (lambda: JointCmd(Pos=math.inf).pack(), "nonfinite"),
-    (lambda: JointState(motors=(MotorState(temperature=300), MotorState())).pack(), "range"),
+                            + struct.pack("<5f", math.nan, 0, 0, 0, 0) + b"\x00" * 120), "nonfinite",
+     "JointCmd has non-finite values (nan, 0.0, 0.0, 0.0, 0.0)"),
+    (lambda: JointCmd(Pos=math.inf).pack(), "nonfinite", "JointCmd has non-finite values (0.0, 0.0, inf, 0.0, 0.0)"),
+    (lambda: JointState(Acc=math.nan).pack(), "nonfinite", "JointState has non-finite values (0.0, 0.0, nan, 0.0)"),
+    (lambda: RecvState(ArmFSMState.PASSIVE, posture=(0.0,) * 5 + (math.inf,)).pack(), "nonfinite",
+     "posture has non-finite values (0.0, 0.0, 0.0, 0.0, 0.0, inf)"),
+    (lambda: RecvState.unpack(NAN_POSTURE), "nonfinite", "posture has non-finite values (0.0, 0.0, 0.0, 0.0, 0.0, nan)"),
+    (lambda: JointState(motors=(MotorState(temperature=300), MotorState())).pack(), "range", "motor state"),
 ])
-def test_validation_errors(make, kind):
+def test_validation_errors(make, kind, detail):
     with pytest.raises(PacketError) as err:
         make()
     assert err.value.kind == kind
-
-
-def test_flange_posture_at_zero_matches_spec_origins():
-    rx, ry, rz, x, y, z = flange_posture(np.zeros(6))
-    assert (rx, ry, rz) == pytest.approx((0, 0, 0))
-    assert (x, y, z) == pytest.approx((-0.35 + 0.218 + 0.07 + 0.0492, 0.0, 0.0585 + 0.045 + 0.057))
+    assert str(err.value).startswith(f"bad Z1 packet ({kind}): {detail}"), str(err.value)
 
 
 def test_default_limits_from_description():
@@ -219,6 +230,37 @@ def test_client_tracks_target(emulator, mode):
     assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
 
 
+def test_state_reports_the_measured_joints_and_posture(emulator):
+    """Before start: INVALID and NaN everywhere, the target held at the clamped zero. While
+    moving toward UPPER: joint velocities of that sign; at rest: the gravity torques the
+    arm holds, the flange posture of the reported q, a fresh time stamp."""
+    from dexdrake.hardware.z1_model import z1_model
+
+    arm = make_arm(emulator)
+    st = arm.state()
+    assert st.fsm == ArmFSMState.INVALID and math.isnan(st.t) and st.fault is None
+    for v, n in ((st.q, 6), (st.dq, 6), (st.tau, 6), (st.posture, 6)):
+        assert v.shape == (n,) and np.all(np.isnan(v))
+    np.testing.assert_array_equal(st.q_target, np.zeros(6))
+    stats = arm.stats()
+    assert stats["packets_received"] == 0 and stats["cycles"] == 0 and stats["packet_errors"] == {}
+    with arm:
+        arm.command_positions(UPPER)
+        assert wait_for(lambda: np.min(arm.state().dq[[0, 1, 3, 4, 5]]) > 0.2, 2.0), arm.state().dq
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(arm.state().q - TARGET)) < 0.002, 4.0)
+        time.sleep(0.1)
+        st = arm.state()
+        assert time.monotonic() - 0.1 < st.t <= time.monotonic()
+        np.testing.assert_allclose(st.dq, 0.0, atol=0.01)
+        np.testing.assert_allclose(st.tau, z1_model().gravity(TARGET), atol=0.05)
+        np.testing.assert_allclose(st.posture, flange_posture(st.q), atol=1e-5)  # q is float32 on the wire
+        np.testing.assert_allclose(st.q_target, TARGET)
+        stats = arm.stats()
+        assert stats["packets_received"] > 10 and stats["packet_errors"] == {}
+        assert stats["fault"] is None and stats["torque_clamped"] == 0
+
+
 def test_velocity_limit_on_targets(emulator):
     """The target moves at the velocity limit (pi rad/s from the model): no faster than the
     elapsed time allows, and not stuck (at least half that rate)."""
@@ -266,7 +308,7 @@ def test_motor_error_trips(emulator):
     with arm:
         emulator.motor_error = (2, 0x04)
         assert wait_for(lambda: arm.state().fault is not None, 1.0)
-        assert "joint3" in arm.state().fault
+        assert "joint3" in arm.state().fault and arm.stats()["fault"] == arm.state().fault
         assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 0.5)
 
 
@@ -288,21 +330,234 @@ def test_malformed_packets_are_counted(emulator):
         assert arm.running
 
 
+def test_restart_holds_where_the_arm_is_not_the_old_target(emulator):
+    """A second session starts from the measured position: the first one's target and
+    reference are forgotten, so the arm does not jump back to them."""
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.01, 3.0)
+    # PASSIVE: the unheld arm sags away from TARGET under gravity
+    assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)
+    with arm:
+        q_start = arm.state().q
+        assert np.max(np.abs(q_start - TARGET)) > 0.3
+        time.sleep(0.3)
+        np.testing.assert_allclose(arm.state().q_target, q_start, atol=0.05)
+        np.testing.assert_allclose(emulator.q, q_start, atol=0.05)
+
+
+def quiet_emulator() -> Z1Emulator:
+    """An emulator that never drops to PASSIVE on its own: what it does, the client asked."""
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, command_timeout_s=30.0))
+    emu.start()
+    return emu
+
+
+def test_stop_commands_passive_and_closes_the_socket():
+    emu = quiet_emulator()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            assert emu.fsm == ArmFSMState.LOWCMD
+        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)  # told, not timed out (30 s)
+        with pytest.raises(HardwareError, match="Z1: not started"):
+            arm.local_port
+    finally:
+        emu.stop()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_crashing_loop_latches_a_fault_and_commands_passive():
+    emu = quiet_emulator()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            def broken(dt):
+                raise RuntimeError("bug in the loop")
+
+            arm._command = broken
+            assert wait_for(lambda: arm.state().fault is not None, 1.0)
+            assert arm.state().fault == "client loop failed: RuntimeError('bug in the loop')"
+            assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)
+            assert wait_for(lambda: not arm.running, 0.5)
+    finally:
+        emu.stop()
+
+
+def test_reset_after_a_fault_holds_where_the_arm_fell(emulator):
+    """While faulted the arm is PASSIVE and sags; reset_fault() re-enters the mode holding
+    that measured position: no jump back to the old reference or target."""
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.01, 3.0)
+        emulator.stall(0.3)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        ms = float(arm.state().fault.split()[-2])
+        assert 200 <= ms < 5000, arm.state().fault  # the silence, in ms (watchdog 0.2 s)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)  # sagged, PASSIVE
+        time.sleep(0.3)  # replies are back
+        arm.reset_fault()
+        assert wait_for(lambda: arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD, 1.0)
+        q_reset = arm.state().q
+        assert np.max(np.abs(q_reset - TARGET)) > 0.3
+        time.sleep(0.3)
+        np.testing.assert_allclose(arm.state().q_target, q_reset, atol=0.05)
+        np.testing.assert_allclose(emulator.q, q_reset, atol=0.05)
+
+
+def test_commands_stay_inside_the_configured_limits_when_the_arm_starts_outside():
+    """The arm rests beyond a lowered limit: the reference starts clamped into the limits
+    and no command ever leaves them."""
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, gravity=False,
+                                      q0=[1.0, 0.5, -0.5, 0.0, 0.0, 0.0]))
+    emu.start()
+    lower, upper = LOWER.copy(), UPPER.copy()
+    upper[0], lower[1], upper[2] = 0.5, 1.0, -1.0
+    try:
+        arm = Z1Arm(Z1Config(local_port=0, controller_port=emu.port, lower=lower, upper=upper,
+                             watchdog_timeout_s=0.2))
+        seen = []
+        with arm:
+            for _ in range(40):
+                cmd = emu.command()
+                if cmd.fsm == ArmFSMState.LOWCMD:
+                    seen.append(cmd.q_d)
+                time.sleep(0.005)
+        seen = np.array(seen)
+        assert len(seen) > 10
+        assert np.all(seen >= lower - 1e-6) and np.all(seen <= upper + 1e-6), (seen.min(0), seen.max(0))
+    finally:
+        emu.stop()
+
+
+def test_start_refusals_name_the_cause(emulator):
+    arm = make_arm(emulator)
+    with arm:
+        with pytest.raises(HardwareError, match="Z1: already started"):
+            arm.start()
+        busy = arm.local_port
+        with pytest.raises(HardwareError, match=f"Z1: cannot bind UDP 127.0.0.1:{busy}"):
+            Z1Arm(Z1Config(local_port=busy, controller_port=emulator.port, lower=LOWER, upper=UPPER)).start()
+        emulator.motor_error = (0, 0x01)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+    emulator.motor_error = None
+    with pytest.raises(HardwareError, match=r"Z1: fault latched \(joint1 motor error 0x01 link 0\); call reset_fault"):
+        arm.start()
+    arm.reset_fault()  # stopped: only the latch clears
+    with arm:
+        assert arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD
+
+
+def test_given_velocity_is_fed_forward_within_the_limit(emulator):
+    """LOWCMD: a caller's dq goes out as the joints' W, clipped to +-max_velocity; without
+    one the reference's own velocity (zero at rest) is sent. Bad dq / tau_ff are refused."""
+    arm = make_arm(emulator, max_velocity=2.0)
+    with arm:
+        dq = np.array([10.0, -10.0, 1.0, -1.0, 0.0, 0.5])
+        arm.command_positions(np.zeros(6), dq=dq)
+        assert wait_for(lambda: np.allclose(emulator.command().dq_d, np.clip(dq, -2.0, 2.0), atol=1e-6), 1.0), \
+            emulator.command().dq_d
+        arm.command_positions(np.zeros(6))
+        assert wait_for(lambda: np.allclose(emulator.command().dq_d, 0.0, atol=1e-6), 1.0)
+        for bad in ({"dq": [math.nan] * 6}, {"dq": [0.0] * 5}, {"tau_ff": [math.inf] * 6}):
+            with pytest.raises(HardwareError, match=f"Z1 {next(iter(bad))}: need 6 finite values"):
+                arm.command_positions(np.zeros(6), **bad)
+
+
 def test_start_without_controller_fails_cleanly():
     free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     free.bind(("127.0.0.1", 0))
     port = free.getsockname()[1]
     free.close()
     arm = Z1Arm(Z1Config(local_port=0, controller_port=port, lower=LOWER, upper=UPPER,
-                          mode_timeout_s=0.3))
-    with pytest.raises(HardwareError, match="start failed"):
+                          mode_timeout_s=0.3, watchdog_timeout_s=1.0))
+    with pytest.raises(HardwareError, match=r"^Z1: start failed: controller did not enter LOWCMD "
+                                            rf"\(is z1_controller running on 127.0.0.1:{port}\?\)$"):
         arm.start()
     assert not arm.running
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=port, lower=LOWER, upper=UPPER, mode_timeout_s=0.3))
+    with pytest.raises(HardwareError, match=r"start failed: no Z1 state for \d+ ms"):  # the watchdog first
+        arm.start()
 
 
 def test_official_backend_explains_missing_module():
-    with pytest.raises(HardwareError, match="unitree_arm_interface"):
+    with pytest.raises(HardwareError) as err:
         OfficialZ1(lower=LOWER, upper=UPPER)
+    assert str(err.value) == (
+        "unitree_arm_interface is not importable: build it from Unitree's z1_sdk (pybind11, Python 3.8) "
+        "and put its lib folder on sys.path, or use Z1Arm, which speaks the same UDP protocol")
+
+
+class FakeSdk:
+    """Stands in for Unitree's `unitree_arm_interface` binding: records every call."""
+
+    class ArmFSMState:
+        PASSIVE = "PASSIVE"
+
+    def __init__(self, q, qd):
+        sdk = self
+        self.calls: list[tuple] = []
+
+        class LowState:
+            def getQ(self):
+                return list(q)
+
+            def getQd(self):
+                return list(qd)
+
+        class ArmInterface:
+            def __init__(self, hasGripper):
+                sdk.calls.append(("init", hasGripper))
+                self.lowstate = LowState()
+
+            def __getattr__(self, name):
+                return lambda *args: sdk.calls.append((name, *args))
+
+        self.ArmInterface = ArmInterface
+
+
+def test_official_backend_clamps_and_passes_the_sdk_calls(monkeypatch):
+    """With the vendor binding importable: LOWCMD from start(), targets clamped into the
+    model's limits (NaN holds the last safe one), zeros for missing dq/tau, PASSIVE on stop."""
+    q_now, qd_now = [0.1, 0.2, -0.3, 0.4, -0.5, 0.6], [0.01] * 6
+    sdk = FakeSdk(q_now, qd_now)
+    monkeypatch.setitem(__import__("sys").modules, "unitree_arm_interface", sdk)
+    arm = OfficialZ1(has_gripper=True)
+    assert sdk.calls == [("init", True)]
+    np.testing.assert_allclose(arm.start(), q_now)
+    assert sdk.calls[-1] == ("setFsmLowcmd",)
+    q, qd = arm.step(np.full(6, 9.0))
+    np.testing.assert_allclose(q, q_now)
+    np.testing.assert_allclose(qd, qd_now)
+    name, q_sent, dq_sent, tau_sent = sdk.calls[-2]
+    assert name == "setArmCmd" and sdk.calls[-1] == ("sendRecv",)
+    np.testing.assert_allclose(q_sent, UPPER, atol=1e-4)  # the model's limits
+    np.testing.assert_array_equal(dq_sent, np.zeros(6))
+    np.testing.assert_array_equal(tau_sent, np.zeros(6))
+    arm.step([math.nan] * 6, dq=np.full(6, 0.5), tau=np.full(6, -2.0))
+    _, q_sent, dq_sent, tau_sent = sdk.calls[-2]
+    np.testing.assert_allclose(q_sent, UPPER, atol=1e-4)  # held
+    np.testing.assert_array_equal(dq_sent, np.full(6, 0.5))
+    np.testing.assert_array_equal(tau_sent, np.full(6, -2.0))
+    arm.stop()
+    assert sdk.calls[-2:] == [("loopOff",), ("setFsm", "PASSIVE")]
+    arm = OfficialZ1(lower=LOWER + 0.5, upper=UPPER - 0.5)
+    assert sdk.calls[-1] == ("init", False)  # no gripper unless asked
+    arm.start()
+    arm.step([math.nan] * 6)
+    np.testing.assert_allclose(sdk.calls[-2][1], np.clip(q_now, LOWER + 0.5, UPPER - 0.5))  # start's q, clamped
+    for name in ("dq", "tau"):
+        with pytest.raises(HardwareError, match=f"Z1 {name}: need 6 finite values"):
+            arm.step(np.zeros(6), **{name: [math.nan] * 6})
+    # one bound given: it applies, the other comes from the model
+    OfficialZ1(upper=UPPER - 0.5).step(np.full(6, 9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], UPPER - 0.5)
+    OfficialZ1(lower=LOWER + 0.5).step(np.full(6, -9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], LOWER + 0.5)
+    OfficialZ1(lower=LOWER + 0.5).step(np.full(6, 9.0))
+    np.testing.assert_allclose(sdk.calls[-2][1], UPPER, atol=1e-4)
 
 
 # ------------------------------------------------------------------ vendor wire rules
@@ -385,6 +640,20 @@ def test_client_packets_pass_the_controller_checks(mode):
     assert in_mode and all(c.track == (mode == ArmFSMState.JOINTCTRL) for c in in_mode)
 
 
+def settled(emulator: Z1Emulator, timeout: float = 5.0) -> np.ndarray:
+    """The emulated arm's q once it has stopped moving: three 0.1 s windows in a row, each
+    with commands arriving (both threads ran) and every joint moving less than 2e-5 rad."""
+    end, still, q = time.monotonic() + timeout, 0, emulator.q
+    while still < 3:
+        assert time.monotonic() < end, "the arm did not settle"
+        n0, q0 = emulator.commands_received, q
+        time.sleep(0.1)
+        q = emulator.q
+        busy = emulator.commands_received - n0 >= 5
+        still = still + 1 if busy and np.max(np.abs(q - q0)) < 2e-5 else 0
+    return q
+
+
 def test_lowcmd_gravity_feedforward_holds_the_arm_up(emulator):
     """The emulated arm weighs what the model says: without the feed-forward it sags by
     g/(kp*25.6) (about 0.012 rad on joint3 at TARGET), with it it holds the target."""
@@ -399,8 +668,7 @@ def test_lowcmd_gravity_feedforward_holds_the_arm_up(emulator):
         with arm:
             arm.command_positions(TARGET)
             assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.03, 4.0)
-            time.sleep(0.5)
-            errors[ff] = np.abs(emulator.q - TARGET)
+            errors[ff] = np.abs(settled(emulator) - TARGET)
         emulator.stall(0)  # back to PASSIVE between the two runs
         assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
     np.testing.assert_allclose(errors[False][1:4], sag[1:4], rtol=0.2)
@@ -417,6 +685,8 @@ def test_feedforward_torque_is_capped_by_the_effort_limits(emulator):
         assert wait_for(lambda: arm.stats()["torque_clamped"] > 5, 1.0)
         cmd = emulator.command()
         np.testing.assert_allclose(cmd.tau_ff, effort)
+        arm.command_positions(np.zeros(6), tau_ff=np.full(6, -1e4))
+        assert wait_for(lambda: np.allclose(emulator.command().tau_ff, -effort), 1.0), emulator.command().tau_ff
     assert arm.state().fault is None
 
 
@@ -442,12 +712,41 @@ def test_model_gives_limits_gains_and_payload():
     ({"kd": (2000,) * 5 + (2500,)}, r"kd\[5\] = 2500 exceeds"),
     ({"max_velocity": 1e9}, r"max_velocity 1e\+09 rad/s must be in \(0, 3.14159\]"),
     ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
-    ({"kp": ("a",) * 6}, "need 6 numbers"),
+    ({"lower": LOWER, "upper": UPPER + 0.1}, "reach outside the model"),
+    ({"max_velocity": math.pi + 0.1}, r"max_velocity 3.24159 rad/s must be in"),
+    ({"max_velocity": 0.0}, r"max_velocity 0 rad/s must be in"),
+    ({"kd": (-1,) * 6}, r"Z1 kd must be >= 0"),
+    ({"lower": LOWER[:5]}, r"Z1 lower: need 6 finite values"),
+    ({"upper": UPPER[:5]}, r"Z1 upper: need 6 finite values"),
+    ({"kp": ("a",) * 6}, "Z1 kp: need 6 numbers"),
+    ({"kd": (2000,) * 5}, r"Z1 kd: need 6 finite values"),
+    ({"kp": (-1, 30, 30, 20, 15, 10)}, r"Z1 kp must be >= 0"),
     ({"watchdog_timeout_s": 0.0}, "watchdog_timeout_s must be > 0"),
 ])
 def test_config_beyond_the_model_limits_is_refused(kw, message):
     with pytest.raises(HardwareError, match=message):
         Z1Arm(Z1Config(local_port=0, **kw))
+
+
+def test_config_at_the_model_limits_and_zero_gains_is_accepted():
+    arm = Z1Arm(Z1Config(local_port=0, kp=(0,) * 6, kd=(0,) * 6, max_velocity=math.pi, lower=LOWER, upper=UPPER))
+    np.testing.assert_array_equal(arm.kp, 0.0)
+    assert arm.settings.max_velocity == math.pi
+    np.testing.assert_array_equal(arm.limits.upper, UPPER)
+    with pytest.raises(HardwareError, match="Z1: not started"):
+        arm.local_port
+
+
+def test_the_injected_clock_drives_the_loop_watchdog_and_time_stamps(emulator):
+    """A clock 1000 s ahead of time.monotonic(): the watchdog and the state's time stamp use
+    it too (a watchdog on another clock would trip at once)."""
+    arm = Z1Arm(Z1Config(local_port=0, controller_port=emulator.port, lower=LOWER, upper=UPPER,
+                         watchdog_timeout_s=0.2), clock=lambda: time.monotonic() + 1000.0)
+    with arm:
+        time.sleep(0.3)
+        st = arm.state()
+        assert st.fault is None and emulator.fsm == ArmFSMState.LOWCMD
+        assert abs(st.t - (time.monotonic() + 1000.0)) < 0.1
 
 
 def test_non_numeric_target_raises_the_drivers_error(emulator):

@@ -29,8 +29,8 @@ import torch
 from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
-from dexdrake.hands.description import load_hand
-from dexdrake.learn.bc import BCConfig, train_bc
+from dexdrake.hands.description import HandDescription, load_hand
+from dexdrake.learn.bc import BCConfig, split_train_val, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
@@ -182,7 +182,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
                     config.iterations)
     log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
-                                               "val_loss", "collect_s", "train_s"],
+                                               "train_loss", "val_loss", "hold_val_loss", "collect_s", "train_s"],
                  resume=True, key="iteration", resume_from=finished)
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     parts: list[DaggerData] = []
@@ -218,18 +218,30 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                           checkpoint_every=0)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
+            hold = hold_still_loss(dataset, split_train_val(dataset, bc.val_fraction, bc.seed)[1], load_hand(config.hand))
             log.append({"iteration": it, "driver": "expert" if it == 0 else "policy", "episodes": len(data.objects),
                         "success_rate": float(np.mean(data.success)), "samples_total": len(dataset),
-                        "val_loss": result.val_loss[-1], "collect_s": round(collect_s, 1),
+                        "train_loss": result.train_loss[-1], "val_loss": result.val_loss[-1],
+                        "hold_val_loss": hold, "collect_s": round(collect_s, 1),
                         "train_s": round(time.perf_counter() - t1, 1)})
             print(f"DAgger iteration {it}: executed success {np.mean(data.success):.1%} over {len(data.objects)} "
-                  f"episodes; {len(dataset)} samples; val loss {result.val_loss[-1]:.4g}", flush=True)
+                  f"episodes; {len(dataset)} samples; train loss {result.train_loss[-1]:.4g}, val loss {result.val_loss[-1]:.4g} "
+                  f"(holding still: {hold:.4g})", flush=True)
     assert policy is not None
     best = best_measured_iteration(out_dir / "dagger_log.csv", config.iterations)
     chosen = policy if best == config.iterations - 1 else load_policy(out_dir / f"policy_{best:02d}.pt")[0]
     final = out_dir / "dagger_policy.pt"
     save_policy(final, chosen, {**meta, "iteration": best, "selection": SELECTION})
     return final
+
+
+def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, hand: HandDescription) -> float:
+    """The behaviour-cloning loss on samples `idx` of the action that holds the measured joints
+    (set-point = current position, read from the hand block's joint positions): a policy whose
+    held-out loss is not well below this has learnt little beyond copying its own state."""
+    lo, hi = hand.joint_limits()
+    q = dataset.observations[idx, : len(lo)]
+    return float(np.mean(np.sum((dataset.actions[idx] - (q - (hi + lo) / 2) / ((hi - lo) / 2)) ** 2, axis=1)))
 
 
 SELECTION = ("the policy with the highest executed success on the training objects, as measured by the next "

@@ -18,7 +18,9 @@ visits (DAgger) and re-tries when a grasp fails:
 
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
 toward the phase's way-point, so the label always says which way to move. The way-points are
-re-planned when the object has been pushed before it is grasped.
+re-planned when the object has been pushed before it is grasped. The grasp geometry is the
+hand's `GraspScript` with the variant chosen for the object by simulated trials
+(`models/weights/<hand>_expert_grasps.json`, scripts/choose_expert_grasps.py).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 
@@ -60,7 +63,7 @@ class ReactiveRules:
     replan_steps: int = 3  # ... and of each re-planned way-point (from the old one)
 
 
-def expert_grasps_path(hand: str):
+def expert_grasps_path(hand: str) -> Path:
     """The hand's table of per-object grasp variants (written by scripts/choose_expert_grasps.py)."""
     return models_dir() / "weights" / f"{hand}_expert_grasps.json"
 

@@ -45,6 +45,7 @@ class BCResult:
     best_checkpoint: Path | None = None
     last_checkpoint: Path | None = None
     log_csv: Path | None = None
+    val_indices: np.ndarray | None = None  # the held-out samples (whole episodes where known)
 
 
 def split_train_val(dataset: DemoDataset, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +122,7 @@ def train_bc(
     optimiser = torch.optim.Adam(policy.trainable_parameters(), lr=config.lr)
     gen = torch.Generator().manual_seed(config.seed)
     meta = {"stage": "bc", "bc_config": asdict(config), **dict(metadata or {})}
-    result = BCResult(log_csv=out_dir / "bc_log.csv")
+    result = BCResult(log_csv=out_dir / "bc_log.csv", val_indices=val_idx)
     log = CsvLog(result.log_csv, ["epoch", "train_loss", "val_loss", "seconds"])
     bar = tqdm(range(1, config.epochs + 1), desc="BC", unit="epoch", disable=not config.progress)
     for epoch in bar:

@@ -30,7 +30,7 @@ from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.learn.bc import BCConfig, split_train_val, train_bc
+from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
@@ -218,7 +218,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                           checkpoint_every=0)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
-            hold = hold_still_loss(dataset, split_train_val(dataset, bc.val_fraction, bc.seed)[1], load_hand(config.hand))
+            hold = hold_still_loss(dataset, result.val_indices, load_hand(config.hand))
             log.append({"iteration": it, "driver": "expert" if it == 0 else "policy", "episodes": len(data.objects),
                         "success_rate": float(np.mean(data.success)), "samples_total": len(dataset),
                         "train_loss": result.train_loss[-1], "val_loss": result.val_loss[-1],

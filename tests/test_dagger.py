@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
@@ -109,6 +110,25 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert (tmp_path / "c" / "dagger_policy.pt").is_file()
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
+
+
+def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one_torch_thread):
+    config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, workers=1,
+                          probe_per_object=1)
+    with pytest.raises(DexdrakeError, match="also training objects"):
+        train_dagger([OBJECT], tmp_path / "x", GraspEnvFactory, ReactiveGrasp, config, probe_objects=[OBJECT])
+    with pytest.raises(DexdrakeError, match="needs probe objects"):
+        train_dagger([OBJECT], tmp_path / "x", GraspEnvFactory, ReactiveGrasp, config)
+    final = train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config, probe_objects=["apple"])
+    (row,) = read_csv(tmp_path / "d" / "dagger_log.csv")
+    assert int(row["samples_total"]) == 100  # the probe episode is not trained on
+    probe = DaggerData.load(tmp_path / "d" / "probe_00.npz")
+    assert probe.objects == ["apple"] and len(probe.labels) == 100
+    assert float(row["unseen_success"]) == float(probe.success[0])  # the expert drove iteration 0
+    policy = load_policy(final)[0]
+    with torch.no_grad():
+        err = (policy(torch.as_tensor(probe.observations)) - torch.as_tensor(probe.labels)) ** 2
+    assert float(row["unseen_loss"]) == pytest.approx(float(err.sum(1).mean()), rel=1e-5)
 
 
 def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():

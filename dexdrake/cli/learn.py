@@ -82,6 +82,9 @@ def add_parser(subparsers) -> None:
                              "(normalised action units; the labels stay clean)")
     dagger.add_argument("--epochs", type=argtypes.count, default=20, help="BC epochs after each iteration")
     dagger.add_argument("--lr", type=argtypes.positive, default=1e-4)
+    dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
+                        help="episodes per unseen object per iteration, labelled but never trained on: the log's "
+                             "unseen success and loss (default 0: no probe)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dagger)
     dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
@@ -218,12 +221,16 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
                           epochs=args.epochs, lr=args.lr,
-                          workers=args.workers, backend=args.backend, seed=args.seed)
+                          workers=args.workers, backend=args.backend, seed=args.seed,
+                          probe_per_object=args.probe_per_object)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
-                                                        "horizon", "expert-noise", "epochs", "lr", "workers", "backend", "address",
-                                                        "threads", "seed"])
+                                                        "horizon", "expert-noise", "epochs", "lr", "probe-per-object",
+                                                        "workers", "backend", "address", "threads", "seed"])
+    from dexdrake.objects.library import resolve_objects
+
+    probes = resolve_objects("unseen")[1] if args.probe_per_object else []
     final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
-                         args.address)
+                         args.address, probes)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 

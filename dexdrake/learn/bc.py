@@ -20,7 +20,7 @@ from dexdrake.learn.curves import CsvLog, plot_curves
 from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset, save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, save_policy
 
-__all__ = ["BCConfig", "BCResult", "train_bc", "split_train_val", "load_demo_dataset", "save_demo_dataset"]
+__all__ = ["BCConfig", "BCResult", "bc_loss", "train_bc", "split_train_val", "load_demo_dataset", "save_demo_dataset"]
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,13 @@ def split_train_val(dataset: DemoDataset, val_fraction: float, seed: int) -> tup
 
 def _bc_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
     return ((policy(obs) - act) ** 2).sum(-1).mean()
+
+
+def bc_loss(policy: DexRepNetPolicy, dataset: DemoDataset) -> float:
+    """The cloning loss (squared error summed over action dimensions, mean over samples) of
+    `policy` on all of `dataset`."""
+    policy.eval()
+    return _eval_loss(policy, torch.as_tensor(dataset.observations), torch.as_tensor(dataset.actions))
 
 
 @torch.no_grad()

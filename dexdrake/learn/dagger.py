@@ -10,6 +10,9 @@ plain cloning of the timed script did not teach (it stalled at the start pose).
 
 Each iteration's data (raw plant positions too, so any feature set can be re-derived) and
 the policy after it are written to the output folder; a re-run skips finished iterations.
+With `probe_per_object` > 0 each iteration's driver also runs episodes on probe objects
+(the unseen split), labelled but never trained on: the log gets the driver's executed
+success there and the new policy's loss on those states, the generalisation signal.
 The returned policy is the iterate that succeeded most often on its own training rollouts.
 """
 
@@ -30,7 +33,7 @@ from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.learn.bc import BCConfig, train_bc
+from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
@@ -38,6 +41,7 @@ from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, sa
 from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
 
 DATA_FORMAT = "dexdrake.dagger/1"
+PROBE_SEEDS = 5000  # probe episode seeds start this far above the iteration's training seeds
 
 
 @dataclass(frozen=True)
@@ -53,7 +57,8 @@ class DaggerConfig:
     batch_size: int = 64
     workers: int = 2
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
-    seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k
+    seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k (probes: + PROBE_SEEDS + k)
+    probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
 
 
 @dataclass
@@ -141,7 +146,7 @@ def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[s
     return DaggerData.concat(sampler.map(partial(dagger_job, make_expert, noise), policy, jobs, desc))
 
 
-RESUMABLE = ("iterations", "workers", "backend")  # DaggerConfig fields a resumed run may change
+RESUMABLE = ("iterations", "workers", "backend", "probe_per_object")  # DaggerConfig fields a resumed run may change
 
 
 def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> None:
@@ -165,16 +170,22 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
 
 def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, make_expert: MakeExpert,
                  config: DaggerConfig = DaggerConfig(), metadata: dict[str, Any] | None = None,
-                 address: str | None = None) -> Path:
+                 address: str | None = None, probe_objects: list[str] | None = None) -> Path:
     """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
     see SELECTION). Episodes run in envs from `make_env` on `config.workers` workers of
     `config.backend` (`address`: a Ray cluster to join), labelled by `make_expert`'s expert.
 
     Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
-    success rate (iteration 0: the expert; later: the previous iteration's policy).
+    success rate (iteration 0: the expert; later: the previous iteration's policy); with
+    `config.probe_per_object` also probe_XX.npz on `probe_objects` and the unseen columns.
     """
     if config.iterations < 1 or config.episodes_per_object < 1:
         raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
+    probes = list(probe_objects or []) if config.probe_per_object else []
+    if config.probe_per_object and not probes:
+        raise DexdrakeError("probe_per_object needs probe objects")
+    if set(probes) & set(objects):
+        raise DexdrakeError(f"probe objects {sorted(set(probes) & set(objects))} are also training objects")
     check_backend(config.backend, address)
     check_resume(out_dir, config, objects)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -182,12 +193,13 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
                     config.iterations)
     log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
-                                               "train_loss", "val_loss", "hold_val_loss", "collect_s", "train_s"],
+                                               "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
+                                               "collect_s", "train_s"],
                  resume=True, key="iteration", resume_from=finished)
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     parts: list[DaggerData] = []
     policy: DexRepNetPolicy | None = None
-    factory = make_env(config.hand, config.feature_set, tuple(objects), config.horizon)
+    factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
         for it in range(config.iterations):
@@ -202,6 +214,16 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
                                f"DAgger {it} ({driver})", make_expert)
                 data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
+            probe = None
+            if probes and it >= finished:
+                probe_path = out_dir / f"probe_{it:02d}.npz"
+                if probe_path.is_file():
+                    probe = DaggerData.load(probe_path)
+                else:
+                    seeds = [config.seed * 10**6 + it * 10**4 + PROBE_SEEDS + k for k in range(config.probe_per_object)]
+                    probe = collect(sampler, policy, [(name, s) for s in seeds for name in probes], 0.0,
+                                    f"DAgger {it} (probe)", make_expert)
+                    probe.save(probe_path, {"iteration": it, "probe": True, "config": asdict(config)})
             collect_s = time.perf_counter() - t0
             parts.append(data)
             if it < finished:
@@ -219,14 +241,19 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
             hold = hold_still_loss(dataset, result.val_indices, load_hand(config.hand))
+            unseen = {} if probe is None else {
+                "unseen_success": float(np.mean(probe.success)),
+                "unseen_loss": bc_loss(policy, DemoDataset(probe.observations, probe.labels, probe.episode_starts))}
             log.append({"iteration": it, "driver": "expert" if it == 0 else "policy", "episodes": len(data.objects),
                         "success_rate": float(np.mean(data.success)), "samples_total": len(dataset),
                         "train_loss": result.train_loss[-1], "val_loss": result.val_loss[-1],
-                        "hold_val_loss": hold, "collect_s": round(collect_s, 1),
+                        "hold_val_loss": hold, **unseen, "collect_s": round(collect_s, 1),
                         "train_s": round(time.perf_counter() - t1, 1)})
             print(f"DAgger iteration {it}: executed success {np.mean(data.success):.1%} over {len(data.objects)} "
                   f"episodes; {len(dataset)} samples; train loss {result.train_loss[-1]:.4g}, val loss {result.val_loss[-1]:.4g} "
-                  f"(holding still: {hold:.4g})", flush=True)
+                  f"(holding still: {hold:.4g})" + ("" if probe is None else
+                  f"; unseen: executed success {unseen['unseen_success']:.1%}, loss {unseen['unseen_loss']:.4g}"),
+                  flush=True)
     assert policy is not None
     best = best_measured_iteration(out_dir / "dagger_log.csv", config.iterations)
     chosen = policy if best == config.iterations - 1 else load_policy(out_dir / f"policy_{best:02d}.pt")[0]

@@ -27,6 +27,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 
+from dexdrake.dexrep.feature_sets import FeaturePath
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
@@ -79,10 +80,14 @@ class BuiltDiagram:
         return (self.policy_system or self.controller).guard.counts
 
 
-def build_diagram(station: Station, controller=None, feature_set: str | None = "DexRep") -> BuiltDiagram:
+def build_diagram(station: Station, controller=None, feature_set: str | None = "DexRep",
+                  feature_path: FeaturePath = "fast") -> BuiltDiagram:
     """The station of a scenario with DexRepSystem computing `feature_set` (None: no
-    DexRepSystem, for controllers that read no features) and `controller` in the slot (see
-    the module doc; None leaves the slot's "command" as the diagram's input)."""
+    DexRepSystem, for controllers that read no features) along `feature_path` ("fast": the
+    object's cached geometry at the "object_pose" port's pose; "scenegraph": the sim
+    station's "query_object", refused for hil/real, whose object is known only by its
+    perceived pose), and `controller` in the slot (see the module doc; None leaves the
+    slot's "command" as the diagram's input)."""
     builder = DiagramBuilder()
     st = builder.AddNamedSystem("station", station.diagram)
     dexrep = None
@@ -91,10 +96,15 @@ def build_diagram(station: Station, controller=None, feature_set: str | None = "
         from dexdrake.systems.scene import build_grasp_scene
         from dexdrake.systems.station import scene_config
 
+        scenegraph = feature_path == "scenegraph"
+        if scenegraph and station.scene is None:
+            raise DexdrakeError(f"feature path 'scenegraph' needs the simulated object's SceneGraph; a "
+                                f"{station.mode} station knows the object by its perceived pose: use 'fast'")
         scene = station.scene or build_grasp_scene(scene_config(station.scenario))  # hil/real: kinematics only
-        dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(scene.hand, scene.plant, scene.hand_instance,
-                                                               object_geometry(station.scenario.object), feature_set))
-        for name in ("hand_state", "object_pose"):
+        dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(
+            scene.hand, scene.plant, scene.hand_instance, object_geometry(station.scenario.object), feature_set,
+            feature_path, scene.distance_geometry_id if scenegraph else None))
+        for name in ("hand_state", "object_pose", "query_object")[: 3 if scenegraph else 2]:
             builder.Connect(st.GetOutputPort(name), dexrep.GetInputPort(name))
         builder.ExportOutput(dexrep.GetOutputPort("features"), "features")
     for name in ("hand_state", "object_pose"):
@@ -110,6 +120,18 @@ def build_diagram(station: Station, controller=None, feature_set: str | None = "
         builder.Connect(slot.GetOutputPort("command"), st.GetInputPort("command"))
         builder.ExportOutput(slot.GetOutputPort("command"), "command")
     return BuiltDiagram(station, builder.Build(), dexrep, controller)
+
+
+def scenario_diagram(station: Station, controller: System) -> BuiltDiagram:
+    """`build_diagram` with the options of the station's scenario: its policy's feature set
+    and path (DexRep on the fast path without a policy entry), and no DexRepSystem when the
+    slot reads no "features"."""
+    policy = station.scenario.policy
+    if not controller.HasInputPort("features"):
+        return build_diagram(station, controller, None)
+    if policy is None:
+        return build_diagram(station, controller)
+    return build_diagram(station, controller, policy.feature_set, policy.feature_path)
 
 
 # ----------------------------------------------------------------------------- episodes
@@ -217,7 +239,7 @@ def _await_first_pose(station: Station) -> None:
 def run_station_episode(station: Station, controller, steps: int, logger=None) -> EpisodeResult:
     """`steps` control periods of `controller` (a slot system, or a callback
     `controller(t, hand_state, object_pose) -> q_command` run in ControllerSystem) in the
-    station's diagram (`build_diagram`), through the one episode loop: sim as fast as it
+    station's diagram (`scenario_diagram`), through the one episode loop: sim as fast as it
     goes, hil on the world's simulated clock (the world pauses at each control step until
     the controller has run), real in wall-clock real time. `stats`: the devices' loop
     statistics and the controller's ("policy": rate, bad commands held or clipped). `logger`:
@@ -226,9 +248,7 @@ def run_station_episode(station: Station, controller, steps: int, logger=None) -
         raise DexdrakeError(f"steps must be >= 1, got {steps}")
     if not isinstance(controller, System):
         controller = ControllerSystem(controller, station.hand, station.scenario.control_period)
-    policy = station.scenario.policy
-    feature_set = (policy.feature_set if policy is not None else "DexRep") if controller.HasInputPort("features") else None
-    built = build_diagram(station, controller, feature_set)
+    built = scenario_diagram(station, controller)
     env = StationEpisode(built, steps, logger)
     try:
         result = run_episode(env, lambda observation: None, station.scenario.seed)

@@ -120,6 +120,10 @@ class HilWorldConfig:
 class PolicyEntry:
     checkpoint: str = ""  # a dexdrake policy checkpoint (.pt); no `policy` entry: the scripted grasp
     feature_set: str = "DexRep"
+    # DexRepSystem's distance queries (dexdrake/dexrep/feature_sets.FeaturePath): "fast", the
+    # object's cached geometry at the object pose (perceived in hil/real), or "scenegraph",
+    # SceneGraph's signed distances to the simulated object (sim only)
+    feature_path: str = "fast"
 
 
 @dc.dataclass
@@ -275,7 +279,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     _require(w.pwm_torque_scale > 0 and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
              "hil.pwm_torque_scale, .max_lag_s and .reply_timeout_s must be > 0")
     if s.policy is not None:
-        from dexdrake.dexrep.feature_sets import FEATURE_SETS
+        from dexdrake.dexrep.feature_sets import FEATURE_SETS, PATHS
 
         _require(bool(s.policy.checkpoint), source,
                  "policy.checkpoint must name a policy file (remove the policy entry for the "
@@ -283,3 +287,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(s.policy.feature_set in FEATURE_SETS, source,
                  f"policy.feature_set {s.policy.feature_set!r} is not one of "
                  f"{', '.join(sorted(FEATURE_SETS))}")
+        _require(s.policy.feature_path in PATHS, source,
+                 f"policy.feature_path {s.policy.feature_path!r} is not one of {', '.join(PATHS)}")
+        _require(s.policy.feature_path != "scenegraph" or mode == "sim", source,
+                 f"policy.feature_path 'scenegraph' needs the simulated object's SceneGraph; in {mode} "
+                 "mode the object is known by its perceived pose: use 'fast' (that pose and the "
+                 "object's geometry)")

@@ -6,7 +6,8 @@ Every mode exposes the same ports (policy joint order of the hand description):
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
 sim:  the Drake grasp scene (systems/scene.py); built by make_station, its set-points are
       clamped and rate-limited as the drivers would (systems/target_limits.py), so that
-      sim and hil agree.
+      sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
+      DexRepSystem's SceneGraph feature path).
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;
@@ -412,7 +413,7 @@ def sim_station(scenario: Scenario, scene=None, driver_limits: bool = False) -> 
         builder.Connect(limiter.GetOutputPort("target"), sub.GetInputPort("command"))
     else:
         builder.ExportInput(sub.GetInputPort("command"), "command")
-    for name in PORTS["outputs"]:
+    for name in (*PORTS["outputs"], "query_object"):
         builder.ExportOutput(sub.GetOutputPort(name), name)
     return Station(scenario, builder.Build(), scene.hand, scene=scene)
 

@@ -15,6 +15,7 @@ Adroit DexRep -> {"hand": 105, "occ_surf": 1088, "local_geo": 1408}.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -36,7 +37,8 @@ FEATURE_SETS: dict[str, tuple[str, ...]] = {
     "DexRep+pGlo": ("hand", "occ_surf", "local_geo", "pglo"),
     "DexRep": ("hand", "occ_surf", "local_geo"),
 }
-PATHS = ("fast", "scenegraph")
+FeaturePath = Literal["fast", "scenegraph"]  # see FeatureExtractor
+PATHS: tuple[str, ...] = get_args(FeaturePath)
 
 
 def feature_set_names() -> list[str]:
@@ -82,7 +84,7 @@ class FeatureExtractor:
     """
 
     def __init__(self, hand: HandDescription, plant, hand_instance, geometry: ObjectGeometry,
-                 feature_set: str = "DexRep", path: str = "fast", distance_geometry_id=None,
+                 feature_set: str = "DexRep", path: FeaturePath = "fast", distance_geometry_id=None,
                  surface_clip: float = F.SURFACE_CLIP):
         if path not in PATHS:
             raise UnknownNameError("feature path", path, PATHS)

@@ -74,6 +74,16 @@ class BuiltDiagram:
     def timer(self) -> LoopTimer:
         return self.policy_system.timer if self.policy_system is not None else self.controller.timer
 
+    def describe(self) -> str:
+        """One line: the station's named systems, the DexRepSystem's feature set and path, the slot."""
+        parts = [s.get_name() for s in self.station.diagram.GetSystems() if not s.get_name().startswith("drake/")]
+        text = f"station ({self.station.mode}: {', '.join(parts)})"
+        if self.dexrep is not None:
+            text += f" -> dexrep ({self.dexrep.extractor.feature_set}, {self.dexrep.extractor.path} path)"
+        kind = "PolicySystem" if self.policy_system is not None else type(self.controller).__name__
+        slot = "command input" if self.controller is None else f"controller ({kind})"
+        return f"{text} -> {slot} -> command"
+
     @property
     def command_counts(self) -> dict[str, int]:
         """Bad commands the slot held or clipped (systems/command_guard.py)."""

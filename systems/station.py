@@ -1,9 +1,10 @@
 """The station: one diagram for sim, hardware-in-the-loop and real, built from a Scenario.
 
-Every mode exposes the same ports (policy joint order of the hand description):
+Every mode exposes the same ports (PORTS; policy joint order of the hand description):
   input  "command"      joint position set-points (n)
   output "hand_state"   measured [q; v] (2n)
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
+and the sim station also "query_object" (see sim below).
 sim:  the Drake grasp scene (systems/scene.py); built by make_station, its set-points are
       clamped and rate-limited as the drivers would (systems/target_limits.py), so that
       sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
@@ -104,7 +105,9 @@ class LoopTimer:
 class DriverSystem(LeafSystem):
     """Wraps a started joint driver (`AllegroHand`, bus order, or `Z1Arm`): input
     "q_command" (n), output "state" ([q; dq], 2n) sampled every `period`. Raises
-    StationFault when the driver has latched a fault (the driver is then in its safe stop)."""
+    StationFault when the driver has latched a fault (the driver is then in its safe stop)
+    or is not running (never started: a station built for a dry run; or stopped), so that
+    no command is ever stored for a driver that is not running."""
 
     def __init__(self, driver, num_joints: int, period: float, label: str):
         super().__init__()
@@ -120,6 +123,8 @@ class DriverSystem(LeafSystem):
         st = self.driver.state()
         if st.fault is not None:
             raise StationFault(f"{self.label} fault: {st.fault} (driver is in its safe stop)")
+        if not self.driver.running:
+            raise StationFault(f"{self.label}: the driver is not running (stopped, or never started)")
         state.set_value(0, np.concatenate([st.q, st.dq]))
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
@@ -371,16 +376,22 @@ class Station:
         return out
 
 
-def make_station(scenario: Scenario) -> Station:
+def make_station(scenario: Scenario, start: bool = True) -> Station:
     """Build (and for hil/real, start the devices of) the station of `scenario`.
 
     For hil/real the devices run from here on: use the result as a context manager (or call
-    `stop()`) so that they are stopped safely."""
+    `stop()`) so that they are stopped safely. `start=False` (real only: `dexdrake real
+    --dry-run`) builds the same diagram around drivers that are made but never started:
+    the CAN bus is opened, nothing is sent on it or to the Z1, the camera is not opened;
+    such a station's DriverSystems raise StationFault if it is ever simulated."""
     if scenario.mode == "sim":
         return sim_station(scenario, driver_limits=True)
+    if not start and scenario.mode != "real":
+        raise DexdrakeError(f"only a real station is built without starting (a {scenario.mode} "
+                            "station's devices are its simulated world)")
     stack = contextlib.ExitStack()
     try:
-        return _device_station(scenario, stack)
+        return _device_station(scenario, stack, start)
     except BaseException:
         stack.close()
         raise
@@ -496,7 +507,7 @@ def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
         time.sleep(0.005)
 
 
-def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
+def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool) -> Station:
     from dexdrake.hardware.allegro_can import AllegroHand
     from dexdrake.hardware.z1_udp import Z1Arm
 
@@ -513,12 +524,12 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     bus = open_can_bus(scenario)
     stack.callback(bus.shutdown)
     allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg, clock=clock)
-    stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
-    devices["allegro"] = allegro
-    _await_first_cycle(allegro)
     z1 = Z1Arm(arm_cfg, clock=clock)
-    stack.enter_context(z1)
-    devices["z1"] = z1
+    devices["allegro"], devices["z1"] = allegro, z1
+    if start:
+        stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
+        _await_first_cycle(allegro)
+        stack.enter_context(z1)
 
     period = scenario.control_period
     n, n_arm = hand.num_actuators, len(hand.arm_joints)
@@ -547,7 +558,7 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     else:
         from dexdrake.objects.library import get_object
 
-        read_frame = _camera_reader(scenario, world, stack)
+        read_frame = _camera_reader(scenario, world, stack) if start else _unopened_camera
         executor = perception_executor(str(get_object(scenario.object).mesh_path))
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
@@ -556,6 +567,10 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack) -> Station:
     station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
     station._stop = stack.pop_all()
     return station
+
+
+def _unopened_camera():
+    raise StationFault("the camera of a station built without starting is never read")
 
 
 def _camera_pose(cam: CameraDriver) -> RigidTransform:

@@ -2,6 +2,7 @@
 
 import concurrent.futures as cf
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +121,9 @@ def test_sim_and_hil_expose_identical_ports_and_hil_joints_track_commands():
 
     sim = make_station(load_scenario(CONFIGS / "sim.yaml"))
     with make_station(hil_scenario()) as station:
-        assert _ports(sim.diagram) == _ports(station.diagram) == (["command"], ["hand_state", "object_pose"])
+        assert _ports(station.diagram) == (["command"], ["hand_state", "object_pose"])
+        # the sim station adds SceneGraph's QueryObject (DexRepSystem's SceneGraph path) only
+        assert _ports(sim.diagram) == (["command"], ["hand_state", "object_pose", "query_object"])
         q0, q1, offset, result = _track_finger_offsets(station)
         world = station.world.stats()
     assert result.fault is None and result.steps == 40
@@ -507,8 +510,10 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
     channel = f"dry-{uuid.uuid4().hex}"
     bus = can.Bus(interface="virtual", channel=channel)
     try:
-        with AllegroEmulator(bus), Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
+        with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
             code = main(["real", "--config", _real_config(tmp_path, channel, arm.port, policy), "--dry-run"])
+            time.sleep(0.1)  # anything sent would have arrived
+            arm_commands, arm_mode = arm.commands_received, arm.fsm
     finally:
         bus.shutdown()
     out, err = capsys.readouterr()
@@ -518,9 +523,43 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
     assert code == 0, out + err
     for line in ("CAN virtual", "Z1 127.0.0.1", "state PASSIVE", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
+                 "diagram (built, not run): station (real: command_to_devices, z1_driver, allegro_driver, "
+                 "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
+    # the whole diagram was built around the drivers, yet nothing moved: the hand's servo never
+    # came on and got no torque, the arm got the dry run's one PASSIVE and nothing else
+    assert not hand.servo_on and hand.answered_batches == 0
+    assert arm_commands == 1 and arm_mode.name == "PASSIVE"
+
+
+def test_a_station_built_without_starting_never_runs(tmp_path):
+    """make_station(start=False) (the real dry run's diagram) is refused for hil; simulated
+    anyway, its driver systems stop it before any command is stored; and the SceneGraph
+    feature path is refused for it (no simulated object), with one line."""
+    import uuid
+
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.errors import DexdrakeError
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import build_diagram, scenario_diagram
+    from dexdrake.systems.station import StationFault, make_station
+
+    with pytest.raises(DexdrakeError, match="only a real station is built without starting"):
+        make_station(hil_scenario(), start=False)
+    scenario = load_scenario(_real_config(tmp_path, f"unstarted-{uuid.uuid4().hex}", 9, "x.pt"))
+    scenario.policy = None
+    controller, _ = make_controller(scenario)
+    with make_station(scenario, start=False) as station:
+        built = scenario_diagram(station, controller)
+        with pytest.raises(DexdrakeError, match="^feature path 'scenegraph' needs the simulated object's "
+                                                 "SceneGraph; a real station knows the object by its perceived pose"):
+            build_diagram(station, None, "DexRep", "scenegraph")
+        with pytest.raises(Exception, match="not running"):
+            Simulator(built.diagram).AdvanceTo(0.1)
+        assert not station.devices["allegro"]._has_command and not station.devices["z1"]._has_command
 
 
 def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_path):

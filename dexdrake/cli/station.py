@@ -1,5 +1,6 @@
 """Sub-commands `hil` (a full grasp episode against the emulated devices) and `real`
-(`--dry-run`: connectivity checks and the plan; moves nothing)."""
+(`--dry-run`: connectivity checks, the plan and the mode's whole diagram, built around
+drivers that are never started; moves nothing)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def add_parser(subparsers) -> None:
     real = subparsers.add_parser("real", help="the real Allegro + Z1 + Kinect station")
     real.add_argument("--config", required=True, help="scenario YAML (mode real)")
     real.add_argument("--dry-run", action="store_true",
-                      help="check connectivity, print limits and the plan, move nothing")
+                      help="check connectivity, print limits, the plan and the diagram; move nothing")
     real.set_defaults(func=run_real)
 
 
@@ -91,15 +92,17 @@ def run_real(args: argparse.Namespace) -> int:
 
 
 def dry_run(scenario) -> int:
-    """Connectivity checks; prints limits and the plan; commands nothing."""
+    """Connectivity checks; prints limits, the plan and the diagram (built, never run);
+    commands nothing."""
     from dexdrake.hands.description import load_hand
     from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, check_allegro_config, decode, encode
     from dexdrake.hardware.safety import HardwareError
     from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, z1_model
     from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
     from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.diagram import scenario_diagram
     from dexdrake.systems.scenario import driver_configs
-    from dexdrake.systems.station import open_can_bus
+    from dexdrake.systems.station import make_station, open_can_bus
 
     hand = load_hand(scenario.hand)
     h, c = scenario.drivers.hand, scenario.drivers.camera
@@ -118,9 +121,16 @@ def dry_run(scenario) -> int:
           f"feed-forward {'on' if arm_cfg.gravity_feedforward else 'off'}; payload "
           f"{z1_model().payload_kg:.3f} kg (the hand, from the model): set it as `load` in "
           "z1_controller/config/config.xml")
-    _, description = make_controller(scenario)  # a policy that cannot run is refused here
+    controller, description = make_controller(scenario)  # a policy that cannot run is refused here
     print(f"  controller: {description}; control period {scenario.control_period * 1e3:.0f} ms")
     ok = True
+    # the mode's whole diagram, around drivers that are made but never started (nothing is sent)
+    try:
+        with make_station(scenario, start=False) as station:
+            print(f"  diagram (built, not run): {scenario_diagram(station, controller).describe()}")
+    except HardwareError as err:
+        ok = False
+        print(f"  diagram: FAILED: {err}")
     # CAN: open the bus and ask for info + serial (RTR requests only: nothing moves)
     try:
         bus = open_can_bus(scenario)

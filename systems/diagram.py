@@ -15,8 +15,11 @@ no controller (training rollouts: systems/grasp_env.py) the diagram exports "com
 input and "features" as an output. The built diagram's outputs: "hand_state",
 "object_pose", "features", and "command" when a controller is in the slot.
 
-The slot's controllers are made in systems/controllers.py; `run_station_episode` builds the
-diagram around a station and runs it through the one episode loop (dexdrake/episode.py).
+DexRepSystem's distance queries take the "fast" path (the object's cached geometry at the
+"object_pose" pose, every mode) or the "scenegraph" path (the sim station's "query_object").
+The slot's controllers are made in systems/controllers.py; `scenario_diagram` builds the
+diagram with a scenario's options and `run_station_episode` runs it around a station
+through the one episode loop (dexdrake/episode.py).
 """
 
 from __future__ import annotations

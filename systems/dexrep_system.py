@@ -17,7 +17,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from dexdrake.dexrep.feature_sets import FeatureExtractor
+from dexdrake.dexrep.feature_sets import FeatureExtractor, FeaturePath
 from dexdrake.dexrep.geometry import ObjectGeometry
 from dexdrake.hands.description import HandDescription
 from dexdrake.systems.station import pose_from_vector
@@ -25,7 +25,7 @@ from dexdrake.systems.station import pose_from_vector
 
 class DexRepSystem(LeafSystem):
     def __init__(self, hand: HandDescription, plant, hand_instance, geometry: ObjectGeometry,
-                 feature_set: str = "DexRep", path: str = "fast", distance_geometry_id=None):
+                 feature_set: str = "DexRep", path: FeaturePath = "fast", distance_geometry_id=None):
         super().__init__()
         self._plant = plant
         self._plant_context = plant.CreateDefaultContext()

@@ -200,6 +200,22 @@ def test_bc_drives_mse_down(tmp_path):
     assert np.allclose(best.obs_mean.numpy(), policy.obs_mean.numpy())
 
 
+def test_bc_action_weights_trade_error_between_dimensions_and_are_validated(tmp_path):
+    data = expert_dataset(1000)
+    errors = {}
+    for weights in ((100.0, 0.01), (0.01, 100.0)):
+        policy = toy_policy()
+        train_bc(policy, data, tmp_path / str(weights[0]), BCConfig(epochs=2, lr=2e-3, checkpoint_every=0,
+                                                                    progress=False, action_weights=weights))
+        with torch.no_grad():
+            err = ((policy(torch.as_tensor(data.observations)) - torch.as_tensor(data.actions)) ** 2).mean(0)
+        errors[weights[0]] = err.numpy()
+    assert errors[100.0][0] < errors[0.01][0] and errors[100.0][1] > errors[0.01][1]
+    for bad in ((1.0,), (1.0, 0.0), (1.0, float("nan"))):
+        with pytest.raises(DexdrakeError, match="action_weights must be 2 positive numbers"):
+            train_bc(toy_policy(), data, tmp_path / "bad", BCConfig(epochs=1, progress=False, action_weights=bad))
+
+
 def test_bc_defaults_are_the_papers():
     cfg = BCConfig()
     assert (cfg.epochs, cfg.batch_size, cfg.lr) == (150, 64, 1e-5)

@@ -82,6 +82,8 @@ def add_parser(subparsers) -> None:
                              "(normalised action units; the labels stay clean)")
     dagger.add_argument("--epochs", type=argtypes.count, default=20, help="BC epochs after each iteration")
     dagger.add_argument("--lr", type=argtypes.positive, default=1e-4)
+    dagger.add_argument("--arm-weight", type=argtypes.positive, default=1.0,
+                        help="loss weight of the arm's action dimensions (the fingers' is 1)")
     dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
                         help="episodes per unseen object per iteration, labelled but never trained on: the log's "
                              "unseen success and loss (default 0: no probe)")
@@ -220,11 +222,11 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
-                          epochs=args.epochs, lr=args.lr,
+                          epochs=args.epochs, lr=args.lr, arm_weight=args.arm_weight,
                           workers=args.workers, backend=args.backend, seed=args.seed,
                           probe_per_object=args.probe_per_object)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
-                                                        "horizon", "expert-noise", "epochs", "lr", "probe-per-object",
+                                                        "horizon", "expert-noise", "epochs", "lr", "arm-weight", "probe-per-object",
                                                         "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 

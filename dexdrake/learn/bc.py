@@ -32,6 +32,8 @@ class BCConfig:
     checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
     seed: int = 0
     fit_normalization: bool = True  # set the policy's observation stats from the train split
+    action_weights: tuple[float, ...] = ()  # per-dimension weights of the fitted loss (empty: all 1);
+    # the logged losses stay unweighted
     progress: bool = True  # tqdm bar
     device: str = "cpu"
 
@@ -77,6 +79,15 @@ def _bc_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor) -> t
     return ((policy(obs) - act) ** 2).sum(-1).mean()
 
 
+def _action_weights(config: BCConfig, action_dim: int) -> torch.Tensor:
+    if not config.action_weights:
+        return torch.ones(action_dim)
+    w = torch.as_tensor(config.action_weights, dtype=torch.float32)
+    if w.shape != (action_dim,) or not bool(torch.all(w > 0)) or not bool(torch.all(torch.isfinite(w))):
+        raise DexdrakeError(f"action_weights must be {action_dim} positive numbers, got {config.action_weights}")
+    return w
+
+
 def bc_loss(policy: DexRepNetPolicy, dataset: DemoDataset) -> float:
     """The cloning loss (squared error summed over action dimensions, mean over samples) of
     `policy` on all of `dataset`."""
@@ -99,7 +110,8 @@ def train_bc(
     config: BCConfig = BCConfig(),
     metadata: Mapping[str, Any] | None = None,
 ) -> BCResult:
-    """Fit the policy mean to the demo actions; writes bc_log.csv/png and checkpoints to out_dir.
+    """Fit the policy mean to the demo actions (squared error, weighted per action dimension by
+    `config.action_weights`); writes bc_log.csv/png and checkpoints to out_dir.
 
     Checkpoints: bc_best.pt (lowest validation loss; training loss without a split),
     bc_last.pt, and bc_epoch_XXXX.pt every `checkpoint_every` epochs. The policy is left
@@ -126,6 +138,7 @@ def train_bc(
     act = torch.as_tensor(dataset.actions, device=device)
     obs_tr, act_tr = obs[train_idx], act[train_idx]
     obs_va, act_va = obs[val_idx], act[val_idx]
+    weights = _action_weights(config, a).to(device)
     optimiser = torch.optim.Adam(policy.trainable_parameters(), lr=config.lr)
     gen = torch.Generator().manual_seed(config.seed)
     meta = {"stage": "bc", "bc_config": asdict(config), **dict(metadata or {})}
@@ -138,11 +151,11 @@ def train_bc(
         total = 0.0
         for i in range(0, perm.shape[0], config.batch_size):
             idx = perm[i : i + config.batch_size]
-            loss = _bc_loss(policy, obs_tr[idx], act_tr[idx])
+            err = (policy(obs_tr[idx]) - act_tr[idx]) ** 2
             optimiser.zero_grad(set_to_none=True)
-            loss.backward()
+            (err * weights).sum(-1).mean().backward()
             optimiser.step()
-            total += loss.item() * idx.shape[0]
+            total += err.detach().sum().item()
         train_loss = total / perm.shape[0]
         val_loss = _eval_loss(policy, obs_va, act_va) if len(val_idx) else float("nan")
         result.train_loss.append(train_loss)

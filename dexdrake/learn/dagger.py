@@ -53,6 +53,7 @@ class DaggerConfig:
     horizon: int = 100
     expert_noise: float = 0.0  # OU action-noise std on iteration 0 (normalised units; the expert is fragile to it)
     epochs: int = 20  # BC epochs after each iteration
+    arm_weight: float = 1.0  # loss weight of the arm's action dimensions against the fingers' 1
     lr: float = 1e-4
     batch_size: int = 64
     workers: int = 2
@@ -146,7 +147,10 @@ def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[s
     return DaggerData.concat(sampler.map(partial(dagger_job, make_expert, noise), policy, jobs, desc))
 
 
-RESUMABLE = ("iterations", "workers", "backend", "probe_per_object")  # DaggerConfig fields a resumed run may change
+# DaggerConfig fields a resumed run may change: how later iterations collect and fit (the data
+# files and the log record each iteration's episodes and samples)
+RESUMABLE = ("iterations", "workers", "backend", "probe_per_object", "episodes_per_object", "epochs", "lr",
+             "batch_size", "arm_weight")
 
 
 def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> None:
@@ -179,8 +183,10 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     success rate (iteration 0: the expert; later: the previous iteration's policy); with
     `config.probe_per_object` also probe_XX.npz on `probe_objects` and the unseen columns.
     """
-    if config.iterations < 1 or config.episodes_per_object < 1:
-        raise DexdrakeError(f"iterations and episodes_per_object must be >= 1: {config}")
+    if config.iterations < 1 or not 1 <= config.episodes_per_object <= PROBE_SEEDS:
+        raise DexdrakeError(f"need iterations >= 1 and 1 <= episodes_per_object <= {PROBE_SEEDS}: {config}")
+    if not 0 <= config.probe_per_object <= PROBE_SEEDS or not config.arm_weight > 0:
+        raise DexdrakeError(f"need 0 <= probe_per_object <= {PROBE_SEEDS} and arm_weight > 0: {config}")
     probes = list(probe_objects or []) if config.probe_per_object else []
     if config.probe_per_object and not probes:
         raise DexdrakeError("probe_per_object needs probe objects")
@@ -236,8 +242,10 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, everything.labels.shape[1],
                                                                   feature_set=config.feature_set, hand=config.hand))
             dataset = DemoDataset(everything.observations, everything.labels, everything.episode_starts)
+            n_arm = len(load_hand(config.hand).arm_joints)
+            weights = (config.arm_weight,) * n_arm + (1.0,) * (everything.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
-                          checkpoint_every=0)
+                          checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
             hold = hold_still_loss(dataset, result.val_indices, load_hand(config.hand))

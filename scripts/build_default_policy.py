@@ -2,7 +2,7 @@
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
-        [--hand adroit] [--objects train]
+        [--hand adroit] [--objects train] [--dagger DIR]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration). The result:
@@ -11,7 +11,9 @@ models/weights/<hand>_dexrep_policy.pt (DAgger's chosen iterate), <hand>_dexrep_
 eval_seen.md / eval_unseen.md (eval_<hand>_seen.md ... for other hands than the Adroit);
 "seen" means the training objects used.
 No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
-on its own training rollouts.
+on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
+folder (e.g. a long run resumed over several sessions) instead of running DAgger; the
+manifest then records the commands that run's policy and log name.
 """
 
 from __future__ import annotations
@@ -67,14 +69,17 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
+    parser.add_argument("--dagger", type=Path, help="an existing DAgger output folder to evaluate and ship")
     args = parser.parse_args()
 
     dexdrake = str(Path(sys.executable).with_name("dexdrake"))
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
-    dagger = work / "dagger"
+    dagger = args.dagger or work / "dagger"
     log: list[dict] = []
     start = time.perf_counter()
+    if args.dagger and not (dagger / "dagger_policy.pt").is_file():
+        sys.exit(f"build_default_policy: error: {dagger} has no dagger_policy.pt")
     run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
          "--iterations", str(args.iterations), "--per-object",
          str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
@@ -107,6 +112,10 @@ def main() -> None:
     from dexdrake.learn.policy import load_policy
 
     net, meta = load_policy(target)
+    dagger_config = meta.get("dagger_config") or {}
+    if args.dagger:
+        log.insert(0, {"command": meta.get("command"), "note": f"the last command that ran DAgger in {dagger} "
+                       "(earlier iterations may have run under the arguments their data files record)"})
     encoder = default_encoder_path()
     manifest = {
         "policy": f"models/weights/{name}.pt",
@@ -118,14 +127,16 @@ def main() -> None:
         "pointnet_encoder": {"path": "models/weights/pointnet_encoder.pt", "sha256": sha256(encoder)},
         "training": {
             "stages": "DAgger (behaviour cloning on expert-labelled states, aggregated over iterations); no DAPG",
-            "dagger": meta.get("dagger_config"),
+            "dagger": dagger_config,
             "iterations": read_csv(dagger / "dagger_log.csv"),
             "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },
-        "dataset": {"source": DATA_SOURCE, "path": str(dagger), "objects": args.objects,
-                    "seeds": "iteration i, episode k: i * 10**4 + k (seed 0), every training object"},
+        "dataset": {"source": DATA_SOURCE, "path": str(dagger), "objects": meta.get("objects", args.objects),
+                    "chosen_iteration": meta.get("iteration"),
+                    "seeds": f"iteration i, episode k: {dagger_config.get('seed', 0)} * 10**6 + i * 10**4 + k, "
+                             "every training object"},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],
-        "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": "2 for the BC fits, 1 per rollout worker", "platform": platform.platform(),
+        "compute": {"cpu_cores": os.cpu_count(), "gpu": None, "torch_threads": "the DAgger command's --threads for the BC fits, 1 per rollout worker", "platform": platform.platform(),
                     "load_average_at_end": round(os.getloadavg()[0], 1), "note": "2 CPU cores shared with other jobs",
                     "pipeline_wall_s_this_run": round(time.perf_counter() - start, 1), "torch": torch.__version__},
         "metrics": metrics,

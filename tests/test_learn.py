@@ -228,6 +228,22 @@ def test_bc_split_keeps_episodes_whole():
     tr, va = split_train_val(data, 0.25, seed=1)
     ep = data.episode_ids()
     assert set(ep[tr]).isdisjoint(set(ep[va])) and len(tr) + len(va) == 400
+    assert 0 < len(va) < 400
+
+
+def test_bc_split_of_a_growing_dataset_keeps_earlier_episodes_on_their_side():
+    """DAgger appends episodes and refits: a held-out episode must never become training data."""
+    from dexdrake.learn.bc import split_train_val
+
+    small = expert_dataset(2000)
+    more = DemoDataset(*(np.concatenate([getattr(small, k), getattr(expert_dataset(2000, seed=1), k)])
+                         for k in ("observations", "actions", "episode_starts")))
+    ep_small, ep_more = small.episode_ids(), more.episode_ids()
+    val_small = set(ep_small[split_train_val(small, 0.2, seed=3)[1]])
+    val_more = set(ep_more[split_train_val(more, 0.2, seed=3)[1]])
+    assert val_small and val_small == {e for e in val_more if e <= ep_small.max()}
+    assert val_more - val_small  # the appended episodes are split too
+    assert 0.05 < len(val_more) / (ep_more.max() + 1) < 0.4
 
 
 # ----------------------------------------------------------------------------- GAE, CG, Fisher

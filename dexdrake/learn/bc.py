@@ -30,7 +30,8 @@ class BCConfig:
     lr: float = 1e-5
     val_fraction: float = 0.1  # split by episode when the dataset has episode_starts
     checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
-    seed: int = 0
+    seed: int = 0  # shuffling and initialisation
+    split_seed: int | None = None  # the train/validation split (None: `seed`)
     fit_normalization: bool = True  # set the policy's observation stats from the train split
     action_weights: tuple[float, ...] = ()  # per-dimension weights of the fitted loss (empty: all 1);
     # the logged losses stay unweighted
@@ -51,7 +52,13 @@ class BCResult:
 
 
 def split_train_val(dataset: DemoDataset, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Train/validation sample indices; whole episodes go to one side when episodes are known."""
+    """Train/validation sample indices; whole episodes go to one side when episodes are known.
+
+    Episode e is held out when the e-th draw of a `seed`ed uniform stream is below
+    `val_fraction`, so a dataset that grows by appending episodes (DAgger) keeps its earlier
+    episodes on the same side: a held-out episode is never trained on in a later fit (at
+    least one episode goes to each side).
+    """
     if not 0.0 <= val_fraction < 1.0:
         raise DexdrakeError(f"val_fraction must be in [0, 1), got {val_fraction}")
     rng = np.random.default_rng(seed)
@@ -61,10 +68,12 @@ def split_train_val(dataset: DemoDataset, val_fraction: float, seed: int) -> tup
     episodes = dataset.episode_ids()
     n_ep = int(episodes.max()) + 1
     if n_ep >= 2:
-        n_val_ep = max(1, int(round(val_fraction * n_ep)))
-        if n_val_ep >= n_ep:
-            raise DexdrakeError(f"val_fraction {val_fraction} leaves no training episode out of {n_ep}")
-        val_eps = rng.choice(n_ep, size=n_val_ep, replace=False)
+        draws = rng.random(n_ep)
+        val_eps = np.nonzero(draws < val_fraction)[0]
+        if len(val_eps) == 0:
+            val_eps = np.array([int(np.argmin(draws))])
+        elif len(val_eps) == n_ep:
+            val_eps = np.delete(val_eps, int(np.argmax(draws)))
         is_val = np.isin(episodes, val_eps)
     else:
         n_val = max(1, int(round(val_fraction * n)))
@@ -128,7 +137,8 @@ def train_bc(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    train_idx, val_idx = split_train_val(dataset, config.val_fraction, config.seed)
+    split_seed = config.seed if config.split_seed is None else config.split_seed
+    train_idx, val_idx = split_train_val(dataset, config.val_fraction, split_seed)
     if config.fit_normalization:
         tr = dataset.observations[train_idx]
         policy.set_obs_normalization(tr.mean(0), tr.std(0))

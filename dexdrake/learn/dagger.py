@@ -245,7 +245,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             n_arm = len(load_hand(config.hand).arm_joints)
             weights = (config.arm_weight,) * n_arm + (1.0,) * (everything.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
-                          checkpoint_every=0, action_weights=weights)
+                          split_seed=config.seed, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
             hold = hold_still_loss(dataset, result.val_indices, load_hand(config.hand))

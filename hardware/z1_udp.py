@@ -250,6 +250,9 @@ class Z1Config:
     lower: Sequence[float] | None = None
     upper: Sequence[float] | None = None
     gravity_feedforward: bool = True  # LOWCMD: send the model's gravity torques as tau_ff
+    # send the rate-limited reference's velocity as the desired velocity W (as the vendor's
+    # LOWCMD example does); False: W = 0, the arm's PD damps towards rest and lags a ramp
+    velocity_feedforward: bool = True
     mode_timeout_s: float = 1.0  # how long start() waits for the controller to enter `mode`
 
 
@@ -414,7 +417,8 @@ class Z1Arm(SafeStopContext):
                           tau_ff: Sequence[float] | None = None) -> np.ndarray:
         """Set joint targets (rad) with optional velocity and feed-forward torque (LOWCMD).
 
-        Without `dq`, the velocity of the rate-limited reference is fed forward.
+        Without `dq`, the velocity of the rate-limited reference is fed forward (zero with
+        `velocity_feedforward` off).
         The target is clamped into the joint limits (non-finite targets are rejected and
         the last safe one is held) and followed at no more than `max_velocity`. `tau_ff`
         adds to the gravity feed-forward; their sum is clamped to the effort limits.
@@ -519,7 +523,12 @@ class Z1Arm(SafeStopContext):
                 q_prev = self._rate.output
                 q_ref = self._rate.step(self._target, dt)
                 # feed the reference's own velocity forward unless the caller gave one
-                dq_ref = self._dq_target if self._dq_given else (q_ref - q_prev) / max(dt, 1e-4)
+                if self._dq_given:
+                    dq_ref = self._dq_target
+                elif self.config.velocity_feedforward:
+                    dq_ref = (q_ref - q_prev) / max(dt, 1e-4)
+                else:
+                    dq_ref = np.zeros(NUM_ARM_JOINTS)
             tau = self._tau_ff
         if mode == ArmFSMState.LOWCMD:
             kp, kd = self.kp, self.kd

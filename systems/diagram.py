@@ -201,10 +201,10 @@ class StationEpisode:
         station = self.built.station
         k = self.k + 1
         fault = None
-        try:
-            if station.world is not None:  # lockstep: the world pauses at each control step
-                station.world.advance_to(self.t_world + k * self.period)
+        try:  # the controller acts on the measurements of this instant (station.DriverSystem),
             self.simulator.AdvanceTo(self.t_start + k * self.period)
+            if station.world is not None:  # then the world runs one control period and pauses
+                station.world.advance_to(self.t_world + k * self.period)
         except (StationFault, HardwareError) as err:
             fault = str(err)
         except RuntimeError as err:  # a Python exception raised inside a Drake event

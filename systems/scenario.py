@@ -71,6 +71,7 @@ class ArmDriver:
     kp: Optional[list[float]] = None  # raw LOWCMD gains
     kd: Optional[list[float]] = None
     max_velocity: Optional[float] = None  # rad/s on targets
+    velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
 
 
@@ -204,7 +205,8 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None):
                            controller_port=a.controller_port if arm_controller_port is None
                            else arm_controller_port,
                            watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode],
-                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity))
+                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity,
+                           velocity_feedforward=a.velocity_feedforward))
     check_allegro_config(hand)
     check_z1_config(arm)
     return hand, arm

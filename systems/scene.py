@@ -20,8 +20,8 @@ arm's PD gains those of the Z1 controller, the fingers torque-driven (the Allegr
 emulator's PWM), with the emulator's reflected inertia and damping.
 
 Ports of the diagram (policy joint order, see the hand description):
-  input  "command"     joint position set-points (n)                      (no JointDrive)
-  input  "desired_state" [q_d; v_d] of the plant's PD (2n)                (with a JointDrive)
+  input  "command"     joint position set-points (n)       (no JointDrive, no desired_state)
+  input  "desired_state" [q_d; v_d] of the plant's PD (2n)   (with a JointDrive or desired_state)
   input  "actuation"   feed-forward joint torques (n)                      (with a JointDrive)
   input  "generalized_force" applied generalized forces (plant velocities) (with a JointDrive)
   output "hand_state"  [q; v] (2n)
@@ -175,9 +175,11 @@ def _set_drive(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDe
             joint.set_default_damping(drive.damping[i])
 
 
-def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | None = None) -> GraspScene:
-    """Builds the diagram for `config` (the hand's actuators as `drive` says, if given; see
-    the module doc for the ports); the object placement is applied by `set_initial_state`."""
+def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | None = None,
+                      desired_state: bool = False) -> GraspScene:
+    """Builds the diagram for `config` (the hand's actuators as `drive` says, if given; the
+    PD's desired velocities as an input with `desired_state`, else zero; see the module doc
+    for the ports); the object placement is applied by `set_initial_state`."""
     hand = load_hand(config.hand)
     info = get_object(config.object)
     builder = DiagramBuilder()
@@ -210,12 +212,13 @@ def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | N
 
     P = _actuator_order(plant, hand_instance, hand)
     n = len(P)
-    if drive is None:  # set-points q_d -> desired state [q_d; 0] in actuator order
+    if drive is None and not desired_state:  # set-points q_d -> desired state [q_d; 0] in actuator order
         gains = builder.AddSystem(MatrixGain(np.vstack([P, np.zeros_like(P)])))
         builder.ExportInput(gains.get_input_port(), "command")
     else:
         gains = builder.AddSystem(MatrixGain(np.kron(np.eye(2), P)))
         builder.ExportInput(gains.get_input_port(), "desired_state")
+    if drive is not None:
         torques = builder.AddSystem(MatrixGain(P))
         builder.Connect(torques.get_output_port(), plant.get_actuation_input_port(hand_instance))
         builder.ExportInput(torques.get_input_port(), "actuation")

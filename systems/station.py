@@ -104,10 +104,16 @@ class LoopTimer:
 # ----------------------------------------------------------------------------- drivers
 class DriverSystem(LeafSystem):
     """Wraps a started joint driver (`AllegroHand`, bus order, or `Z1Arm`): input
-    "q_command" (n), output "state" ([q; dq], 2n) sampled every `period`. Raises
-    StationFault when the driver has latched a fault (the driver is then in its safe stop)
-    or is not running (never started: a station built for a dry run; or stopped), so that
-    no command is ever stored for a driver that is not running."""
+    "q_command" (n), output "state" ([q; dq], 2n). Every `period` the state is sampled
+    before the controller runs (an unrestricted update: Drake applies those before the
+    same instant's discrete updates, so the controller reads this instant's measurement)
+    and the command the controller computed from it is sent right after (a publish event,
+    which sees the instant's updates): no control period of latency is added on either side,
+    like the simulated station, whose controller reads the plant's state of the instant and
+    whose set-points act from the next plant step. Raises StationFault when the driver has
+    latched a fault (the driver is then in its safe stop) or is not running (never started:
+    a station built for a dry run; or stopped), so that no command is ever stored for a
+    driver that is not running."""
 
     def __init__(self, driver, num_joints: int, period: float, label: str):
         super().__init__()
@@ -117,7 +123,8 @@ class DriverSystem(LeafSystem):
         state = self.DeclareDiscreteState(np.nan_to_num(np.concatenate([st.q, st.dq])))
         self.DeclareStateOutputPort("state", state)
         self.DeclareInitializationDiscreteUpdateEvent(self._read)
-        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.0, self._sample)
+        self.DeclarePeriodicPublishEvent(period, 0.0, self._send)
 
     def _read(self, context: Context, state: DiscreteValues) -> None:
         st = self.driver.state()
@@ -127,8 +134,12 @@ class DriverSystem(LeafSystem):
             raise StationFault(f"{self.label}: the driver is not running (stopped, or never started)")
         state.set_value(0, np.concatenate([st.q, st.dq]))
 
-    def _update(self, context: Context, state: DiscreteValues) -> None:
-        self._read(context, state)
+    def _sample(self, context: Context, state) -> None:
+        self._read(context, state.get_mutable_discrete_state())
+
+    def _send(self, context: Context) -> None:
+        if not self.driver.running:
+            raise StationFault(f"{self.label}: the driver is not running (stopped, or never started)")
         if self._cmd.HasValue(context):
             self.driver.command_positions(self._cmd.Eval(context))
 
@@ -213,7 +224,8 @@ class PerceptionSystem(LeafSystem):
         state = self.DeclareDiscreteState(self.pose)
         self.DeclareStateOutputPort("object_pose", state)
         self.DeclareInitializationDiscreteUpdateEvent(self._init)
-        self.DeclarePeriodicDiscreteUpdateEvent(min(camera.period_s, 0.05), 0.0, self._update)
+        # sampled before the controller runs (an unrestricted update), like DriverSystem's state
+        self.DeclarePeriodicUnrestrictedUpdateEvent(min(camera.period_s, 0.05), 0.0, self._update)
         self._next_request = 0.0
 
     def _submit(self) -> None:
@@ -278,23 +290,24 @@ class PerceptionSystem(LeafSystem):
             self._next_request = self._due = context.get_time()
         state.set_value(0, self.pose)
 
-    def _update(self, context: Context, state: DiscreteValues) -> None:
+    def _update(self, context: Context, state) -> None:
         self.poll(context.get_time())
-        state.set_value(0, self.pose)
+        state.get_mutable_discrete_state().set_value(0, self.pose)
 
 
 class WorldPoseSystem(LeafSystem):
-    """Object pose read from the HIL world (camera kind "sim": no perception)."""
+    """Object pose read from the HIL world (camera kind "sim": no perception), sampled
+    before the controller runs, like DriverSystem's state."""
 
     def __init__(self, world, period: float):
         super().__init__()
         self.world = world
         state = self.DeclareDiscreteState(pose_vector(world.object_pose()))
         self.DeclareStateOutputPort("object_pose", state)
-        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.0, self._update)
 
-    def _update(self, context: Context, state: DiscreteValues) -> None:
-        state.set_value(0, pose_vector(self.world.object_pose()))
+    def _update(self, context: Context, state) -> None:
+        state.get_mutable_discrete_state().set_value(0, pose_vector(self.world.object_pose()))
 
 
 # ----------------------------------------------------------------------------- controller
@@ -413,15 +426,16 @@ def sim_station(scenario: Scenario, scene=None, driver_limits: bool = False) -> 
     from dexdrake.systems.scene import build_grasp_scene
     from dexdrake.systems.target_limits import TargetLimiter, target_limits
 
-    scene = scene or build_grasp_scene(scene_config(scenario))
+    scene = scene or build_grasp_scene(scene_config(scenario), desired_state=driver_limits)
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
     if driver_limits:
+        lower, upper, rate, feedforward = target_limits(scenario, scene.hand)
         limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
-            *target_limits(scenario, scene.hand), scenario.time_step))
+            lower, upper, rate, scenario.time_step, velocity_feedforward=feedforward))
         builder.ExportInput(limiter.GetInputPort("command"), "command")
         builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
-        builder.Connect(limiter.GetOutputPort("target"), sub.GetInputPort("command"))
+        builder.Connect(limiter.GetOutputPort("desired_state"), sub.GetInputPort("desired_state"))
     else:
         builder.ExportInput(sub.GetInputPort("command"), "command")
     for name in (*PORTS["outputs"], "query_object"):

@@ -1,12 +1,16 @@
-"""The drivers' set-point limits, modelled in simulation.
+"""The drivers' set-point path, modelled in simulation.
 
 On the robot a joint set-point never reaches the PD loop as commanded: the Allegro and Z1
 drivers clamp it into the joint limits and then follow it at no more than a target rate
 (Allegro `max_target_rate`, Z1 `max_velocity`; hardware/safety.py JointLimits and
-RateLimiter). A policy whose set-points jump (closing the hand in one control step) meets a
-slower hand on hardware than in an unlimited simulation. The station's sim mode passes its
-commands through `TargetLimiter` with the same limits and rates, resolved from the
-scenario's driver entries exactly as the drivers resolve them (`target_limits`), so that
+RateLimiter); the Z1 client sends the rate-limited reference's own velocity with it as the
+controller's desired velocity where its `velocity_feedforward` is on (hardware/z1_udp.py),
+while the Allegro driver's PD has no velocity set-point. A policy whose set-points jump
+(closing the hand in one control step) meets a slower hand on hardware than in an
+unlimited simulation, and an arm PD given no desired velocity lags its ramp by kd/kp *
+velocity (0.1 rad at pi rad/s with the Z1's gains) where one given it does not. The station's sim mode passes its commands
+through `TargetLimiter` with the same limits, rates and velocity feed-forward, resolved from
+the scenario's driver entries exactly as the drivers resolve them (`target_limits`), so that
 simulation and hardware-in-the-loop agree.
 """
 
@@ -21,17 +25,20 @@ from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 from dexdrake.systems.scenario import Scenario, driver_configs
 
 
-def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(lower, upper, max_rate) per joint in policy order, as the drivers apply them.
+def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(lower, upper, max_rate, velocity_feedforward) per joint in policy order, as the
+    drivers apply them.
 
     For the Allegro-on-Z1 layout: the Z1 driver's limits and `max_velocity` on the arm
-    joints, the Allegro driver's limits and `max_target_rate` on the fingers (defaults and
-    checks of hardware/allegro_can.py and hardware/z1_udp.py). A hand without that layout
-    has no drivers: its model's joint limits and no rate limit (inf)."""
+    joints, with the reference's velocity where the Z1 config's `velocity_feedforward` is on, the
+    Allegro driver's limits and `max_target_rate` on the fingers (defaults and checks of
+    hardware/allegro_can.py and hardware/z1_udp.py). A hand without that layout has no
+    drivers: its model's joint limits, no rate limit (inf) and no velocity feed-forward."""
     lower, upper = hand.joint_limits()
     n_arm = len(hand.arm_joints)
+    feedforward = np.zeros(hand.num_actuators, bool)
     if hand.hardware_joints is None or n_arm != NUM_ARM_JOINTS:
-        return lower, upper, np.full(hand.num_actuators, np.inf)
+        return lower, upper, np.full(hand.num_actuators, np.inf), feedforward
     from dexdrake.hardware.allegro_can import check_allegro_config
     from dexdrake.hardware.z1_udp import check_z1_config
 
@@ -41,32 +48,41 @@ def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray
     lower, upper, rate = lower.copy(), upper.copy(), np.empty(hand.num_actuators)
     lower[:n_arm], upper[:n_arm], rate[:n_arm] = zs.lower, zs.upper, zs.max_velocity
     lower[perm], upper[perm], rate[perm] = hs.lower, hs.upper, hand_cfg.max_target_rate
-    return lower, upper, rate
+    feedforward[:n_arm] = arm_cfg.velocity_feedforward
+    return lower, upper, rate, feedforward
 
 
 class TargetLimiter(LeafSystem):
-    """Inputs "command" (n set-points) and "hand_state" ([q; v], 2n); output "target" (n):
+    """Inputs "command" (n set-points) and "hand_state" ([q; v], 2n); outputs "target" (n):
     the command clamped into [lower, upper] and followed at no more than `max_rate` (per
-    joint, units/s), updated every `period`. It starts at the measured position (clamped),
-    as the drivers do when their loops start."""
+    joint, units/s), updated every `period`; and "desired_state" ([target; v], 2n): v the
+    target's velocity over the last period on the joints of `velocity_feedforward`, else 0.
+    It starts at the measured position (clamped), at rest, as the drivers do when their
+    loops start."""
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, max_rate: np.ndarray, period: float):
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, max_rate: np.ndarray, period: float,
+                 velocity_feedforward: np.ndarray | None = None):
         super().__init__()
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         self.max_rate, self.period = np.asarray(max_rate, float), period
         n = len(self.lower)
+        self.feedforward = np.zeros(n, bool) if velocity_feedforward is None else np.asarray(velocity_feedforward, bool)
         self._command = self.DeclareVectorInputPort("command", n)
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
-        state = self.DeclareDiscreteState(n)
-        self.DeclareStateOutputPort("target", state)
+        state = self.DeclareDiscreteState(2 * n)  # [target; its velocity]
+        self.DeclareVectorOutputPort("target", n, lambda c, out: out.SetFromVector(c.get_discrete_state(0).value()[:n]),
+                                     {self.xd_ticket()})
+        self.DeclareStateOutputPort("desired_state", state)
         self.DeclareInitializationDiscreteUpdateEvent(self._start)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
 
     def _start(self, context: Context, state: DiscreteValues) -> None:
         q = self._hand.Eval(context)[: len(self.lower)]
-        state.set_value(0, np.clip(q, self.lower, self.upper))
+        state.set_value(0, np.r_[np.clip(q, self.lower, self.upper), np.zeros(len(q))])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
+        n = len(self.lower)
         target = np.clip(self._command.Eval(context), self.lower, self.upper)
-        state.set_value(0, rate_limited(context.get_discrete_state(0).value(), target,
-                                        self.max_rate, self.period))
+        previous = context.get_discrete_state(0).value()[:n]
+        q = rate_limited(previous, target, self.max_rate, self.period)
+        state.set_value(0, np.r_[q, np.where(self.feedforward, (q - previous) / self.period, 0.0)])

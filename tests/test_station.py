@@ -654,3 +654,71 @@ def test_scenegraph_feature_path_reaches_dexrep_and_agrees_with_the_fast_path():
         assert np.all(np.einsum("ij,ij->i", surf_a[:, 1:], surf_b[:, 1:]) > 0.99)
         same = np.all(a[h + voxels + 4 * n:].reshape(n, -1) == b[h + voxels + 4 * n:].reshape(n, -1), axis=1)
         assert same.mean() >= 0.9
+
+
+class _IdealJoints:
+    """A stand-in for a HIL world and its joint driver at once: a robot that is exactly at
+    the last commanded position one control period after the command (`advance_to`),
+    measured as it is now (`state()`)."""
+
+    running = True
+
+    def __init__(self, q0: np.ndarray):
+        from pydrake.math import RigidTransform
+
+        self.q, self.target, self.time, self.pose = q0.copy(), q0.copy(), 0.0, RigidTransform()
+
+    def state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(q=self.q.copy(), dq=np.zeros_like(self.q), fault=None)
+
+    def command_positions(self, q) -> None:
+        self.target = np.asarray(q, float).copy()
+
+    def advance_to(self, t: float) -> None:
+        self.q, self.time = self.target.copy(), t
+
+    def release(self) -> None:
+        pass
+
+    def object_pose(self):
+        return self.pose
+
+    def stats(self) -> dict:
+        return {}
+
+
+def test_device_station_adds_no_control_period_of_latency():
+    """The station's driver systems sample the measurement before the controller runs and
+    send its command before the world moves on, as in the simulated station: a controller
+    stepping a joint by 0.01 rad from what it measures sees the robot reach each of its
+    commands one control period later (before this, measurement and command each lagged
+    one period: HIL responded 40 ms after simulation)."""
+    from pydrake.systems.framework import DiagramBuilder
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.station import DriverSystem, Station, WorldPoseSystem
+
+    scenario = hil_scenario()
+    hand = load_hand(scenario.hand)
+    robot = _IdealJoints(hand.pregrasp_vector())
+    builder = DiagramBuilder()
+    n, period = hand.num_actuators, scenario.control_period
+    driver = builder.AddSystem(DriverSystem(robot, n, period, "joints"))
+    builder.ExportInput(driver.get_input_port(), "command")
+    builder.ExportOutput(driver.get_output_port(), "hand_state")
+    builder.ExportOutput(builder.AddSystem(WorldPoseSystem(robot, period)).get_output_port(), "object_pose")
+    station = Station(scenario, builder.Build(), hand, world=robot)
+    seen = []
+
+    def controller(t, hand_state, object_pose):
+        seen.append(hand_state[0])
+        q = hand_state[:n].copy()
+        q[0] += 0.01
+        return q
+
+    result = run_station_episode(station, controller, 10)
+    assert result.fault is None and len(seen) == 10
+    np.testing.assert_allclose(np.diff(seen), 0.01, atol=1e-12)

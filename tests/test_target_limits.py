@@ -21,12 +21,37 @@ def test_limiter_clamps_then_follows_at_the_rate_from_the_measured_start():
     limiter.GetInputPort("hand_state").FixValue(context, [0.2, -0.1, 0.0, 0.0])
     limiter.GetInputPort("command").FixValue(context, [5.0, -0.1])  # beyond the upper limit
     simulator.Initialize()
-    np.testing.assert_allclose(limiter.get_output_port().Eval(context), [0.2, -0.1])
+    target = limiter.GetOutputPort("target")
+    np.testing.assert_allclose(target.Eval(context), [0.2, -0.1])
     simulator.AdvanceTo(0.2)
-    np.testing.assert_allclose(limiter.get_output_port().Eval(context), [0.6, -0.1], atol=1e-9)
+    np.testing.assert_allclose(target.Eval(context), [0.6, -0.1], atol=1e-9)
     limiter.GetInputPort("command").FixValue(context, [5.0, -3.0])
     simulator.AdvanceTo(1.0)
-    np.testing.assert_allclose(limiter.get_output_port().Eval(context), [1.0, -0.5], atol=1e-9)
+    np.testing.assert_allclose(target.Eval(context), [1.0, -0.5], atol=1e-9)
+    # no velocity feed-forward asked for: the PD's desired velocity stays zero
+    np.testing.assert_allclose(limiter.GetOutputPort("desired_state").Eval(context), [1.0, -0.5, 0.0, 0.0], atol=1e-9)
+
+
+def test_limiter_feeds_the_ramps_velocity_forward_where_the_driver_does():
+    """The Z1 client sends its reference's velocity with it (W) when velocity_feedforward
+    is on; the simulated PD gets the same desired velocity on those joints only."""
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.systems.target_limits import TargetLimiter
+
+    limiter = TargetLimiter(lower=[-1.0, -1.0], upper=[1.0, 1.0], max_rate=[2.0, 2.0], period=0.01,
+                            velocity_feedforward=[True, False])
+    simulator = Simulator(limiter)
+    context = simulator.get_mutable_context()
+    limiter.GetInputPort("hand_state").FixValue(context, [0.0, 0.0, 0.0, 0.0])
+    limiter.GetInputPort("command").FixValue(context, [0.5, 0.5])
+    simulator.Initialize()
+    desired = limiter.GetOutputPort("desired_state")
+    np.testing.assert_allclose(desired.Eval(context), [0.0, 0.0, 0.0, 0.0])
+    simulator.AdvanceTo(0.1)  # ramping at 2 rad/s
+    np.testing.assert_allclose(desired.Eval(context), [0.2, 0.2, 2.0, 0.0], atol=1e-9)
+    simulator.AdvanceTo(0.5)  # arrived: at rest
+    np.testing.assert_allclose(desired.Eval(context), [0.5, 0.5, 0.0, 0.0], atol=1e-9)
 
 
 def test_limits_and_rates_are_the_drivers():
@@ -36,13 +61,17 @@ def test_limits_and_rates_are_the_drivers():
 
     scenario = load_scenario(CONFIGS / "hil.yaml")
     hand = load_hand(scenario.hand)
-    lower, upper, rate = target_limits(scenario, hand)
+    lower, upper, rate, feedforward = target_limits(scenario, hand)
     n_arm = len(hand.arm_joints)
     np.testing.assert_allclose(rate[n_arm:], scenario.drivers.hand.max_target_rate)
     assert np.all(rate[:n_arm] == rate[0]) and 0 < rate[0] <= z1_model().limits.velocity.min()
     lo, hi = hand.joint_limits()
     np.testing.assert_allclose(lower, lo)
     np.testing.assert_allclose(upper, hi)
+    # the Z1 config's velocity feed-forward (configs/hil.yaml: off, as the policy was trained)
+    assert not feedforward.any() and scenario.drivers.arm.velocity_feedforward is False
+    scenario.drivers.arm.velocity_feedforward = None  # the driver's default: on
+    assert target_limits(scenario, hand)[3].tolist() == [True] * n_arm + [False] * (hand.num_actuators - n_arm)
     scenario.drivers.hand.max_target_rate = 1.5
     assert np.all(target_limits(scenario, hand)[2][n_arm:] == 1.5)
     adroit = load_hand("adroit")  # no drivers: the model's joint limits, no rate limit

@@ -466,6 +466,23 @@ def test_given_velocity_is_fed_forward_within_the_limit(emulator):
                 arm.command_positions(np.zeros(6), **bad)
 
 
+def test_reference_velocity_is_sent_only_with_velocity_feedforward(emulator):
+    """While the rate-limited reference ramps, its velocity goes out as W; with
+    velocity_feedforward off W stays zero (the arm's PD damps towards rest)."""
+    for ff in (True, False):
+        arm = make_arm(emulator, max_velocity=1.0, velocity_feedforward=ff)
+        sent = []
+        with arm:
+            target = arm.state().q + np.where(ff, 0.5, -0.5) * np.sign(TARGET)  # 0.5 s of ramp
+            arm.command_positions(target)
+            assert wait_for(lambda: sent.append(emulator.command().dq_d.copy())
+                            or np.abs(arm.state().q_target - target).max() < 1e-6, 5.0)
+        emulator.stall(0)  # back to PASSIVE between the two runs
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
+        peak = np.abs(sent).max()
+        assert (peak == pytest.approx(1.0, abs=1e-3)) if ff else peak == 0.0, (ff, peak)
+
+
 def test_start_without_controller_fails_cleanly():
     free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     free.bind(("127.0.0.1", 0))

@@ -17,6 +17,7 @@ never report temperatures, lose power.
 from __future__ import annotations
 
 import collections
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -282,6 +283,7 @@ class AllegroEmulator:
                 self.servo_on = False
             case SetPeriod():
                 self.periods = frame
+                self._anchor_periods(now)
             case Torque(finger, pwm):
                 with self._lock:
                     self._pwm[4 * finger: 4 * finger + 4] = pwm
@@ -306,6 +308,17 @@ class AllegroEmulator:
             self._q = np.asarray(q, float).copy()
             self._dq = np.asarray(dq, float).copy()
 
+    def _anchor_periods(self, now: float) -> None:
+        """Stream each periodic frame on the multiples of its period (of the emulator's
+        clock) from `now` on, whenever the host set the period: the phase of the stream does
+        not depend on when the host's SetPeriod came."""
+        p = self.periods
+        for name, period_ms in (("position", p.position_ms), ("temperature", p.temperature_ms),
+                                ("status", p.status_ms or 0)):
+            if period_ms > 0:
+                period = period_ms / 1e3
+                self._due[name] = math.ceil(now / period - 1e-9) * period
+
     def _stream(self, now: float) -> None:
         streaming = now >= self.inject.stall_until and not self.inject.silent
         p = self.periods
@@ -314,7 +327,7 @@ class AllegroEmulator:
             if period_ms <= 0:
                 self._due[name] = now
                 continue
-            if now < self._due[name]:
+            if now < self._due[name] - 1e-9:  # due: to the clock's rounding
                 continue
             self._due[name] = max(self._due[name] + period_ms / 1e3, now - period_ms / 1e3)
             if not streaming:

@@ -253,6 +253,9 @@ class Z1Config:
     # send the rate-limited reference's velocity as the desired velocity W (as the vendor's
     # LOWCMD example does); False: W = 0, the arm's PD damps towards rest and lags a ramp
     velocity_feedforward: bool = True
+    # state() waits up to this long (wall) for the reply to the last command sent, if it has
+    # not come yet (hardware-in-the-loop: a sample in lockstep with the world; 0: never waits)
+    reply_wait_s: float = 0.0
     mode_timeout_s: float = 1.0  # how long start() waits for the controller to enter `mode`
 
 
@@ -280,6 +283,8 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
         value = getattr(cfg, name)
         if not (math.isfinite(value) and value > 0):
             raise HardwareError(f"Z1 {name} must be > 0, got {value}")
+    if not (math.isfinite(cfg.reply_wait_s) and cfg.reply_wait_s >= 0):
+        raise HardwareError(f"Z1 reply_wait_s must be >= 0, got {cfg.reply_wait_s}")
 
     def vec(values, default: np.ndarray, name: str) -> np.ndarray:
         arr = default.copy() if values is None else _vec6(values, name)
@@ -337,6 +342,7 @@ class Z1Arm(SafeStopContext):
         self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
         self._lock = threading.Lock()
+        self._receiving = threading.Lock()  # one reader drains the socket at a time, in order
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
@@ -352,6 +358,9 @@ class Z1Arm(SafeStopContext):
         self._tick_times: collections.deque[float] = collections.deque(maxlen=20000)
         self.packet_errors: collections.Counter[str] = collections.Counter()
         self.packets_received = 0
+        self.commands_sent = self._answered = 0  # commands sent; the count sent when a reply last came
+        self._replies_flowing = True  # the last reply_wait_s wait was not in vain
+        self.next_tick = math.inf  # clock time of the loop's next command (inf: not running)
         self.torque_clamped = 0  # ticks whose feed-forward torque hit an effort limit
 
     # --------------------------------------------------------------- session
@@ -402,6 +411,7 @@ class Z1Arm(SafeStopContext):
     def stop(self) -> None:
         """Command PASSIVE, stop the loop and close the socket."""
         self._running.clear()
+        self.next_tick = math.inf
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
@@ -445,6 +455,10 @@ class Z1Arm(SafeStopContext):
             self.fault.reset()
 
     def state(self) -> Z1State:
+        """The newest state the controller sent: replies already delivered to the socket
+        are read first, so a reader never sees an older state than is there to read."""
+        with contextlib.suppress(OSError, ValueError):
+            self._receive_reply()
         with self._lock:
             st = self._last
             q_target = self._rate.output
@@ -469,16 +483,39 @@ class Z1Arm(SafeStopContext):
     def _send(self, cmd: SendCmd) -> None:
         assert self._sock is not None
         self._sock.sendto(cmd.pack(), (self.config.host, self.config.controller_port))
+        self.commands_sent += 1
+
+    def _receive_reply(self) -> None:
+        """Receive; then, with `reply_wait_s`, wait that long at most for the reply to the
+        last command sent if it has not come yet (not again after a wait in vain until
+        replies come again: a silent controller is the watchdog's business)."""
+        sock = self._sock
+        if sock is None:
+            return
+        self._receive()
+        if self._answered < self.commands_sent and self.config.reply_wait_s > 0 and self._replies_flowing:
+            select.select([sock], [], [], self.config.reply_wait_s)
+            self._receive()
+            self._replies_flowing = self._answered >= self.commands_sent
 
     def _receive(self) -> None:
-        """Drain the socket; validate and keep the newest state."""
-        assert self._sock is not None
+        """Drain the socket; validate and keep the newest state (the loop thread and
+        `state()` both call it)."""
+        with self._receiving:
+            self._drain()
+
+    def _drain(self) -> None:
+        sock = self._sock
+        if sock is None:
+            return
         while True:
             try:
-                data = self._sock.recv(4096)
+                data = sock.recv(4096)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # e.g. ICMP port unreachable surfaced on loopback
+                if sock.fileno() < 0:  # closed by stop()
+                    return
                 self.packet_errors["socket"] += 1
                 continue
             try:
@@ -487,6 +524,7 @@ class Z1Arm(SafeStopContext):
                 self.packet_errors[err.kind] += 1
                 continue
             self.packets_received += 1
+            self._answered, self._replies_flowing = self.commands_sent, True
             self._watchdog.feed()
             with self._lock:
                 self._last, self._t_state = st, self._clock()
@@ -555,7 +593,7 @@ class Z1Arm(SafeStopContext):
 
     def _loop_body(self) -> None:
         period = 1.0 / self.config.rate_hz
-        next_tick = self._clock()
+        next_tick = self.next_tick = self._clock()
         last_tick = next_tick
         while self._running.is_set():
             now = self._clock()
@@ -566,7 +604,7 @@ class Z1Arm(SafeStopContext):
                     self.fault.reset()
                     self._initialised, self._has_command = False, False
                 self._watchdog.reset()
-            self._receive()
+            self._receive_reply()  # the command of this tick acts on the newest state
             if not self.fault.tripped and self._watchdog.expired(now):
                 self.fault.trip(f"no Z1 state for {self._watchdog.since_last(now) * 1e3:.0f} ms")
             try:
@@ -577,7 +615,9 @@ class Z1Arm(SafeStopContext):
             next_tick += period
             if next_tick < now - period:  # fell behind by more than a period: resync
                 next_tick = now + period
-            while (left := next_tick - self._clock()) > 0:
+            self.next_tick = next_tick
+            # until due (to the clock's rounding), or stopped (a paused clock would not move)
+            while self._running.is_set() and (left := next_tick - self._clock()) > 1e-9:
                 select.select([self._sock], [], [], left)
                 self._receive()
 

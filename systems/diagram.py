@@ -183,8 +183,8 @@ class StationEpisode:
                                     scene.hand.pregrasp_vector())
         elif station.world is None:  # real: the devices run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
-        if station.world is not None:  # pause the world where the episode starts (lockstep;
-            station.world.advance_to(station.world.time)  # the drivers run on its clock)
+        if station.world is not None:  # the world starts the episode paused, from its initial
+            station.world.begin(period)  # state (lockstep; the drivers run on its clock)
             self._world_paused = True
         if station.perception is not None:
             _await_first_pose(station)

@@ -35,6 +35,15 @@ Timing design (correctness must not depend on how the host schedules threads):
   up it runs slower (real-time factor < 1, reported by `stats()`) instead of taking larger
   steps, so a loaded machine slows the episode down but does not change its outcome. After
   a hiccup it catches up at most `max_lag_s` (briefly running faster than real time).
+- Held until the episode begins. Until `begin()` the world's clock and both emulators run
+  but the plant does not move: the robot and the object stay at rest where they were placed
+  (as on a stand), so the drivers start up (the Z1 from PASSIVE, in which the arm would sag
+  under its weight for as long as start-up takes in wall time) against the same still robot
+  however long that takes. `begin()` pauses at the next multiple of BEGIN_GRID_S (rounded
+  to the devices' common period: the CAN position period, the Z1 tick, the plant step and
+  the control period) and lets the plant move from there: every episode starts from the
+  same state at the same time and phase of every device loop, so the same seed gives the
+  same episode (as long as no reply is later than `reply_timeout_s`).
 The hand's own joints are gravity compensated (as in the simulated scene); the arm joints
 carry the arm's and the hand's weight; the object is not compensated.
 """
@@ -57,6 +66,12 @@ from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConf
 from dexdrake.hardware.z1_model import z1_model
 from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config
 from dexdrake.systems.scenario import Scenario
+
+
+# The episode begins at a multiple of this (rounded up to the devices' common period):
+# start-up takes 0.2-0.3 s of world time, wall-clock dependent; beginning at the same time
+# in every run keeps even the rounding of the drivers' time differences the same.
+BEGIN_GRID_S = 1.0
 
 
 class _PlantFingers:
@@ -128,12 +143,15 @@ class HilWorld:
         self._stepped = threading.Condition()  # notified after every world step
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None  # what ended the world thread, if anything
-        self._t = 0.0
+        self._t = 0.0  # the clock: it moves at a step's start, before the devices' exchange
+        self._completed = 0.0  # the time of the last step completed, exchange included
         self._horizon = math.inf  # the world pauses here (advance_to)
+        self._held = True  # the plant does not move until begin()
         self.steps = 0
         self.late_replies = 0  # hand cycles whose torques did not come within reply_timeout_s
         self.late_arm_commands = 0  # Z1 ticks whose command did not come within reply_timeout_s
         self._arm_period = 1.0 / Z1Config.rate_hz  # the Z1 client's tick (it sends one command)
+        self.arm_client = None  # the Z1 client (attach_arm_client), for the lockstep
         self._wall0: float | None = None
         self._step_walls: collections.deque[float] = collections.deque(maxlen=20000)
         self._push_inputs()
@@ -171,6 +189,25 @@ class HilWorld:
         out.update(step_p50_ms=step["p50_ms"], step_p99_ms=step["p99_ms"], step_max_ms=step["max_ms"])
         return out
 
+    def attach_arm_client(self, client) -> None:
+        """Step in lockstep with the Z1 client (hardware/z1_udp.Z1Arm, started on this
+        world's clock): every step waits (at most `reply_timeout_s` of wall time) until the
+        client has sent the commands of all its ticks due by then and they have arrived."""
+        self.arm_client = client
+
+    def begin(self, control_period: float) -> None:
+        """Pause at the next multiple of the common period of the device loops and
+        `control_period` (see the module doc), then let the plant move from there on the
+        next `advance_to`; the world stays paused."""
+        periods = (self.scenario.time_step, self._arm_period, control_period,
+                   self.hand_emulator.periods.position_ms / 1e3)  # 0 ms: not streaming
+        common = math.lcm(*(round(p * 1e6) for p in periods if p > 0)) / 1e6
+        grid = common * math.ceil(BEGIN_GRID_S / common)  # a start time the same in every run
+        self.advance_to(math.ceil(self._t / grid - 1e-9) * grid)
+        with self._stepped:
+            self._held = False
+            self._simulator.Initialize()  # the plant's context time moved on while held
+
     def advance_to(self, t: float, stall_timeout_s: float = 5.0) -> None:
         """Let the world run up to simulated time `t`, pause there, and return when it has
         arrived (see wait_until for the errors). `release()` lets it run freely again."""
@@ -191,14 +228,14 @@ class HilWorld:
         if t > self._horizon + 1e-9:
             raise HardwareError(f"HIL world: waiting for t={t:.3f} s beyond its pause point "
                                 f"{self._horizon:.3f} s (use advance_to)")
-        last, since = self._t, time.monotonic()
+        last, since = self._completed, time.monotonic()
         with self._stepped:
-            while self._t < t - 1e-9:
+            while self._completed < t - 1e-9:  # the step, its replies included, is done
                 if self.error is not None or not self._running.is_set():
                     raise HardwareError(f"HIL world stopped at t={self._t:.3f} s: {self.error!r}")
                 now = time.monotonic()
-                if self._t != last:
-                    last, since = self._t, now
+                if self._completed != last:
+                    last, since = self._completed, now
                 elif now - since > stall_timeout_s:
                     raise HardwareError(f"HIL world made no progress for {stall_timeout_s} s "
                                         f"at t={self._t:.3f} s")
@@ -242,9 +279,12 @@ class HilWorld:
 
     def step(self) -> None:
         """One lockstep world step (module doc); the world thread calls it in a loop."""
-        h = self.scenario.time_step
-        self._push_inputs()
-        self._simulator.AdvanceTo(self._t + h)
+        t_next = (self.steps + 1) * self.scenario.time_step  # a multiple of the step, exactly as
+        if self._held:  # the plant's update times (no drift from summing): the clock runs,
+            self._context.SetTime(t_next)  # the plant stays at rest (module doc)
+        else:
+            self._push_inputs()
+            self._simulator.AdvanceTo(t_next)
         self._publish()
         now = self._t
         hand, arm = self.hand_emulator, self.arm_emulator
@@ -256,13 +296,22 @@ class HilWorld:
                 hand.poll(now, left)
             if hand.torque_pending:
                 self.late_replies += 1
-        if arm.commands_received and now - arm.last_command_time >= self._arm_period - 1e-9:
-            n = arm.commands_received  # the client talks: wait for its command of this tick
+        client = self.arm_client
+        if client is not None and client.next_tick < math.inf:  # wait for its ticks due by now
             deadline = time.monotonic() + self.scenario.hil.reply_timeout_s
-            while arm.commands_received == n and (left := deadline - time.monotonic()) > 0:
-                arm.poll(now, left)
-            if arm.commands_received == n:
+
+            def waiting() -> bool:
+                return client.next_tick <= now + 1e-9 or arm.commands_received < client.commands_sent
+
+            while waiting() and (left := deadline - time.monotonic()) > 0:
+                arm.poll(now, min(left, 1e-3))
+            if waiting():
                 self.late_arm_commands += 1
+        # An emulator hands what it received to its dynamics hook at its next poll: poll
+        # once more so that the frames that came while waiting act from the next step, not
+        # (depending on which poll of the wait they came in) one step later.
+        arm.poll(now)
+        hand.poll(now)
         self.steps += 1
 
     # -------------------------------------------------------------- thread
@@ -313,6 +362,7 @@ class HilWorld:
                 self.step()
                 self._step_walls.append(time.monotonic())
                 with self._stepped:
+                    self._completed = self._t
                     self._stepped.notify_all()
         except BaseException as err:  # the drivers' watchdogs see the world stop
             self.error = err

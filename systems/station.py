@@ -535,11 +535,15 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
         arm_port, clock = world.arm_emulator.port, world.clock
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port)
+    if world is not None:  # a sample of the arm's state sees the world's reply of its last step
+        arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
     bus = open_can_bus(scenario)
     stack.callback(bus.shutdown)
     allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg, clock=clock)
     z1 = Z1Arm(arm_cfg, clock=clock)
     devices["allegro"], devices["z1"] = allegro, z1
+    if world is not None:  # the world steps in lockstep with the Z1 client's ticks once it runs
+        world.attach_arm_client(z1)
     if start:
         stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
         _await_first_cycle(allegro)

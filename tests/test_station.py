@@ -263,11 +263,16 @@ def test_stalled_emulator_stream_ends_in_safe_state(device):
 
     with make_station(hil_scenario()) as station:
         emulator = station.devices[f"{device}_emulator"]
-        timer = threading.Timer(0.2, emulator.stall, args=(2.0,))
-        timer.start()
-        result = run_station_episode(station, _hold_then(np.zeros(station.hand.num_actuators)), steps=100)
-        timer.join()
-        assert result.fault is not None and result.steps < 100
+        hold, calls = _hold_then(np.zeros(station.hand.num_actuators)), []
+
+        def controller(t, hand_state, object_pose):  # the stream stalls 5 steps into the episode
+            calls.append(t)
+            if len(calls) == 5:
+                emulator.stall(2.0)
+            return hold(t, hand_state, object_pose)
+
+        result = run_station_episode(station, controller, steps=100)
+        assert result.fault is not None and 5 <= result.steps < 100
         assert ("Allegro" if device == "allegro" else "Z1") in result.fault
     # after the station's exit every device is in its safe state
     hand_emu, arm_emu = station.devices["allegro_emulator"], station.devices["z1_emulator"]
@@ -679,6 +684,9 @@ class _IdealJoints:
     def advance_to(self, t: float) -> None:
         self.q, self.time = self.target.copy(), t
 
+    def begin(self, control_period: float) -> None:
+        pass
+
     def release(self) -> None:
         pass
 
@@ -722,3 +730,63 @@ def test_device_station_adds_no_control_period_of_latency():
     result = run_station_episode(station, controller, 10)
     assert result.fault is None and len(seen) == 10
     np.testing.assert_allclose(np.diff(seen), 0.01, atol=1e-12)
+
+
+def test_world_pauses_only_after_its_step_exchange_is_done(monkeypatch):
+    """advance_to(t) returns once the step to t is complete, the drivers' replies included:
+    the world's clock moves at a step's start (the devices run on it during the step), and a
+    control loop woken by the clock alone would sample the drivers mid-exchange."""
+    import time
+
+    from dexdrake.systems.hil_world import HilWorld
+    from dexdrake.systems.station import make_station
+
+    publish, in_step = HilWorld._publish, threading.Event()
+
+    def slow_publish(self):  # the clock has moved; the exchange of this step is still to come
+        publish(self)
+        if not self._held:  # (begun: longer than a waiter's poll of the clock, 50 ms)
+            in_step.set()
+            time.sleep(0.2)
+
+    step = HilWorld.step
+
+    def marked_step(self):
+        step(self)
+        in_step.clear()
+
+    monkeypatch.setattr(HilWorld, "_publish", slow_publish)
+    monkeypatch.setattr(HilWorld, "step", marked_step)
+    with make_station(hil_scenario()) as station:
+        world = station.world
+        world.begin(station.scenario.control_period)
+        for k in range(1, 6):
+            world.advance_to(world.time + station.scenario.time_step)
+            assert not in_step.is_set(), f"advance_to returned during step {k}"
+
+
+def test_hil_episode_is_repeatable():
+    """The same scenario and seed give the same HIL episode, bit for bit: the world begins at
+    a fixed time from its initial state (held while the drivers start up) and every device
+    exchange is in lockstep on its clock (systems/hil_world.py)."""
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.station import make_station
+
+    def episode() -> np.ndarray:
+        seen = []
+
+        def controller(t, hand_state, object_pose):  # closed loop: small errors would grow
+            seen.append(hand_state.copy())
+            q = hand_state[: len(hand_state) // 2].copy()
+            q[0] += 0.3 * np.sin(40 * q[0])
+            q[8] += 0.2
+            return q
+
+        with make_station(hil_scenario()) as station:
+            result = run_station_episode(station, controller, 12)
+        assert result.fault is None and result.stats["world"]["late_replies"] == 0
+        return np.array(seen)
+
+    first, second = episode(), episode()
+    assert first.shape == second.shape and np.array_equal(first, second), \
+        f"differ by up to {np.abs(first - second).max():.2e}"

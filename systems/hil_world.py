@@ -24,13 +24,17 @@ Timing design (correctness must not depend on how the host schedules threads):
   services both emulators (they stream the frames that are due on the simulated clock),
   and, when a position batch went out with the servo on, waits (at most `reply_timeout_s`
   of wall time) for the driver's 4 torque frames before the next step: the PD always acts on
-  the newest positions, exactly one CAN cycle old, however slow the host is. Likewise, once
-  the Z1 client talks, a step at which its next tick is due waits (as long) for its command,
-  so the arm's set-points reach the world on the client's 2 ms ticks on a loaded host too.
+  the newest positions, exactly one CAN cycle old, however slow the host is. Likewise, with
+  the Z1 client attached (`attach_arm_client`), each step waits (as long) until the client
+  has sent the commands of all its ticks due by then and they have arrived (the client in
+  turn waits for the reply to its last command), so the arm's set-points reach the world on
+  the client's 2 ms ticks on a loaded host too. What arrived while waiting acts from the
+  next step.
 - Lockstep with the control loop. `advance_to(t)` lets the world run up to `t` and waits
-  for it there: the station's control loop calls it once per control period, so each
-  policy step sees the world at the same simulated time whatever the host's speed
-  (without it the world runs freely).
+  there until that step, its exchange with the devices included, is done: the station's
+  control loop calls it once per control period, so each policy step sees the world and
+  the drivers at the same simulated time whatever the host's speed (without it the world
+  runs freely).
 - Real time at most. The world never runs ahead of the wall clock; when the host cannot keep
   up it runs slower (real-time factor < 1, reported by `stats()`) instead of taking larger
   steps, so a loaded machine slows the episode down but does not change its outcome. After
@@ -196,9 +200,9 @@ class HilWorld:
         self.arm_client = client
 
     def begin(self, control_period: float) -> None:
-        """Pause at the next multiple of the common period of the device loops and
-        `control_period` (see the module doc), then let the plant move from there on the
-        next `advance_to`; the world stays paused."""
+        """Pause at the next multiple of BEGIN_GRID_S rounded to the common period of the
+        device loops and `control_period` (module doc), then let the plant move from there
+        on the next `advance_to`; the world stays paused."""
         periods = (self.scenario.time_step, self._arm_period, control_period,
                    self.hand_emulator.periods.position_ms / 1e3)  # 0 ms: not streaming
         common = math.lcm(*(round(p * 1e6) for p in periods if p > 0)) / 1e6

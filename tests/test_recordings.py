@@ -1,7 +1,6 @@
 """Recordings a person can read at a glance: every mode's .rrd carries the one logger's
 blueprint, and every view of it shows data the recording holds."""
 
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -162,11 +161,15 @@ def test_a_station_episode_records_each_control_step_and_the_fault_that_ends_it(
     logger = RerunLogger(rrd, "hil", scenario=scenario)
     with make_station(scenario) as station:
         logger.attach(station)
-        stall = threading.Timer(0.2, station.devices["allegro_emulator"].stall, args=(2.0,))
-        stall.start()  # the hand's replies stop
-        n = station.hand.num_actuators
-        result = run_station_episode(station, lambda t, hand_state, object_pose: hand_state[:n], 100, logger)
-        stall.join()
+        n, calls = station.hand.num_actuators, []
+
+        def controller(t, hand_state, object_pose):  # the hand's replies stop 5 steps in
+            calls.append(t)
+            if len(calls) == 5:
+                station.devices["allegro_emulator"].stall(2.0)
+            return hand_state[:n]
+
+        result = run_station_episode(station, controller, 100, logger)
     logger.close()
     assert result.fault is not None and 0 < result.steps < 100
     rows = logged_rows(rrd)

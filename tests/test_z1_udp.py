@@ -473,7 +473,8 @@ def test_reference_velocity_is_sent_only_with_velocity_feedforward(emulator):
         arm = make_arm(emulator, max_velocity=1.0, velocity_feedforward=ff)
         sent = []
         with arm:
-            target = arm.state().q + np.where(ff, 0.5, -0.5) * np.sign(TARGET)  # 0.5 s of ramp
+            q = arm.state().q  # 0.5 s of ramp towards the middle of each joint's range
+            target = q + 0.5 * np.sign((LOWER + UPPER) / 2 - q)
             arm.command_positions(target)
             assert wait_for(lambda: sent.append(emulator.command().dq_d.copy())
                             or np.abs(arm.state().q_target - target).max() < 1e-6, 5.0)

@@ -239,6 +239,34 @@ def test_watchdog_on_stalled_stream_then_reset(rig):
         target = LOWER + 0.3 * (UPPER - LOWER)
         hand.command_positions(target)
         assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
+        # and the next fault stops the hand again
+        hand.command_positions(UPPER)
+        assert wait_for(lambda: np.max(np.abs(emu.pwm)) > 0, 1.0)
+        emu.stall(0.6)
+        assert wait_for(lambda: hand.state().fault is not None, 1.0)
+        assert wait_for(lambda: not emu.servo_on and not np.any(emu.pwm), 0.5), emu.pwm
+
+
+def test_bus_errors_are_counted_and_the_loop_goes_on(rig):
+    """Three status polls the bus refuses (a full transmit queue): each counted once under
+    its error's name, no fault, the loop still cycling."""
+    hand, _, _ = rig
+    send, refused = hand.bus.send, []
+
+    def flaky(msg, timeout=None):
+        if msg.is_remote_frame and msg.arbitration_id >> 2 == Msg.STATUS and len(refused) < 3:
+            refused.append(msg)
+            raise can.CanOperationError("transmit buffer full")
+        return send(msg, timeout)
+
+    hand.bus.send = flaky
+    with hand:
+        assert wait_for(lambda: len(refused) == 3, 2.0)
+        n = hand.stats()["cycles"]
+        assert wait_for(lambda: hand.stats()["cycles"] > n + 10, 1.0)
+        s = hand.stats()
+        assert s["frame_errors"] == {"bus:CanOperationError": 3} and s["fault"] is None, s
+        assert hand.running
 
 
 def test_over_temperature_stops_hand(rig):

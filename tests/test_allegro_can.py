@@ -1,5 +1,6 @@
 """Allegro v4 CAN codec, driver and emulator on python-can's virtual bus."""
 
+import contextlib
 import itertools
 import os
 import signal
@@ -175,6 +176,53 @@ def test_start_stop_sequence_order(rig):
     last_torques = [f for f in emu.log if isinstance(f, Torque)][-4:]
     assert sorted(f.finger for f in last_torques) == [0, 1, 2, 3]
     assert all(f.pwm == (0, 0, 0, 0) for f in last_torques)
+
+
+@contextlib.contextmanager
+def station(channel, **emulator):
+    """(hand, emulator) on one virtual channel, the emulator running with `emulator`'s settings."""
+    host = can.Bus(interface="virtual", channel=channel)
+    dev = can.Bus(interface="virtual", channel=channel)
+    emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, **emulator))
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2,
+                                                  reply_timeout_s=1.0))
+    try:
+        with emu:
+            yield hand, emu
+            hand.stop()
+    finally:
+        host.shutdown()
+        dev.shutdown()
+
+
+def test_start_holds_the_measured_position_and_reports_the_hand(channel):
+    """Until commanded, the hand holds where it was found (not zero, not the middle)."""
+    q0 = LOWER + 0.2 * (UPPER - LOWER)
+    with station(channel, q0=q0, info=Info(0x0403, 0x0407, True, 45, 0x01)) as (hand, emu):
+        info = hand.start()
+        assert (info.hw_version, info.fw_version, info.left_hand, info.palm_temperature_c, info.status) == \
+            (0x0403, 0x0407, True, 45, 0x01)
+        assert wait_for(lambda: hand.stats()["cycles"] > 20, 2.0)
+        time.sleep(0.2)
+        np.testing.assert_allclose(hand.state().q_target, q0, atol=0.005)
+        np.testing.assert_allclose(emu.q, q0, atol=0.01)
+        assert hand.stats()["duplicates"] == 0
+
+
+def test_a_hot_palm_at_start_keeps_the_hand_off(channel):
+    with station(channel, info=Info(0x0402, 0x0406, False, 80, 0)) as (hand, emu):
+        with pytest.raises(HardwareError, match=r"palm at 80 C at start \(limit 70.0 C\)"):
+            hand.start()
+        assert not emu.servo_on and not hand.running
+
+
+def test_temperatures_never_heard_after_start_trip(channel):
+    with station(channel) as (hand, emu):
+        emu.inject.mute_temperature = True
+        hand.start()
+        assert wait_for(lambda: hand.state().fault is not None, 2.0)
+        assert "temperature not heard" in hand.state().fault
+        assert wait_for(lambda: not emu.servo_on, 0.5)
 
 
 def test_start_fails_cleanly_without_a_hand(channel):

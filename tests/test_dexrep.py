@@ -200,8 +200,12 @@ def test_hand_state_layout():
     np.testing.assert_allclose(fh[30:96].reshape(22, 3) @ X[:3, :3].T + X[:3, 3], p_W, atol=1e-12)
     np.testing.assert_array_equal(fh[96:99], X[:3, 3])
     np.testing.assert_array_equal(fh[99:], np.r_[X[:3, 0], X[:3, 1]])
-    with pytest.raises(DexdrakeError):
+    with pytest.raises(DexdrakeError, match=r"hand points must be a finite \(n, 3\) array, got shape \(22, 2\)"):
         F.hand_state(q, p_W[:, :2], X)
+    with pytest.raises(DexdrakeError, match="hand_state: joint positions contain NaN or Inf"):
+        F.hand_state(np.r_[q[:-1], np.nan], p_W, X)
+    # the object pose in the PointNet-global (pglo) features: position, then R's first two columns
+    np.testing.assert_array_equal(F.pose_6d(X), np.r_[X[:3, 3], X[:3, 0], X[:3, 1]])
 
 
 def test_bad_meshes_are_refused():

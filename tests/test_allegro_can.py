@@ -515,10 +515,32 @@ def test_non_numeric_command_raises_the_drivers_error(rig):
     ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
     ({"status_poll_s": 0.0}, "status_poll_s must be > 0"),
     ({"pwm_limit": ["x"] * 16}, "need 16 numbers"),
+    ({"kd": [26.0] * 16}, r"Allegro kd\[0\] = 26 exceeds the vendor gain 25"),
+    ({"kp": [1.0] * 15}, r"Allegro kp: need 16 finite values \(bus order\)"),
+    ({"lower": LOWER[:15]}, r"Allegro lower: need 16 finite values"),
+    ({"upper": np.r_[UPPER[:15], np.nan]}, r"Allegro upper: need 16 finite values"),
+    ({"upper": UPPER + 0.1}, "reach outside the model"),
+    ({"max_target_rate": 0.0}, r"max_target_rate 0 rad/s must be in \(0, 7\]"),
+    ({"watchdog_timeout_s": -1.0}, r"Allegro watchdog_timeout_s must be > 0, got -1.0"),
+    ({"temperature_timeout_s": 0.0}, r"Allegro temperature_timeout_s must be > 0, got 0.0"),
+    ({"reply_timeout_s": float("inf")}, r"Allegro reply_timeout_s must be > 0, got inf"),
 ])
 def test_config_beyond_the_limits_is_refused(kw, message):
     with pytest.raises(HardwareError, match=message):
         check_allegro_config(AllegroConfig(**kw))
+
+
+def test_config_within_the_limits_is_taken_as_given():
+    """Zero gains, narrower joint limits and target rates from slow up to the joints' own
+    velocity limit (7 rad/s) are all allowed, and used as given."""
+    kp, kd = np.full(16, 0.5), np.zeros(16)
+    settings = check_allegro_config(AllegroConfig(kp=kp, kd=kd, lower=LOWER + 0.1, upper=UPPER - 0.1))
+    np.testing.assert_array_equal(settings.kp, kp)
+    np.testing.assert_array_equal(settings.kd, kd)
+    np.testing.assert_array_equal(settings.lower, LOWER + 0.1)
+    np.testing.assert_array_equal(settings.upper, UPPER - 0.1)
+    for rate in (0.5, 7.0):
+        check_allegro_config(AllegroConfig(max_target_rate=rate))
 
 
 class RecordingDynamics:

@@ -86,7 +86,9 @@ def test_pd_step_is_the_control_law_to_the_count(bench):
     batch: low-pass filtered position, its derivative, the rate-limited target and
     PWM = clip(rint(kp (q_ref - q) - kd dq), +-limit), independently computed here."""
     hand, spare, clock = bench
-    assert np.isnan(hand.state().t)
+    st = hand.state()  # nothing heard yet
+    assert np.isnan(st.t) and st.status is None and hand.info is None
+    assert np.all(st.q == 0) and np.all(st.dq == 0) and np.all(np.isnan(st.temperature_c))
     q0 = on_counts(LOWER + 0.5 * (UPPER - LOWER))
     q0[0], q0[5] = on_counts(LOWER[0] - 0.1), on_counts(UPPER[5] + 0.1)  # measured beyond the limits
     clock.t = 1.0

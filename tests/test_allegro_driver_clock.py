@@ -133,9 +133,9 @@ def test_pd_step_is_the_control_law_to_the_count(bench):
 
 def test_loop_faults_say_how_long_and_which_finger(bench):
     hand, spare, clock = bench
-    clock.t = 0.25  # the hand was made at 0: no position frame since
+    clock.t = 0.7  # the hand was made at 0: no position frame since
     hand._iterate(clock.t)
-    assert hand.state().fault == "position stream silent for 250 ms"
+    assert hand.state().fault == "position stream silent for 700 ms"
     assert hand.stats()["fault"] == hand.state().fault
 
     hand.reset_fault()

@@ -71,7 +71,10 @@ TARGETS: dict[str, Target] = {
     "hardware/z1_udp.py": Target(["tests/test_z1_udp.py", "tests/test_z1_emulator.py", "tests/test_safety.py"]),
     "hardware/z1_emulator.py": Target(["tests/test_z1_emulator.py", "tests/test_z1_udp.py"]),
     "hardware/safety.py": Target(["tests/test_safety.py"]),
-    # The CAN codec only (the driver loop has its own tests, with threads and timing).
+    # The CAN codec. The driver (its tests run in real time: a loaded machine fails them, so
+    # run it on a quiet one) with
+    #   --tests tests/test_allegro_can.py tests/test_allegro_driver_clock.py --functions
+    #   'x_check_allegro_config*' 'x__model_limits*' 'xǁAllegroHandǁ*' 'x__array*' 'xǁ_Statsǁ*'
     "hardware/allegro_can.py": Target(
         [CAN + t for t in ("test_codec_round_trip", "test_ids_match_spec_table", "test_spec_real_frames",
                            "test_decode_rejects_with_specific_kind", "test_encode_rejects_bad_frames",

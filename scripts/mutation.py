@@ -199,8 +199,11 @@ def main(argv: list[str] | None = None) -> int:
             if not (stage_dir / "mutants" / "mutmut-stats.json").exists():
                 print(f"{module}: mutmut failed, see {log}", file=sys.stderr)
                 return 1
-        rerun = verdicts(stage_dir, module, functions) if names else {}
-        codes = before | ({name: rerun[name] for name in names} if args.recheck else rerun)
+        rerun = verdicts(stage_dir, module, functions) if names else dict(before)
+        if args.recheck:  # mutants of code since removed are dropped
+            codes = {n: c for n, c in before.items() if n in rerun} | {n: rerun[n] for n in names if n in rerun}
+        else:
+            codes = before | rerun
         saved.write_text(json.dumps(codes, indent=0))
         killed = sum(code in KILLED for code in codes.values())
         rows.append((module, killed, len(codes)))

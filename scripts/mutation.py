@@ -58,7 +58,8 @@ TARGETS: dict[str, Target] = {
     "dexdrake/dexrep/features.py": Target(DEXREP, setup_s=30.0),
     "dexdrake/dexrep/geometry.py": Target(DEXREP, ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*", "x_check_mesh*"], setup_s=30.0),
     "dexdrake/retarget/kinematics.py": Target(["tests/test_retarget.py::" + t for t in (
-        "test_casadi_fk_matches_drake", "test_extract_tree_refuses_floating_base", "test_retarget_recovers_own_fk")]),
+        "test_casadi_fk_matches_drake", "test_extract_tree_refuses_floating_base", "test_retarget_recovers_own_fk",
+        "test_fk_holds_joints_outside_the_order_at_their_defaults", "test_fk_refuses_welds_unknown_joints_and_bodies")]),
     "dexdrake/learn/gae.py": Target([LEARN + "test_gae_hand_computed"]),
     # The maths; natural_gradient_step runs only inside DAPG training tests, too slow per mutant.
     "dexdrake/learn/npg.py": Target([LEARN + "test_cg_solves_spd_system",

@@ -159,7 +159,12 @@ def test_surface_on_sphere(geometries):
     n_W = dirs @ X_WO[:3, :3].T
     ok = radii > 0.01  # at the centre every direction is a nearest one
     assert np.all(np.einsum("ij,ij->i", fs[ok, 1:], n_W[ok]) > 0.99)
-    assert F.surface(p_W, X_WO, g, scale=10.0)[0::4].max() <= 2.0 + 1e-12
+    # the public code's scaling multiplies the distances only
+    np.testing.assert_allclose(F.surface(p_W, X_WO, g, scale=10.0).reshape(22, 4), np.c_[10 * fs[:, 0], fs[:, 1:]])
+    # unscaled by default also from closest points (the feature extractor's path)
+    np.testing.assert_array_equal(F.surface_from_closest(F.closest_points(p_W, X_WO, g)), fs.ravel())
+    with pytest.raises(DexdrakeError, match=r"hand points must be a finite \(n, 3\) array, got shape \(22, 2\)"):
+        F.surface(p_W[:, :2], X_WO, g)
     # hand-frame normals are the world normals rotated
     R = Rotation.from_euler("z", 0.7).as_matrix()
     np.testing.assert_allclose(F.surface(p_W, X_WO, g, R_WH=R).reshape(22, 4)[:, 1:], fs[:, 1:] @ R, atol=1e-12)

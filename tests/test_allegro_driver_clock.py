@@ -21,10 +21,8 @@ from dexdrake.hardware.allegro_can import (
     decode,
     encode,
 )
+from test_allegro_can import LOWER, UPPER  # the spec table's joint limits, bus order
 
-# spec table (allegro_v4.md), bus order: index, middle, ring (same limits), thumb
-LOWER = np.array([-0.47, -0.196, -0.174, -0.227] * 3 + [0.263, -0.105, -0.189, -0.162])
-UPPER = np.array([0.47, 1.61, 1.709, 1.618] * 3 + [1.396, 1.163, 1.644, 1.719])
 PERIOD = 0.003  # s between position batches (the configured 3 ms)
 
 

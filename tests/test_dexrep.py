@@ -112,6 +112,7 @@ def test_fast_occupancy_applies_the_rule_of_occupancy_in_frame(geometries, level
         X_OG = random_pose(rng, 0.04)
         fast = FastOccupancy(levels=levels)(X_OG, geometries["torus"])
         exact = occupancy_in_frame(analytic_sd_fn(torus_sd), X_OG, levels=levels)
+        np.testing.assert_array_equal(F.occupancy(X_OG, np.eye(4), geometries["torus"], levels=levels), fast)
         assert np.sum(fast != exact) <= 2
         assert exact.sum() > 50
 
@@ -211,6 +212,12 @@ def test_hand_state_layout():
         F.hand_state(np.r_[q[:-1], np.nan], p_W, X)
     # the object pose in the PointNet-global (pglo) features: position, then R's first two columns
     np.testing.assert_array_equal(F.pose_6d(X), np.r_[X[:3, 3], X[:3, 0], X[:3, 1]])
+    from pydrake.math import RigidTransform
+
+    np.testing.assert_allclose(F.pose_6d(RigidTransform(X)), F.pose_6d(X), atol=1e-12)  # poses as Drake gives them
+    for bad, shape in ((X[:3, :3], r"\(3, 3\)"), (np.where(np.eye(4) == 1, np.nan, X), r"\(4, 4\)")):
+        with pytest.raises(DexdrakeError, match=rf"expected a finite 4x4 pose, got shape {shape}"):
+            F.pose_6d(bad)
 
 
 def test_bad_meshes_are_refused():

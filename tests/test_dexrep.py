@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
-from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, voxel_centres
+from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
 from dexdrake.dexrep.geometry import check_mesh, compute_object_geometry, load_object_geometry
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
@@ -142,6 +142,14 @@ def test_occupancy_order_is_x_major(geometries):
     occ = F.occupancy(X_WG, np.eye(4), geometries["sphere"]).reshape(10, 10, 10)
     assert occ[:2].sum() > 0 and occ[5:].sum() == 0
     assert np.array_equal(voxel_centres()[100 * 3 + 10 * 4 + 5], (np.array([3, 4, 5]) + 0.5) * 0.02 - 0.1)
+    # the occupied voxels the viewer draws: their centres and half edge
+    centres, half = occupied_voxels(occ.ravel(), 0.2, 10)
+    np.testing.assert_array_equal(centres, voxel_centres()[occ.ravel() == 1])
+    assert half == 0.01 and len(centres) == occ.sum()
+    np.testing.assert_array_equal(voxel_centres(0.2, 1), [[0.0, 0.0, 0.0]])  # one voxel: the grid centre
+    for size, resolution in ((0.0, 10), (0.2, 0)):
+        with pytest.raises(DexdrakeError, match=rf"bad occupancy grid: size {size}, resolution {resolution}"):
+            voxel_centres(size, resolution)
 
 
 def test_surface_on_sphere(geometries):

@@ -1,5 +1,6 @@
 """Allegro v4 CAN codec, driver and emulator on python-can's virtual bus."""
 
+import contextlib
 import itertools
 import os
 import signal
@@ -177,6 +178,53 @@ def test_start_stop_sequence_order(rig):
     assert all(f.pwm == (0, 0, 0, 0) for f in last_torques)
 
 
+@contextlib.contextmanager
+def station(channel, **emulator):
+    """(hand, emulator) on one virtual channel, the emulator running with `emulator`'s settings."""
+    host = can.Bus(interface="virtual", channel=channel)
+    dev = can.Bus(interface="virtual", channel=channel)
+    emu = AllegroEmulator(dev, config=EmulatorConfig(lower=LOWER, upper=UPPER, **emulator))
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2,
+                                                  reply_timeout_s=1.0))
+    try:
+        with emu:
+            yield hand, emu
+            hand.stop()
+    finally:
+        host.shutdown()
+        dev.shutdown()
+
+
+def test_start_holds_the_measured_position_and_reports_the_hand(channel):
+    """Until commanded, the hand holds where it was found (not zero, not the middle)."""
+    q0 = LOWER + 0.2 * (UPPER - LOWER)
+    with station(channel, q0=q0, info=Info(0x0403, 0x0407, True, 45, 0x01)) as (hand, emu):
+        info = hand.start()
+        assert (info.hw_version, info.fw_version, info.left_hand, info.palm_temperature_c, info.status) == \
+            (0x0403, 0x0407, True, 45, 0x01)
+        assert wait_for(lambda: hand.stats()["cycles"] > 20, 2.0)
+        time.sleep(0.2)
+        np.testing.assert_allclose(hand.state().q_target, q0, atol=0.005)
+        np.testing.assert_allclose(emu.q, q0, atol=0.01)
+        assert hand.stats()["duplicates"] == 0
+
+
+def test_a_hot_palm_at_start_keeps_the_hand_off(channel):
+    with station(channel, info=Info(0x0402, 0x0406, False, 80, 0)) as (hand, emu):
+        with pytest.raises(HardwareError, match=r"palm at 80 C at start \(limit 70.0 C\)"):
+            hand.start()
+        assert not emu.servo_on and not hand.running
+
+
+def test_temperatures_never_heard_after_start_trip(channel):
+    with station(channel) as (hand, emu):
+        emu.inject.mute_temperature = True
+        hand.start()
+        assert wait_for(lambda: hand.state().fault is not None, 2.0)
+        assert "temperature not heard" in hand.state().fault
+        assert wait_for(lambda: not emu.servo_on, 0.5)
+
+
 def test_start_fails_cleanly_without_a_hand(channel):
     host = can.Bus(interface="virtual", channel=channel)
     try:
@@ -239,6 +287,34 @@ def test_watchdog_on_stalled_stream_then_reset(rig):
         target = LOWER + 0.3 * (UPPER - LOWER)
         hand.command_positions(target)
         assert wait_for(lambda: np.max(np.abs(emu.q - target)) < 0.03, 4.0)
+        # and the next fault stops the hand again
+        hand.command_positions(UPPER)
+        assert wait_for(lambda: np.max(np.abs(emu.pwm)) > 0, 1.0)
+        emu.stall(0.6)
+        assert wait_for(lambda: hand.state().fault is not None, 1.0)
+        assert wait_for(lambda: not emu.servo_on and not np.any(emu.pwm), 0.5), emu.pwm
+
+
+def test_bus_errors_are_counted_and_the_loop_goes_on(rig):
+    """Three status polls the bus refuses (a full transmit queue): each counted once under
+    its error's name, no fault, the loop still cycling."""
+    hand, _, _ = rig
+    send, refused = hand.bus.send, []
+
+    def flaky(msg, timeout=None):
+        if msg.is_remote_frame and msg.arbitration_id >> 2 == Msg.STATUS and len(refused) < 3:
+            refused.append(msg)
+            raise can.CanOperationError("transmit buffer full")
+        return send(msg, timeout)
+
+    hand.bus.send = flaky
+    with hand:
+        assert wait_for(lambda: len(refused) == 3, 2.0)
+        n = hand.stats()["cycles"]
+        assert wait_for(lambda: hand.stats()["cycles"] > n + 10, 1.0)
+        s = hand.stats()
+        assert s["frame_errors"] == {"bus:CanOperationError": 3} and s["fault"] is None, s
+        assert hand.running
 
 
 def test_over_temperature_stops_hand(rig):
@@ -439,10 +515,32 @@ def test_non_numeric_command_raises_the_drivers_error(rig):
     ({"lower": LOWER - 0.1, "upper": UPPER}, "reach outside the model"),
     ({"status_poll_s": 0.0}, "status_poll_s must be > 0"),
     ({"pwm_limit": ["x"] * 16}, "need 16 numbers"),
+    ({"kd": [26.0] * 16}, r"Allegro kd\[0\] = 26 exceeds the vendor gain 25"),
+    ({"kp": [1.0] * 15}, r"Allegro kp: need 16 finite values \(bus order\)"),
+    ({"lower": LOWER[:15]}, r"Allegro lower: need 16 finite values"),
+    ({"upper": np.r_[UPPER[:15], np.nan]}, r"Allegro upper: need 16 finite values"),
+    ({"upper": UPPER + 0.1}, "reach outside the model"),
+    ({"max_target_rate": 0.0}, r"max_target_rate 0 rad/s must be in \(0, 7\]"),
+    ({"watchdog_timeout_s": -1.0}, r"Allegro watchdog_timeout_s must be > 0, got -1.0"),
+    ({"temperature_timeout_s": 0.0}, r"Allegro temperature_timeout_s must be > 0, got 0.0"),
+    ({"reply_timeout_s": float("inf")}, r"Allegro reply_timeout_s must be > 0, got inf"),
 ])
 def test_config_beyond_the_limits_is_refused(kw, message):
     with pytest.raises(HardwareError, match=message):
         check_allegro_config(AllegroConfig(**kw))
+
+
+def test_config_within_the_limits_is_taken_as_given():
+    """Zero gains, narrower joint limits and target rates from slow up to the joints' own
+    velocity limit (7 rad/s) are all allowed, and used as given."""
+    kp, kd = np.full(16, 0.5), np.zeros(16)
+    settings = check_allegro_config(AllegroConfig(kp=kp, kd=kd, lower=LOWER + 0.1, upper=UPPER - 0.1))
+    np.testing.assert_array_equal(settings.kp, kp)
+    np.testing.assert_array_equal(settings.kd, kd)
+    np.testing.assert_array_equal(settings.lower, LOWER + 0.1)
+    np.testing.assert_array_equal(settings.upper, UPPER - 0.1)
+    for rate in (0.5, 7.0):
+        check_allegro_config(AllegroConfig(max_target_rate=rate))
 
 
 class RecordingDynamics:

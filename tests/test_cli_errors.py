@@ -4,6 +4,7 @@ naming the offending flag or field, never with a traceback (run in-process: fast
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,8 @@ import pytest
 from dexdrake import argtypes
 from dexdrake.cli import build_parser, main
 
-NUMBER_TYPES = {"integer", "number"}  # argtypes' checked numeric types
+NUMBER_TYPES = {"integer", "number"}
+REAL_YAML = str(Path(__file__).resolve().parents[1] / "configs" / "real.yaml")  # argtypes' checked numeric types
 
 
 def _leaves(parser: argparse.ArgumentParser, prefix: tuple[str, ...] = ()):
@@ -118,6 +120,7 @@ BAD = [
     (["demos", "replay", "--hand", "adroit", "--demos", "d", "--out", "folder"], "--out"),
     (["encoder", "train", "--lr", "0"], "--lr"),
     (["real", "--config", "bad.yaml"], "bad.yaml"),
+    (["real", "--config", REAL_YAML], "moves the robot; check it first with --dry-run"),
     (["hil", "--config", "missing.yaml"], "missing.yaml"),
     (["eval", "--policy", "missing.pt"], "missing.pt"),
     (["train", "dagger", "--out", "o", "--hand", "nohand", "--objects", "can_soda"], "unknown hand"),

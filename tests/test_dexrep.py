@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
-from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, voxel_centres
+from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
 from dexdrake.dexrep.geometry import check_mesh, compute_object_geometry, load_object_geometry
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
@@ -112,6 +112,7 @@ def test_fast_occupancy_applies_the_rule_of_occupancy_in_frame(geometries, level
         X_OG = random_pose(rng, 0.04)
         fast = FastOccupancy(levels=levels)(X_OG, geometries["torus"])
         exact = occupancy_in_frame(analytic_sd_fn(torus_sd), X_OG, levels=levels)
+        np.testing.assert_array_equal(F.occupancy(X_OG, np.eye(4), geometries["torus"], levels=levels), fast)
         assert np.sum(fast != exact) <= 2
         assert exact.sum() > 50
 
@@ -141,6 +142,14 @@ def test_occupancy_order_is_x_major(geometries):
     occ = F.occupancy(X_WG, np.eye(4), geometries["sphere"]).reshape(10, 10, 10)
     assert occ[:2].sum() > 0 and occ[5:].sum() == 0
     assert np.array_equal(voxel_centres()[100 * 3 + 10 * 4 + 5], (np.array([3, 4, 5]) + 0.5) * 0.02 - 0.1)
+    # the occupied voxels the viewer draws: their centres and half edge
+    centres, half = occupied_voxels(occ.ravel(), 0.2, 10)
+    np.testing.assert_array_equal(centres, voxel_centres()[occ.ravel() == 1])
+    assert half == 0.01 and len(centres) == occ.sum()
+    np.testing.assert_array_equal(voxel_centres(0.2, 1), [[0.0, 0.0, 0.0]])  # one voxel: the grid centre
+    for size, resolution in ((0.0, 10), (0.2, 0)):
+        with pytest.raises(DexdrakeError, match=rf"bad occupancy grid: size {size}, resolution {resolution}"):
+            voxel_centres(size, resolution)
 
 
 def test_surface_on_sphere(geometries):
@@ -159,7 +168,12 @@ def test_surface_on_sphere(geometries):
     n_W = dirs @ X_WO[:3, :3].T
     ok = radii > 0.01  # at the centre every direction is a nearest one
     assert np.all(np.einsum("ij,ij->i", fs[ok, 1:], n_W[ok]) > 0.99)
-    assert F.surface(p_W, X_WO, g, scale=10.0)[0::4].max() <= 2.0 + 1e-12
+    # the public code's scaling multiplies the distances only
+    np.testing.assert_allclose(F.surface(p_W, X_WO, g, scale=10.0).reshape(22, 4), np.c_[10 * fs[:, 0], fs[:, 1:]])
+    # unscaled by default also from closest points (the feature extractor's path)
+    np.testing.assert_array_equal(F.surface_from_closest(F.closest_points(p_W, X_WO, g)), fs.ravel())
+    with pytest.raises(DexdrakeError, match=r"hand points must be a finite \(n, 3\) array, got shape \(22, 2\)"):
+        F.surface(p_W[:, :2], X_WO, g)
     # hand-frame normals are the world normals rotated
     R = Rotation.from_euler("z", 0.7).as_matrix()
     np.testing.assert_allclose(F.surface(p_W, X_WO, g, R_WH=R).reshape(22, 4)[:, 1:], fs[:, 1:] @ R, atol=1e-12)
@@ -200,8 +214,18 @@ def test_hand_state_layout():
     np.testing.assert_allclose(fh[30:96].reshape(22, 3) @ X[:3, :3].T + X[:3, 3], p_W, atol=1e-12)
     np.testing.assert_array_equal(fh[96:99], X[:3, 3])
     np.testing.assert_array_equal(fh[99:], np.r_[X[:3, 0], X[:3, 1]])
-    with pytest.raises(DexdrakeError):
+    with pytest.raises(DexdrakeError, match=r"hand points must be a finite \(n, 3\) array, got shape \(22, 2\)"):
         F.hand_state(q, p_W[:, :2], X)
+    with pytest.raises(DexdrakeError, match="hand_state: joint positions contain NaN or Inf"):
+        F.hand_state(np.r_[q[:-1], np.nan], p_W, X)
+    # the object pose in the PointNet-global (pglo) features: position, then R's first two columns
+    np.testing.assert_array_equal(F.pose_6d(X), np.r_[X[:3, 3], X[:3, 0], X[:3, 1]])
+    from pydrake.math import RigidTransform
+
+    np.testing.assert_allclose(F.pose_6d(RigidTransform(X)), F.pose_6d(X), atol=1e-12)  # poses as Drake gives them
+    for bad, shape in ((X[:3, :3], r"\(3, 3\)"), (np.where(np.eye(4) == 1, np.nan, X), r"\(4, 4\)")):
+        with pytest.raises(DexdrakeError, match=rf"expected a finite 4x4 pose, got shape {shape}"):
+            F.pose_6d(bad)
 
 
 def test_bad_meshes_are_refused():

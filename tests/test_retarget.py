@@ -6,7 +6,8 @@ import pytest
 from dexdrake.demos.format import DemoMeta, HumanDemo
 from dexdrake.hands.description import BodyPoint, HandDescription, OccupancyAnchor, Palm
 from dexdrake.retarget.config import HUMAN_BASE, HUMAN_TIP
-from dexdrake.retarget.kinematics import extract_tree, fk_function
+from dexdrake.errors import DexdrakeError
+from dexdrake.retarget.kinematics import extract_tree, fk_function, symbolic_points
 from dexdrake.retarget.retargeter import Retargeter
 
 ARM = ["ARTx", "ARTy", "ARTz", "ARRx", "ARRy", "ARRz"]
@@ -115,10 +116,35 @@ def test_casadi_fk_matches_drake(toy):
                                        atol=1e-9, err_msg=hand.name)
 
 
+def test_fk_holds_joints_outside_the_order_at_their_defaults(toy):
+    hand, _ = toy
+    held = ("ARTy", "thumb_j1")  # a prismatic and a revolute joint, at their default 0
+    order = [j for j in hand.policy_joints if j not in held]
+    points = [(p.body, p.offset) for p in hand.fingertips]
+    fk = fk_function(hand.model_path, order, points)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        q = _random_q(hand, rng)
+        q[[hand.policy_joints.index(j) for j in held]] = 0.0
+        sub = [v for j, v in zip(hand.policy_joints, q) if j not in held]
+        np.testing.assert_allclose(np.asarray(fk(sub)), _drake_points(hand, q, points), atol=1e-9)
+
+
+def test_fk_refuses_welds_unknown_joints_and_bodies(toy):
+    tree = extract_tree(toy[0].model_path)
+    palm = [("palm", np.zeros(3))]
+    for joint in ("thumb_tipweld", "thumb_j9"):
+        with pytest.raises(DexdrakeError, match=rf"joints \['{joint}'\] are not revolute/prismatic joints of the model"):
+            symbolic_points(tree, ["ARTx", joint], palm)
+    with pytest.raises(DexdrakeError, match="body 'wrist' is not in the model"):
+        symbolic_points(tree, ["ARTx"], [("wrist", np.zeros(3))])
+
+
 def test_extract_tree_refuses_floating_base(tmp_path):
     path = tmp_path / "free.urdf"
     path.write_text(f'<robot name="free">{_link("a")}</robot>')
-    with pytest.raises(Exception, match="unsupported type"):
+    with pytest.raises(DexdrakeError, match=r"free.urdf: joint 'a' has unsupported type 'quaternion_floating' "
+                                            r"\(supported: revolute, prismatic, weld; anchor floating bases with a weld\)"):
         extract_tree(path)
 
 

@@ -56,7 +56,8 @@ def test_manifest_names_the_shipped_weights(name):
 def test_eval_table_matches_the_manifest(name, label):
     metrics = _manifest(name)["metrics"][label]
     per_object = metrics["per_object"]
-    rows = _table_dicts((WEIGHTS / f"{POLICIES[name]}_{label}.md").read_text())
+    md = (WEIGHTS / f"{POLICIES[name]}_{label}.md").read_text()
+    rows = _table_dicts(md)
     average = rows.pop("**average**")
     assert list(rows) == list(per_object)
     for obj, m in per_object.items():
@@ -66,6 +67,10 @@ def test_eval_table_matches_the_manifest(name, label):
     wins = sum(m["successes"] for m in per_object.values())
     episodes = sum(m["episodes"] for m in per_object.values())
     assert average["successes"] == f"{wins}/{episodes}" and average["ours (%)"] == f"{metrics['average_pct']:.1f}"
+    # the summary line above the table says the same
+    summary = re.search(r"^- average ([\d.]+) % over (\d+) objects, .* \((\d+) episodes pooled\)", md, re.MULTILINE)
+    assert summary, md[:500]
+    assert summary.groups() == (f"{metrics['average_pct']:.1f}", str(len(per_object)), str(episodes))
 
 
 @pytest.mark.parametrize("name", POLICIES)

@@ -40,17 +40,6 @@ class TreeJoint:
 class KinematicTree:
     joints: dict[str, TreeJoint]  # keyed by child body name
 
-    def chain(self, body: str) -> list[TreeJoint]:
-        """Joints from the world down to `body`, root first."""
-        out: list[TreeJoint] = []
-        while body != WORLD:
-            if body not in self.joints:
-                raise DexdrakeError(f"body {body!r} is not in the kinematic tree")
-            j = self.joints[body]
-            out.append(j)
-            body = j.parent
-        return out[::-1]
-
 
 def _h(X) -> np.ndarray:
     return np.asarray(X.GetAsMatrix4())

@@ -536,7 +536,8 @@ class AllegroHand(SafeStopContext):
 
     def _start_sequence(self) -> None:
         """Servo off, info, serial, periodic read, servo on; the loop then holds the measured
-        position (HardwareError when the hand does not answer or is too hot)."""
+        position (HardwareError when the hand does not answer, is too hot or its info reports
+        a fault)."""
         cfg = self.config
         with self._lock:
             self._initialised, self._has_command = False, False
@@ -551,6 +552,8 @@ class AllegroHand(SafeStopContext):
         if info.palm_temperature_c > cfg.max_temperature_c:
             raise HardwareError(f"Allegro: palm at {info.palm_temperature_c} C at start "
                                 f"(limit {cfg.max_temperature_c} C)")
+        if info.status & STATUS_FAULT_BITS:  # never switch on a hand that already reports a fault
+            raise HardwareError(f"Allegro: hand status {info.status:#04x} reports a fault at start")
         self._send(SetPeriod(cfg.position_period_ms, 0, cfg.temperature_period_ms))
         if self.fault.tripped:  # the hand reported a fault during the sequence: stay off
             raise HardwareError(f"Allegro: fault during start: {self.fault.reason}")

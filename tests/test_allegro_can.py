@@ -216,6 +216,15 @@ def test_a_hot_palm_at_start_keeps_the_hand_off(channel):
         assert not emu.servo_on and not hand.running
 
 
+@pytest.mark.parametrize("bits", [0x02, 0x08, 0x10, 0x1B])
+def test_a_fault_in_the_info_reply_keeps_the_hand_off(channel, bits):
+    """A hand that already reports a fault is never switched on (not first at the status poll)."""
+    with station(channel, info=Info(0x0402, 0x0406, False, 40, bits)) as (hand, emu):
+        with pytest.raises(HardwareError, match=f"hand status {bits:#04x} reports a fault at start"):
+            hand.start()
+        assert not emu.servo_on and not hand.running
+
+
 def test_temperatures_never_heard_after_start_trip(channel):
     with station(channel) as (hand, emu):
         emu.inject.mute_temperature = True

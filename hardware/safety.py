@@ -266,6 +266,7 @@ def period_stats(times: Sequence[float]) -> dict[str, float]:
         return {"cycles": float(t.size), "rate_hz": 0.0, "mean_ms": math.nan, "p50_ms": math.nan,
                 "p99_ms": math.nan, "max_ms": math.nan}
     dt = np.diff(t) * 1e3
-    return {"cycles": float(t.size), "rate_hz": float(1e3 / dt.mean()), "mean_ms": float(dt.mean()),
+    rate = float(1e3 / dt.mean()) if dt.mean() > 0 else math.inf  # a clock that did not move
+    return {"cycles": float(t.size), "rate_hz": rate, "mean_ms": float(dt.mean()),
             "p50_ms": float(np.percentile(dt, 50)), "p99_ms": float(np.percentile(dt, 99)),
             "max_ms": float(dt.max())}

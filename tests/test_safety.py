@@ -1,7 +1,9 @@
 """Tests for the shared hardware safety pieces (pure Python, injected clocks)."""
 
+import math
 import os
 import signal
+import warnings
 
 import numpy as np
 import pytest
@@ -122,6 +124,10 @@ def test_period_stats():
     assert s["mean_ms"] == pytest.approx(10 / 3) and s["rate_hz"] == pytest.approx(300.0)
     assert s["p50_ms"] == pytest.approx(2.0)
     assert period_stats([1.0])["rate_hz"] == 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clock that did not move: no division warning
+        still = period_stats([2.0, 2.0, 2.0])
+    assert still["rate_hz"] == math.inf and still["max_ms"] == 0.0
 
 
 def _fuzz_script():

@@ -17,8 +17,8 @@ from dexdrake.hardware.z1_emulator import (
 from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, z1_model
 from dexdrake.hardware.z1_udp import ArmFSMState, JointCmd, PacketError, RecvState, SendCmd
 
-LOWER = np.array([-2.6180, 0.0, -2.8798, -1.5184, -1.3439, -2.7925])
-UPPER = np.array([2.6180, 2.9671, 0.0, 1.5184, 1.3439, 2.7925])
+from test_z1_udp import LOWER, UPPER  # z1.md's limits, one copy
+
 EFFORT = np.array([30.0, 60.0, 30.0, 30.0, 30.0, 30.0])
 
 

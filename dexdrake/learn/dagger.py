@@ -205,6 +205,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     parts: list[DaggerData] = []
     policy: DexRepNetPolicy | None = None
+    hand = load_hand(config.hand)
+    n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
@@ -238,17 +240,16 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             t1 = time.perf_counter()
             everything = DaggerData.concat(parts)
             if policy is None:
-                blocks = observation_blocks(load_hand(config.hand), config.feature_set)
+                blocks = observation_blocks(hand, config.feature_set)
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, everything.labels.shape[1],
                                                                   feature_set=config.feature_set, hand=config.hand))
             dataset = DemoDataset(everything.observations, everything.labels, everything.episode_starts)
-            n_arm = len(load_hand(config.hand).arm_joints)
             weights = (config.arm_weight,) * n_arm + (1.0,) * (everything.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
                           split_seed=config.seed, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
-            hold = hold_still_loss(dataset, result.val_indices, load_hand(config.hand))
+            hold = hold_still_loss(dataset, result.val_indices, hand)
             unseen = {} if probe is None else {
                 "unseen_success": float(np.mean(probe.success)),
                 "unseen_loss": bc_loss(policy, DemoDataset(probe.observations, probe.labels, probe.episode_starts))}

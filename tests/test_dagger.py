@@ -9,7 +9,7 @@ import torch
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
-from dexdrake.learn.dagger import DaggerConfig, DaggerData, labelled_episode, train_dagger
+from dexdrake.learn.dagger import Aggregate, DaggerConfig, DaggerData, labelled_episode, run_capacity, train_dagger
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
@@ -88,6 +88,27 @@ def test_dagger_data_round_trip_and_format_check(tmp_path, env):
     np.savez(tmp_path / "bad.npz", metadata=np.array('{"format": "other"}'))
     with pytest.raises(DexdrakeError, match="not a dexdrake.dagger/1 file"):
         DaggerData.load(tmp_path / "bad.npz")
+
+
+def test_aggregate_joins_iterations_without_copying_earlier_ones(tmp_path):
+    def part(n: int, value: float) -> DaggerData:
+        starts = np.zeros(n, bool)
+        starts[0] = True
+        return DaggerData(["x"], np.array([value]), np.array([True]), starts, np.zeros((n, 3)),
+                          np.full((n, 4), value, np.float32), np.full((n, 2), -value, np.float32))
+    parts = [part(3, 1.0), part(5, 2.0)]
+    agg = Aggregate(10)
+    for p in parts:
+        agg.add(p)
+    joined, expected = agg.dataset(), DaggerData.concat(parts)
+    assert np.array_equal(joined.observations, expected.observations) and np.array_equal(joined.actions, expected.labels)
+    assert np.array_equal(joined.episode_starts, expected.episode_starts) and len(joined) == 8
+    assert np.shares_memory(joined.observations, agg.observations)  # a view, not a copy
+    with pytest.raises(DexdrakeError, match="exceeds the 10 allocated"):
+        agg.add(part(3, 3.0))
+    config = DaggerConfig(iterations=3, episodes_per_object=2, horizon=7)
+    part(4, 1.0).save(tmp_path / "data_00.npz", {})
+    assert run_capacity(tmp_path, config, 5) == 4 + 2 * (5 * 2 * 7)  # on disk, then full horizons
 
 
 def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dexdrake.errors import DexdrakeError
-from dexdrake.learn.bc import BCConfig, load_demo_dataset, save_demo_dataset, train_bc
+from dexdrake.learn.bc import BCConfig, load_demo_dataset, save_demo_dataset, split_train_val, train_bc
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.dapg import DAPGConfig, DAPGTrainer, demo_weight, rollout_seeds, train_dapg
 from dexdrake.learn.demo_dataset import DemoDataset
@@ -198,6 +198,21 @@ def test_bc_drives_mse_down(tmp_path):
     best, meta = load_policy(tmp_path / "bc_best.pt")
     assert meta["epoch"] == result.best_epoch and meta["bc_config"]["lr"] == 2e-3
     assert np.allclose(best.obs_mean.numpy(), policy.obs_mean.numpy())
+
+
+def test_bc_normalises_by_the_training_split_and_never_trains_on_held_out_rows(tmp_path):
+    data = expert_dataset(1000)
+    data.observations[:, 2] += 1000.0  # a large offset: the chunked two-pass variance must stay exact
+    train_idx, val_idx = split_train_val(data, 0.1, 0)
+    policy = toy_policy()
+    train_bc(policy, data, tmp_path / "a", BCConfig(epochs=1, checkpoint_every=0, progress=False))
+    tr = data.observations[train_idx].astype(np.float64)
+    assert np.allclose(policy.obs_mean.numpy(), tr.mean(0), rtol=0, atol=1e-4)
+    assert np.allclose(policy.obs_std.numpy(), tr.std(0), rtol=1e-5, atol=1e-6)
+    poisoned = DemoDataset(data.observations, data.actions.copy(), data.episode_starts)
+    poisoned.actions[val_idx] = 1e6  # a held-out label seen by a training batch would blow up the loss
+    result = train_bc(toy_policy(), poisoned, tmp_path / "b", BCConfig(epochs=2, checkpoint_every=0, progress=False))
+    assert max(result.train_loss) < 10.0 and min(result.val_loss) > 1e11
 
 
 def test_bc_action_weights_trade_error_between_dimensions_and_are_validated(tmp_path):

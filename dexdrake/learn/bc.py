@@ -101,15 +101,32 @@ def bc_loss(policy: DexRepNetPolicy, dataset: DemoDataset) -> float:
     """The cloning loss (squared error summed over action dimensions, mean over samples) of
     `policy` on all of `dataset`."""
     policy.eval()
-    return _eval_loss(policy, torch.as_tensor(dataset.observations), torch.as_tensor(dataset.actions))
+    return _eval_loss(policy, torch.as_tensor(dataset.observations), torch.as_tensor(dataset.actions),
+                      torch.arange(len(dataset)))
 
 
 @torch.no_grad()
-def _eval_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor, batch: int = 4096) -> float:
+def _eval_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor, rows: torch.Tensor,
+               batch: int = 4096) -> float:
+    """The mean cloning loss over `rows` of (obs, act), gathered a batch at a time."""
     total = 0.0
-    for i in range(0, obs.shape[0], batch):
-        total += float(_bc_loss(policy, obs[i : i + batch], act[i : i + batch])) * min(batch, obs.shape[0] - i)
-    return total / obs.shape[0]
+    for i in range(0, rows.shape[0], batch):
+        r = rows[i : i + batch]
+        total += float(_bc_loss(policy, obs[r], act[r])) * r.shape[0]
+    return total / rows.shape[0]
+
+
+def _mean_std(x: np.ndarray, rows: np.ndarray, chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column mean and standard deviation of x[rows], two passes over chunks of rows
+    (float64 sums), so a dataset of 10^6 observations is never copied whole."""
+    total = np.zeros(x.shape[1])
+    for i in range(0, len(rows), chunk):
+        total += x[rows[i : i + chunk]].sum(0, dtype=np.float64)
+    mean = total / len(rows)
+    squares = np.zeros(x.shape[1])
+    for i in range(0, len(rows), chunk):
+        squares += ((x[rows[i : i + chunk]] - mean) ** 2).sum(0)
+    return mean.astype(np.float32), np.sqrt(squares / len(rows)).astype(np.float32)
 
 
 def train_bc(
@@ -140,14 +157,14 @@ def train_bc(
     split_seed = config.seed if config.split_seed is None else config.split_seed
     train_idx, val_idx = split_train_val(dataset, config.val_fraction, split_seed)
     if config.fit_normalization:
-        tr = dataset.observations[train_idx]
-        policy.set_obs_normalization(tr.mean(0), tr.std(0))
+        policy.set_obs_normalization(*_mean_std(dataset.observations, train_idx))
     device = torch.device(config.device)
     policy.to(device).train()
+    # Batches are gathered from the whole arrays by row (no copy of the training split).
     obs = torch.as_tensor(dataset.observations, device=device)
     act = torch.as_tensor(dataset.actions, device=device)
-    obs_tr, act_tr = obs[train_idx], act[train_idx]
-    obs_va, act_va = obs[val_idx], act[val_idx]
+    rows_tr = torch.as_tensor(train_idx, device=device)
+    rows_va = torch.as_tensor(val_idx, device=device)
     weights = _action_weights(config, a).to(device)
     optimiser = torch.optim.Adam(policy.trainable_parameters(), lr=config.lr)
     gen = torch.Generator().manual_seed(config.seed)
@@ -157,17 +174,17 @@ def train_bc(
     bar = tqdm(range(1, config.epochs + 1), desc="BC", unit="epoch", disable=not config.progress)
     for epoch in bar:
         t0 = time.perf_counter()
-        perm = torch.randperm(obs_tr.shape[0], generator=gen).to(device)
+        perm = torch.randperm(rows_tr.shape[0], generator=gen).to(device)
         total = 0.0
         for i in range(0, perm.shape[0], config.batch_size):
-            idx = perm[i : i + config.batch_size]
-            err = (policy(obs_tr[idx]) - act_tr[idx]) ** 2
+            idx = rows_tr[perm[i : i + config.batch_size]]
+            err = (policy(obs[idx]) - act[idx]) ** 2
             optimiser.zero_grad(set_to_none=True)
             (err * weights).sum(-1).mean().backward()
             optimiser.step()
             total += err.detach().sum().item()
         train_loss = total / perm.shape[0]
-        val_loss = _eval_loss(policy, obs_va, act_va) if len(val_idx) else float("nan")
+        val_loss = _eval_loss(policy, obs, act, rows_va) if len(val_idx) else float("nan")
         result.train_loss.append(train_loss)
         result.val_loss.append(val_loss)
         log.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0})

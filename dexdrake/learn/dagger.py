@@ -99,6 +99,50 @@ class DaggerData:
                               d["positions"], d["observations"], d["labels"])
 
 
+class Aggregate:
+    """Every iteration's observations and labels in arrays allocated once for the whole run, so
+    aggregating an iteration copies only its own samples (concatenating all of them anew each
+    iteration held several copies of the data and ran out of 24 GB at ~360k states)."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.n = capacity, 0
+        self.observations: np.ndarray | None = None
+        self.labels: np.ndarray | None = None
+        self.episode_starts = np.zeros(capacity, dtype=bool)
+
+    def add(self, data: DaggerData) -> None:
+        k = len(data.labels)
+        if self.n + k > self.capacity:
+            raise DexdrakeError(f"DAgger data of {self.n + k} samples exceeds the {self.capacity} allocated")
+        if self.observations is None:
+            self.observations = np.empty((self.capacity, data.observations.shape[1]), dtype=np.float32)
+            self.labels = np.empty((self.capacity, data.labels.shape[1]), dtype=np.float32)
+        self.observations[self.n : self.n + k] = data.observations
+        self.labels[self.n : self.n + k] = data.labels
+        self.episode_starts[self.n : self.n + k] = data.episode_starts
+        self.n += k
+
+    def dataset(self) -> DemoDataset:
+        """The samples so far, as views (no copy)."""
+        assert self.observations is not None and self.labels is not None
+        n = self.n
+        return DemoDataset(self.observations[:n], self.labels[:n], self.episode_starts[:n])
+
+
+def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
+    """Samples a run can hold: those of its data files on disk, and a full horizon for every
+    episode of the iterations still to collect."""
+    total = 0
+    for it in range(config.iterations):
+        path = out_dir / f"data_{it:02d}.npz"
+        if path.is_file():
+            with np.load(path, allow_pickle=False) as d:
+                total += len(d["episode_starts"])
+        else:
+            total += n_objects * config.episodes_per_object * config.horizon
+    return total
+
+
 MakeExpert = Callable[[Any], Callable[[Any], np.ndarray]]
 """env -> the expert for its current episode: called with the env, it returns the action in
 joint units. Picklable (systems.reactive_grasp.ReactiveGrasp), as sampler workers call it."""
@@ -203,7 +247,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                                                "collect_s", "train_s"],
                  resume=True, key="iteration", resume_from=finished)
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
-    parts: list[DaggerData] = []
+    aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     policy: DexRepNetPolicy | None = None
     hand = load_hand(config.hand)
     n_arm = len(hand.arm_joints)
@@ -233,18 +277,17 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                                     f"DAgger {it} (probe)", make_expert)
                     probe.save(probe_path, {"iteration": it, "probe": True, "config": asdict(config)})
             collect_s = time.perf_counter() - t0
-            parts.append(data)
+            aggregate.add(data)
             if it < finished:
                 policy = load_policy(policy_path)[0]
                 continue
             t1 = time.perf_counter()
-            everything = DaggerData.concat(parts)
             if policy is None:
                 blocks = observation_blocks(hand, config.feature_set)
-                policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, everything.labels.shape[1],
+                policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, data.labels.shape[1],
                                                                   feature_set=config.feature_set, hand=config.hand))
-            dataset = DemoDataset(everything.observations, everything.labels, everything.episode_starts)
-            weights = (config.arm_weight,) * n_arm + (1.0,) * (everything.labels.shape[1] - n_arm)
+            dataset = aggregate.dataset()
+            weights = (config.arm_weight,) * n_arm + (1.0,) * (data.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
                           split_seed=config.seed, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})

@@ -14,7 +14,7 @@ from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
 from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
-from dexdrake.dexrep.geometry import check_mesh, compute_object_geometry, load_object_geometry
+from dexdrake.dexrep.geometry import check_mesh, load_object_geometry
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
 
@@ -49,10 +49,15 @@ def encoder():
 
 
 @pytest.fixture(scope="module")
-def geometries(encoder):
-    # 3 mm SDF grids (production: 2 mm) keep the fixture quick; the rules are the same
-    return {name: compute_object_geometry(make(), encoder, name, grid_spacing=0.003)
-            for name, (make, _) in SHAPES.items()}
+def geometries(encoder, tmp_path_factory):
+    # 3 mm SDF grids (production: 2 mm) keep the fixture quick; the rules are the same. Read
+    # through the disk cache as the library's objects are: built once, then loaded
+    folder = tmp_path_factory.mktemp("meshes")
+    out = {}
+    for name, (make, _) in SHAPES.items():
+        make().export(folder / f"{name}.obj")
+        out[name] = load_object_geometry(folder / f"{name}.obj", encoder, grid_spacing=0.003)
+    return out
 
 
 def random_pose(rng, scale=0.05):

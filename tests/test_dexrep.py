@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial.transform import Rotation
 from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
 from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
-from dexdrake.dexrep.geometry import check_mesh, load_object_geometry
+from dexdrake.dexrep.geometry import SdfGrid, check_mesh, load_object_geometry
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
 
@@ -120,6 +122,11 @@ def test_fast_occupancy_applies_the_rule_of_occupancy_in_frame(geometries, level
         np.testing.assert_array_equal(F.occupancy(X_OG, np.eye(4), geometries["torus"], levels=levels), fast)
         assert np.sum(fast != exact) <= 2
         assert exact.sum() > 50
+    # a grid of another size and resolution
+    X_OG = random_pose(rng, 0.02)
+    fast = FastOccupancy(0.1, 4, levels)(X_OG, geometries["torus"])
+    exact = occupancy_in_frame(analytic_sd_fn(torus_sd), X_OG, 0.1, 4, levels)
+    assert fast.shape == (64,) and np.sum(fast != exact) <= 1 and 10 < exact.sum() < 60
 
 
 def _half_space(normal_F, a: float):
@@ -136,6 +143,25 @@ def _half_space(normal_F, a: float):
 
 def _grid_axis(size: float, resolution: int) -> np.ndarray:
     return np.arange(resolution) * (size / resolution) + size / resolution / 2 - size / 2
+
+
+def test_fast_occupancy_interpolates_only_the_voxels_the_balls_leave_open(geometries, monkeypatch):
+    # nearest-node pass: only voxels whose nearest node's distance lies between the balls
+    # give or take that node's error are interpolated (so their true distance lies there give
+    # or take twice that error and the mesh's facets); of those, only the ones whose
+    # interpolated distance lies between the balls are split into 8 children
+    g = geometries["torus"]
+    edge, slack, facets = 0.02, 2 * g.sdf.spacing * np.sqrt(3) / 2, 2e-4
+    rng = np.random.default_rng(14)
+    for _ in range(3):
+        queries = _GridQueries(monkeypatch)
+        X_OG = random_pose(rng, 0.04)
+        FastOccupancy()(X_OG, g)
+        (u, sd), (children, _), *planar = queries.trilinear
+        true = torus_sd(u * g.sdf.spacing + g.sdf.origin)
+        assert np.all(true >= edge / 2 - slack - facets) and np.all(true <= edge * np.sqrt(3) / 2 + slack + facets)
+        assert len(children) == 8 * np.sum((sd > edge / 2) & (sd <= edge * np.sqrt(3) / 2)) > 0
+        assert len(planar) == 1 and 0 < len(planar[0][0]) < len(children)
 
 
 def test_occupancy_of_a_half_space_is_decided_by_the_balls_alone_when_it_can():
@@ -179,20 +205,52 @@ def test_occupancy_of_a_tilted_half_space_is_exact(levels):
     assert refined >= 3  # most grids had voxels between the balls
 
 
-def test_occupancy_cull_keeps_objects_at_the_grid_corner(geometries):
+class _GridQueries:
+    """Records the points of every SDF-grid query (and the interpolated values) of FastOccupancy."""
+
+    def __init__(self, monkeypatch):
+        self.nearest, self.trilinear = [], []
+        nearest, trilinear = SdfGrid.nearest_node_index_value, SdfGrid.trilinear_index
+
+        def nearest_node_index_value(grid, u):
+            self.nearest.append(u.copy())
+            return nearest(grid, u)
+
+        def trilinear_index(grid, u, with_gradient=False):
+            out = trilinear(grid, u, with_gradient)
+            self.trilinear.append((u.copy(), out[0] if with_gradient else out))
+            return out
+
+        monkeypatch.setattr(SdfGrid, "nearest_node_index_value", nearest_node_index_value)
+        monkeypatch.setattr(SdfGrid, "trilinear_index", trilinear_index)
+
+
+def test_occupancy_cull_keeps_objects_at_the_grid_corner(geometries, monkeypatch):
     g = geometries["sphere"]
     X_WG = np.eye(4)
     corner = np.array([0.1, 0.1, 0.1])
+    queries = _GridQueries(monkeypatch)
     for shift, expect_empty in ((corner + 0.049 / np.sqrt(3), False), (corner + 0.051 / np.sqrt(3), True)):
         X_WO = np.eye(4)
         X_WO[:3, 3] = shift  # sphere of radius 5 cm just touching / just missing the corner
         occ = F.occupancy(X_WG, X_WO, g).reshape(10, 10, 10)
         assert (occ.sum() == 0) == expect_empty
+        assert (len(queries.nearest) == 0) == expect_empty  # a culled grid asks the SDF nothing
         if not expect_empty:
             assert occ[9, 9, 9] == 1 and occ.sum() == 1
-    X_WO = np.eye(4)
-    X_WO[:3, 3] = [0.5, 0.0, 0.0]
-    assert F.occupancy(X_WG, X_WO, g).sum() == 0
+        queries.nearest.clear()
+    for shift in ([0.5, 0.0, 0.0], [0.0, 0.0, 0.3]):
+        X_WO = np.eye(4)
+        X_WO[:3, 3] = shift
+        assert F.occupancy(X_WG, X_WO, g).sum() == 0 and not queries.nearest
+    # an object whose mesh lies away from its frame's origin: culled by where its mesh is
+    d = np.array([0.15, -0.1, 0.05])
+    moved = dataclasses.replace(g, vertices=g.vertices + d, sdf=SdfGrid(g.sdf.origin + d, g.sdf.spacing, g.sdf.values))
+    X_OG = random_pose(np.random.default_rng(13), 0.03)
+    expect = FastOccupancy()(X_OG, g)
+    X_OG[:3, 3] += d
+    np.testing.assert_array_equal(FastOccupancy()(X_OG, moved), expect)
+    assert expect.sum() > 20
     with pytest.raises(DexdrakeError, match="level"):
         FastOccupancy(levels=0)
 
@@ -249,9 +307,28 @@ def test_closest_points_match_analytic_sd(geometries, shape):
     true = SHAPES[shape][1](p_O)
     np.testing.assert_allclose(cp.distance, true, atol=1e-3)  # torus facets ~0.3 mm
     np.testing.assert_allclose(SHAPES[shape][1](cp.points), 0.0, atol=1e-3)
-    inside = geometries[shape].sdf.evaluate(p_O)
+    grid = geometries[shape].sdf
     band = np.abs(true) < 0.02  # inside the padded grid
-    np.testing.assert_allclose(inside[band], true[band], atol=1e-3)
+    np.testing.assert_allclose(grid.trilinear_index((p_O[band] - grid.origin) / grid.spacing), true[band], atol=1e-3)
+
+
+def test_sdf_grid_interpolates_trilinearly_and_extrapolates_from_the_border_cell():
+    # any node values, against scipy's trilinear interpolation (linear extrapolation outside)
+    rng = np.random.default_rng(12)
+    values = rng.normal(size=(5, 6, 7)).astype(np.float32)
+    grid = SdfGrid(np.array([0.1, -0.2, 0.3]), 0.01, values)
+    reference = RegularGridInterpolator([np.arange(n) for n in values.shape], values.astype(float),
+                                        bounds_error=False, fill_value=None)
+    u = rng.uniform(-2.5, np.array(values.shape) + 1.5, (400, 3))
+    np.testing.assert_allclose(grid.trilinear_index(u), reference(u), atol=1e-12)
+    sd, grad = grid.trilinear_index(u, with_gradient=True)
+    np.testing.assert_array_equal(sd, grid.trilinear_index(u))
+    h = 1e-7  # the interpolant is trilinear within each cell: central differences are exact there
+    expect = np.stack([(reference(u + h * e) - reference(u - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(grad, expect, atol=1e-6)
+    # the nearest node's value; points outside take the nearest border node's
+    nearest = np.clip(np.floor(u + 0.5), 0, np.array(values.shape) - 1).astype(int)
+    np.testing.assert_array_equal(grid.nearest_node_index_value(u), values[tuple(nearest.T)])
 
 
 def test_local_geo_is_feature_of_nearest_sample(geometries):

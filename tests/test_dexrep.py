@@ -130,11 +130,12 @@ def test_fast_occupancy_applies_the_rule_of_occupancy_in_frame(geometries, level
 
 
 def _half_space(normal_F, a: float):
-    """sd_fn of the solid n.p <= a (F frame, unit n) that records how many points each call asks."""
+    """sd_fn of the solid n.p <= a (F frame, unit n) that records each call's points and
+    whether it asked for gradients."""
     calls = []
 
     def sd_fn(p, with_gradient):
-        calls.append(len(p))
+        calls.append((p.copy(), with_gradient))
         value = p @ normal_F - a
         return (value, np.tile(normal_F, (len(p), 1))) if with_gradient else value
 
@@ -176,7 +177,7 @@ def test_occupancy_of_a_half_space_is_decided_by_the_balls_alone_when_it_can():
         lowest_x = _grid_axis(size, resolution) - size / resolution / 2
         expect = np.repeat(lowest_x <= a, resolution ** 2).astype(float)  # x-major
         np.testing.assert_array_equal(occ, expect)
-        assert occ.dtype == np.float64 and calls == [resolution ** 3], (a, calls)
+        assert occ.dtype == np.float64 and [(len(p), g) for p, g in calls] == [(resolution ** 3, False)], a
         centres, half = occupied_voxels(occ, size, resolution)
         np.testing.assert_array_equal(centres, voxel_centres(size, resolution)[expect == 1])
         assert half == size / resolution / 2
@@ -201,6 +202,17 @@ def test_occupancy_of_a_tilted_half_space_is_exact(levels):
         expect = (c_G @ n_G + X_FG[:3, 3] @ normal - a) <= size / resolution / 2 * np.abs(n_G).sum()
         np.testing.assert_array_equal(occ, expect)
         assert 0 < expect.sum() < len(expect)
+        # each level splits only the cubes between its balls; gradients only at the last
+        between = []
+        for k, (p, with_gradient) in enumerate(calls):
+            assert with_gradient == (k == levels + 1) and k <= levels + 1
+            e = size / resolution / 2 ** k
+            sd = p @ normal - a
+            between.append(int(np.sum((sd > e / 2) & (sd <= e * np.sqrt(3) / 2))))
+        if len(calls) > 1:
+            assert len(calls[1][0]) == 8 * between[0]  # every open voxel, split
+        for k in range(1, len(calls) - 1):
+            assert len(calls[k + 1][0]) <= (between[k] if k == levels else 8 * between[k])
         refined += len(calls) > 1
     assert refined >= 3  # most grids had voxels between the balls
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -319,7 +320,19 @@ def test_closest_points_match_analytic_sd(geometries, shape):
     true = SHAPES[shape][1](p_O)
     np.testing.assert_allclose(cp.distance, true, atol=1e-3)  # torus facets ~0.3 mm
     np.testing.assert_allclose(SHAPES[shape][1](cp.points), 0.0, atol=1e-3)
-    grid = geometries[shape].sdf
+    # the normal is the signed distance's gradient (at edges and corners too: not the face's)
+    g = geometries[shape]
+    off = np.abs(true) > 0.01 if shape == "torus" else true > 0.001  # the box's gradient jumps inside
+    h = 1e-6
+    gradient = np.stack([(SHAPES[shape][1](p_O + h * e) - SHAPES[shape][1](p_O - h * e)) / (2 * h) for e in np.eye(3)], 1)
+    np.testing.assert_allclose(cp.normals[off], gradient[off], atol=0.05 if shape == "torus" else 1e-4)  # torus: facets
+    assert off.sum() > 50
+    with pytest.raises(DexdrakeError, match=r"^closest_points: query points contain NaN or Inf$"):
+        g.closest_points([[0.0, np.nan, 0.0]])
+    # geometry goes to worker processes pickled, its Open3D scene rebuilt there
+    copy = pickle.loads(pickle.dumps(g))
+    np.testing.assert_array_equal(copy.closest_points(p_O).distance, cp.distance)
+    grid = g.sdf
     band = np.abs(true) < 0.02  # inside the padded grid
     np.testing.assert_allclose(grid.trilinear_index((p_O[band] - grid.origin) / grid.spacing), true[band], atol=1e-3)
 
@@ -381,12 +394,19 @@ def test_hand_state_layout():
 
 def test_bad_meshes_are_refused():
     box = trimesh.creation.box((0.1, 0.1, 0.1))
-    open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
-    with pytest.raises(DexdrakeError, match="watertight"):
-        check_mesh(open_box)
-    inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
-    with pytest.raises(DexdrakeError, match="inward"):
-        check_mesh(inverted)
+    one_flipped = box.faces.copy()
+    one_flipped[0] = one_flipped[0, ::-1]
+    for faces, message in (
+            (box.faces[:3], "mesh: has 3 faces; a closed surface needs at least 4"),
+            (box.faces[:-1], "mesh: not watertight (open boundary or non-manifold edges); signed distances would be wrong"),
+            (one_flipped, "mesh: inconsistent face winding; signed distances would be wrong"),
+            (box.faces[:, ::-1], "mesh: faces wound inward (volume -0.001 m^3 <= 0); flip the faces so normals point outward")):
+        with pytest.raises(DexdrakeError) as refused:
+            check_mesh(trimesh.Trimesh(box.vertices, faces, process=False))
+        assert str(refused.value) == message
+    with pytest.raises(DexdrakeError, match="^cup.obj: not watertight"):
+        check_mesh(trimesh.Trimesh(box.vertices, box.faces[:-1], process=False), "cup.obj")
+    check_mesh(box)
     flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], [[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]],
                            process=False)
     with pytest.raises(DexdrakeError, match="degenerate"):

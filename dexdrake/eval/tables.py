@@ -141,8 +141,8 @@ def write_report(report: EvalReport, out_dir: str | Path, stem: str | None = Non
     returns the paths."""
     out_dir = Path(out_dir)
     stem = stem or f"eval_{report.label}"
-    paths = {"md": out_dir / f"{stem}.md", "json": out_dir / f"{stem}.json"}
+    paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv", "json": out_dir / f"{stem}.json"}
     write_atomic(paths["md"], markdown_table(report).encode())
-    paths["csv"] = write_csv_beside(paths["md"])
+    write_atomic(paths["csv"], csv_table(report).encode())
     write_atomic(paths["json"], json.dumps(report.to_dict(), indent=1).encode())
-    return {key: paths[key] for key in ("md", "csv", "json")}
+    return paths

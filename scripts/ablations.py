@@ -20,7 +20,6 @@ the command; partial tables survive an interrupted run.
 from __future__ import annotations
 
 import argparse
-import csv
 import shlex
 import sys
 import time
@@ -29,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+from dexdrake.learn.curves import write_csv
+from dexdrake.objects.meshfile import write_atomic
 
 COLUMNS = ("feature_set", "obs_dim", "train_mse", "unseen_open_loop_mse", "ours_paper_objects_pct", "ours_all_pct",
            "paper_pct", "mean_max_lift_m", "minutes")
@@ -104,11 +105,7 @@ def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict
 
 
 def write_table(rows: list[dict[str, object]], args, objects: list[str], n_train: int, n_held: int) -> None:
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "ablations.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(args.out / "ablations.csv", COLUMNS, rows)
     lines = [
         "# Feature-set ablation (same states, labels and BC budget for every set)",
         "",
@@ -127,7 +124,7 @@ def write_table(rows: list[dict[str, object]], args, objects: list[str], n_train
     ]
     for r in rows:
         lines.append("| " + " | ".join(str(r[k]) for k in COLUMNS) + " |")
-    (args.out / "ablations.md").write_text("\n".join(lines) + "\n")
+    write_atomic(args.out / "ablations.md", ("\n".join(lines) + "\n").encode())
     print("\n".join(lines))
 
 

@@ -8,7 +8,7 @@ Each stage is a real command (printed and recorded in the manifest) and is skipp
 output already exists in --work (DAgger itself resumes per iteration). The result:
 models/weights/<hand>_dexrep_policy.pt (DAgger's chosen iterate), <hand>_dexrep_policy.json
 (commands, seeds, data, feature set, compute, metrics) and the evaluation tables
-eval_seen.md / eval_unseen.md (eval_<hand>_seen.md ... for other hands than the Adroit);
+eval_seen.md / eval_unseen.md with their .csv (eval_<hand>_seen.md ... for other hands than the Adroit);
 "seen" means the training objects used.
 No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
 on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
@@ -24,13 +24,14 @@ import json
 import os
 import platform
 import shlex
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+from dexdrake.eval.tables import write_csv_beside
+from dexdrake.objects.meshfile import write_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
@@ -94,7 +95,7 @@ def main() -> None:
     name = f"{args.hand}_dexrep_policy"
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     target = weights / f"{name}.pt"
-    shutil.copyfile(policy, target)
+    write_atomic(target, policy.read_bytes())
     metrics = {}
     for label in ("seen", "unseen"):
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
@@ -103,7 +104,8 @@ def main() -> None:
                                                   "wall_s", "workers")}
         text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
         text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
-        (weights / f"{tables}_{label}.md").write_text(text)
+        write_atomic(weights / f"{tables}_{label}.md", text.encode())
+        write_csv_beside(weights / f"{tables}_{label}.md")
 
     import torch
 
@@ -141,7 +143,7 @@ def main() -> None:
                     "pipeline_wall_s_this_run": round(time.perf_counter() - start, 1), "torch": torch.__version__},
         "metrics": metrics,
     }
-    (weights / f"{name}.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    write_atomic(weights / f"{name}.json", (json.dumps(manifest, indent=1) + "\n").encode())
     print(f"wrote {target} ({target.stat().st_size / 1e6:.2f} MB), its manifest and eval tables; "
           f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
 

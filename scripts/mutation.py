@@ -47,13 +47,18 @@ class Target:
 DEXREP = ["tests/test_dexrep.py::" + t for t in (
     "test_occupancy_matches_brute_force", "test_fast_occupancy_applies_the_rule_of_occupancy_in_frame",
     "test_occupancy_cull_keeps_objects_at_the_grid_corner", "test_occupancy_order_is_x_major",
+    "test_occupancy_of_a_half_space_is_decided_by_the_balls_alone_when_it_can",
+    "test_occupancy_of_a_tilted_half_space_is_exact",
+    "test_fast_occupancy_interpolates_only_the_voxels_the_balls_leave_open",
+    "test_sdf_grid_interpolates_trilinearly_and_extrapolates_from_the_border_cell",
     "test_surface_on_sphere", "test_closest_points_match_analytic_sd", "test_local_geo_is_feature_of_nearest_sample",
     "test_hand_state_layout", "test_bad_meshes_are_refused", "test_cache_round_trip")]
 LEARN = "tests/test_learn.py::"
 CAN = "tests/test_allegro_can.py::"
 TARGETS: dict[str, Target] = {
     "dexdrake/task.py": Target(["tests/test_task.py", "tests/test_task_boundaries.py"]),
-    # the `geometries` fixture builds three SDF grids (about 10 CPU seconds)
+    # the `geometries` fixture builds three SDF grids (about 10 CPU seconds; loaded from the
+    # disk cache once built)
     "dexdrake/dexrep/occupancy.py": Target(DEXREP, setup_s=30.0),
     "dexdrake/dexrep/features.py": Target(DEXREP, setup_s=30.0),
     "dexdrake/dexrep/geometry.py": Target(DEXREP, ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*", "x_check_mesh*"], setup_s=30.0),

@@ -13,6 +13,8 @@ import trimesh
 from dexdrake.cli import main
 from dexdrake.demos.format import load_demo
 from dexdrake.dexrep.pointnet import PointNetEncoder, load_encoder
+from dexdrake.hands.description import load_hand
+from dexdrake.learn.demo_dataset import load_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from rrd_content import logged_rows
@@ -93,6 +95,31 @@ def test_demos_synth_writes_loadable_demos(tmp_path, capsys):
     for f in files:
         demo = load_demo(f)
         assert demo.num_frames > 10 and np.all(np.isfinite(demo.time))
+
+
+def test_retarget_and_replay_a_synthetic_demo(tmp_path, capsys):
+    demos = tmp_path / "demos"
+    assert main(["demos", "synth", "--objects", "sphere_small", "--out", str(demos), "--per-object", "1"]) == 0
+    (demo,) = demos.glob("*.npz")
+    out = tmp_path / "allegro.npz"
+    capsys.readouterr()
+    assert main(["retarget", str(demo), "--hand", "allegro", "--out", str(out)]) == 0
+    frames, mean = re.search(r"(\d+) frames -> .*; key-vector residual ([\d.]+) mm mean", capsys.readouterr().out).groups()
+    hand = load_hand("allegro")
+    with np.load(out) as q:
+        assert q["q"].shape == (int(frames), len(hand.policy_joints)) == (load_demo(demo).num_frames, 6 + 16)  # wrist and fingers
+        assert list(q["joint_names"]) == list(hand.policy_joints) and str(q["hand"]) == "allegro"
+        lower, upper = hand.joint_limits()
+        assert np.all((q["q"] >= lower - 1e-9) & (q["q"] <= upper + 1e-9)) and np.ptp(q["q"], axis=0).max() > 0.1
+        assert f"{float(q['residual_mm_mean']):.1f}" == mean and float(mean) < 50  # spec reference: 44 mm
+    # the demo replayed in Drake by the Adroit hand: one successful episode, written as a BC dataset
+    data = tmp_path / "replay.npz"
+    assert main(["demos", "replay", "--hand", "adroit", "--demos", str(demos), "--out", str(data),
+                 "--attempts", "0"]) == 0
+    assert "overall: 1 demos, raw 100.0 %" in capsys.readouterr().out
+    dataset = load_demo_dataset(data)
+    assert dataset.observations.shape == (200, 60) and dataset.actions.shape == (200, 30)
+    assert dataset.metadata["command"].startswith("dexdrake demos replay --hand adroit")
 
 
 def test_encoder_train_for_one_step(tmp_path, capsys):

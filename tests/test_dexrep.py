@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import pickle
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial.transform import Rotation
 from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
 from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
-from dexdrake.dexrep.geometry import check_mesh, compute_object_geometry, load_object_geometry
+from dexdrake.dexrep.geometry import SdfGrid, check_mesh, load_object_geometry
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
 
@@ -49,10 +52,15 @@ def encoder():
 
 
 @pytest.fixture(scope="module")
-def geometries(encoder):
-    # 3 mm SDF grids (production: 2 mm) keep the fixture quick; the rules are the same
-    return {name: compute_object_geometry(make(), encoder, name, grid_spacing=0.003)
-            for name, (make, _) in SHAPES.items()}
+def geometries(encoder, tmp_path_factory):
+    # 3 mm SDF grids (production: 2 mm) keep the fixture quick; the rules are the same. Read
+    # through the disk cache as the library's objects are: built once, then loaded
+    folder = tmp_path_factory.mktemp("meshes")
+    out = {}
+    for name, (make, _) in SHAPES.items():
+        make().export(folder / f"{name}.obj")
+        out[name] = load_object_geometry(folder / f"{name}.obj", encoder, grid_spacing=0.003)
+    return out
 
 
 def random_pose(rng, scale=0.05):
@@ -93,7 +101,7 @@ def test_occupancy_matches_brute_force(geometries, shape):
 
 
 def analytic_sd_fn(sd):
-    def fn(p, with_gradient=False):
+    def fn(p, with_gradient):  # no default: the occupancy code always says which it wants
         value = sd(p)
         if not with_gradient:
             return value
@@ -115,22 +123,147 @@ def test_fast_occupancy_applies_the_rule_of_occupancy_in_frame(geometries, level
         np.testing.assert_array_equal(F.occupancy(X_OG, np.eye(4), geometries["torus"], levels=levels), fast)
         assert np.sum(fast != exact) <= 2
         assert exact.sum() > 50
+    # a grid of another size and resolution
+    X_OG = random_pose(rng, 0.02)
+    fast = FastOccupancy(0.1, 4, levels)(X_OG, geometries["torus"])
+    exact = occupancy_in_frame(analytic_sd_fn(torus_sd), X_OG, 0.1, 4, levels)
+    assert fast.shape == (64,) and np.sum(fast != exact) <= 1 and 10 < exact.sum() < 60
 
 
-def test_occupancy_cull_keeps_objects_at_the_grid_corner(geometries):
+def _half_space(normal_F, a: float):
+    """sd_fn of the solid n.p <= a (F frame, unit n) that records each call's points and
+    whether it asked for gradients."""
+    calls = []
+
+    def sd_fn(p, with_gradient):
+        calls.append((p.copy(), with_gradient))
+        value = p @ normal_F - a
+        return (value, np.tile(normal_F, (len(p), 1))) if with_gradient else value
+
+    return sd_fn, calls
+
+
+def _grid_axis(size: float, resolution: int) -> np.ndarray:
+    return np.arange(resolution) * (size / resolution) + size / resolution / 2 - size / 2
+
+
+def test_fast_occupancy_interpolates_only_the_voxels_the_balls_leave_open(geometries, monkeypatch):
+    # nearest-node pass: only voxels whose nearest node's distance lies between the balls
+    # give or take that node's error are interpolated (so their true distance lies there give
+    # or take twice that error and the mesh's facets); of those, only the ones whose
+    # interpolated distance lies between the balls are split into 8 children
+    g = geometries["torus"]
+    edge, slack, facets = 0.02, 2 * g.sdf.spacing * np.sqrt(3) / 2, 2e-4
+    rng = np.random.default_rng(14)
+    for _ in range(3):
+        queries = _GridQueries(monkeypatch)
+        X_OG = random_pose(rng, 0.04)
+        FastOccupancy()(X_OG, g)
+        (u, sd), (children, _), *planar = queries.trilinear
+        true = torus_sd(u * g.sdf.spacing + g.sdf.origin)
+        assert np.all(true >= edge / 2 - slack - facets) and np.all(true <= edge * np.sqrt(3) / 2 + slack + facets)
+        assert len(children) == 8 * np.sum((sd > edge / 2) & (sd <= edge * np.sqrt(3) / 2)) > 0
+        assert len(planar) == 1 and 0 < len(planar[0][0]) < len(children)
+
+
+def test_occupancy_of_a_half_space_is_decided_by_the_balls_alone_when_it_can():
+    # grid x along F's y; centres 0.45 edge outside the plane are occupied and 1.0 or 1.45
+    # edge outside empty in one sd call (the inscribed and circumscribed balls decide them)
+    X_FG = np.eye(4)
+    X_FG[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    X_FG[:3, 3] = [0.3, 0.0, -0.2]
+    for a, size, resolution in ((-0.039, 0.2, 10), (-0.05, 0.2, 10), (0.00125, 0.1, 4)):
+        sd_fn, calls = _half_space(np.array([0.0, 1.0, 0.0]), a)
+        occ = occupancy_in_frame(sd_fn, X_FG, size, resolution)
+        lowest_x = _grid_axis(size, resolution) - size / resolution / 2
+        expect = np.repeat(lowest_x <= a, resolution ** 2).astype(float)  # x-major
+        np.testing.assert_array_equal(occ, expect)
+        assert occ.dtype == np.float64 and [(len(p), g) for p, g in calls] == [(resolution ** 3, False)], a
+        centres, half = occupied_voxels(occ, size, resolution)
+        np.testing.assert_array_equal(centres, voxel_centres(size, resolution)[expect == 1])
+        assert half == size / resolution / 2
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_occupancy_of_a_tilted_half_space_is_exact(levels):
+    # a voxel meets the solid n.p <= a iff n.c - a <= (e/2) |n in grid axes|_1: the rule
+    # (balls, then the planar test after refining) is exact for a plane, at any pose and grid
+    rng = np.random.default_rng(11)
+    refined = 0
+    for size, resolution in ((0.2, 10), (0.1, 4), (0.2, 10), (0.1, 4)):
+        X_FG = random_pose(rng)
+        normal = rng.normal(size=3)
+        normal /= np.linalg.norm(normal)
+        a = rng.uniform(-0.03, 0.03)
+        sd_fn, calls = _half_space(normal, a)
+        occ = occupancy_in_frame(sd_fn, X_FG, size, resolution, levels)
+        axis = _grid_axis(size, resolution)
+        c_G = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        n_G = X_FG[:3, :3].T @ normal
+        expect = (c_G @ n_G + X_FG[:3, 3] @ normal - a) <= size / resolution / 2 * np.abs(n_G).sum()
+        np.testing.assert_array_equal(occ, expect)
+        assert 0 < expect.sum() < len(expect)
+        # each level splits only the cubes between its balls; gradients only at the last
+        between = []
+        for k, (p, with_gradient) in enumerate(calls):
+            assert with_gradient == (k == levels + 1) and k <= levels + 1
+            e = size / resolution / 2 ** k
+            sd = p @ normal - a
+            between.append(int(np.sum((sd > e / 2) & (sd <= e * np.sqrt(3) / 2))))
+        if len(calls) > 1:
+            assert len(calls[1][0]) == 8 * between[0]  # every open voxel, split
+        for k in range(1, len(calls) - 1):
+            assert len(calls[k + 1][0]) <= (between[k] if k == levels else 8 * between[k])
+        refined += len(calls) > 1
+    assert refined >= 3  # most grids had voxels between the balls
+
+
+class _GridQueries:
+    """Records the points of every SDF-grid query (and the interpolated values) of FastOccupancy."""
+
+    def __init__(self, monkeypatch):
+        self.nearest, self.trilinear = [], []
+        nearest, trilinear = SdfGrid.nearest_node_index_value, SdfGrid.trilinear_index
+
+        def nearest_node_index_value(grid, u):
+            self.nearest.append(u.copy())
+            return nearest(grid, u)
+
+        def trilinear_index(grid, u, with_gradient=False):
+            out = trilinear(grid, u, with_gradient)
+            self.trilinear.append((u.copy(), out[0] if with_gradient else out))
+            return out
+
+        monkeypatch.setattr(SdfGrid, "nearest_node_index_value", nearest_node_index_value)
+        monkeypatch.setattr(SdfGrid, "trilinear_index", trilinear_index)
+
+
+def test_occupancy_cull_keeps_objects_at_the_grid_corner(geometries, monkeypatch):
     g = geometries["sphere"]
     X_WG = np.eye(4)
     corner = np.array([0.1, 0.1, 0.1])
+    queries = _GridQueries(monkeypatch)
     for shift, expect_empty in ((corner + 0.049 / np.sqrt(3), False), (corner + 0.051 / np.sqrt(3), True)):
         X_WO = np.eye(4)
         X_WO[:3, 3] = shift  # sphere of radius 5 cm just touching / just missing the corner
         occ = F.occupancy(X_WG, X_WO, g).reshape(10, 10, 10)
         assert (occ.sum() == 0) == expect_empty
+        assert (len(queries.nearest) == 0) == expect_empty  # a culled grid asks the SDF nothing
         if not expect_empty:
             assert occ[9, 9, 9] == 1 and occ.sum() == 1
-    X_WO = np.eye(4)
-    X_WO[:3, 3] = [0.5, 0.0, 0.0]
-    assert F.occupancy(X_WG, X_WO, g).sum() == 0
+        queries.nearest.clear()
+    for shift in ([0.5, 0.0, 0.0], [0.0, 0.0, 0.3]):
+        X_WO = np.eye(4)
+        X_WO[:3, 3] = shift
+        assert F.occupancy(X_WG, X_WO, g).sum() == 0 and not queries.nearest
+    # an object whose mesh lies away from its frame's origin: culled by where its mesh is
+    d = np.array([0.15, -0.1, 0.05])
+    moved = dataclasses.replace(g, vertices=g.vertices + d, sdf=SdfGrid(g.sdf.origin + d, g.sdf.spacing, g.sdf.values))
+    X_OG = random_pose(np.random.default_rng(13), 0.03)
+    expect = FastOccupancy()(X_OG, g)
+    X_OG[:3, 3] += d
+    np.testing.assert_array_equal(FastOccupancy()(X_OG, moved), expect)
+    assert expect.sum() > 20
     with pytest.raises(DexdrakeError, match="level"):
         FastOccupancy(levels=0)
 
@@ -187,9 +320,40 @@ def test_closest_points_match_analytic_sd(geometries, shape):
     true = SHAPES[shape][1](p_O)
     np.testing.assert_allclose(cp.distance, true, atol=1e-3)  # torus facets ~0.3 mm
     np.testing.assert_allclose(SHAPES[shape][1](cp.points), 0.0, atol=1e-3)
-    inside = geometries[shape].sdf.evaluate(p_O)
+    # the normal is the signed distance's gradient (at edges and corners too: not the face's)
+    g = geometries[shape]
+    off = np.abs(true) > 0.01 if shape == "torus" else true > 0.001  # the box's gradient jumps inside
+    h = 1e-6
+    gradient = np.stack([(SHAPES[shape][1](p_O + h * e) - SHAPES[shape][1](p_O - h * e)) / (2 * h) for e in np.eye(3)], 1)
+    np.testing.assert_allclose(cp.normals[off], gradient[off], atol=0.05 if shape == "torus" else 1e-4)  # torus: facets
+    assert off.sum() > 50
+    with pytest.raises(DexdrakeError, match=r"^closest_points: query points contain NaN or Inf$"):
+        g.closest_points([[0.0, np.nan, 0.0]])
+    # geometry goes to worker processes pickled, its Open3D scene rebuilt there
+    copy = pickle.loads(pickle.dumps(g))
+    np.testing.assert_array_equal(copy.closest_points(p_O).distance, cp.distance)
+    grid = g.sdf
     band = np.abs(true) < 0.02  # inside the padded grid
-    np.testing.assert_allclose(inside[band], true[band], atol=1e-3)
+    np.testing.assert_allclose(grid.trilinear_index((p_O[band] - grid.origin) / grid.spacing), true[band], atol=1e-3)
+
+
+def test_sdf_grid_interpolates_trilinearly_and_extrapolates_from_the_border_cell():
+    # any node values, against scipy's trilinear interpolation (linear extrapolation outside)
+    rng = np.random.default_rng(12)
+    values = rng.normal(size=(5, 6, 7)).astype(np.float32)
+    grid = SdfGrid(np.array([0.1, -0.2, 0.3]), 0.01, values)
+    reference = RegularGridInterpolator([np.arange(n) for n in values.shape], values.astype(float),
+                                        bounds_error=False, fill_value=None)
+    u = rng.uniform(-2.5, np.array(values.shape) + 1.5, (400, 3))
+    np.testing.assert_allclose(grid.trilinear_index(u), reference(u), atol=1e-12)
+    sd, grad = grid.trilinear_index(u, with_gradient=True)
+    np.testing.assert_array_equal(sd, grid.trilinear_index(u))
+    h = 1e-7  # the interpolant is trilinear within each cell: central differences are exact there
+    expect = np.stack([(reference(u + h * e) - reference(u - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(grad, expect, atol=1e-6)
+    # the nearest node's value; points outside take the nearest border node's
+    nearest = np.clip(np.floor(u + 0.5), 0, np.array(values.shape) - 1).astype(int)
+    np.testing.assert_array_equal(grid.nearest_node_index_value(u), values[tuple(nearest.T)])
 
 
 def test_local_geo_is_feature_of_nearest_sample(geometries):
@@ -230,12 +394,19 @@ def test_hand_state_layout():
 
 def test_bad_meshes_are_refused():
     box = trimesh.creation.box((0.1, 0.1, 0.1))
-    open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
-    with pytest.raises(DexdrakeError, match="watertight"):
-        check_mesh(open_box)
-    inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
-    with pytest.raises(DexdrakeError, match="inward"):
-        check_mesh(inverted)
+    one_flipped = box.faces.copy()
+    one_flipped[0] = one_flipped[0, ::-1]
+    for faces, message in (
+            (box.faces[:3], "mesh: has 3 faces; a closed surface needs at least 4"),
+            (box.faces[:-1], "mesh: not watertight (open boundary or non-manifold edges); signed distances would be wrong"),
+            (one_flipped, "mesh: inconsistent face winding; signed distances would be wrong"),
+            (box.faces[:, ::-1], "mesh: faces wound inward (volume -0.001 m^3 <= 0); flip the faces so normals point outward")):
+        with pytest.raises(DexdrakeError) as refused:
+            check_mesh(trimesh.Trimesh(box.vertices, faces, process=False))
+        assert str(refused.value) == message
+    with pytest.raises(DexdrakeError, match="^cup.obj: not watertight"):
+        check_mesh(trimesh.Trimesh(box.vertices, box.faces[:-1], process=False), "cup.obj")
+    check_mesh(box)
     flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], [[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]],
                            process=False)
     with pytest.raises(DexdrakeError, match="degenerate"):
@@ -280,19 +451,12 @@ def test_feature_sizes_and_describe(capsys):
     assert observation_blocks(adroit, "DexRep") == {"hand": 105, "occ_surf": 1088, "local_geo": 1408}
     for name in FEATURE_SETS:
         assert next(iter(observation_blocks(adroit, name))) == "hand"
-    allegro = next(load_hand(h) for h in ("allegro_z1", "allegro") if _has_hand(h))
-    assert observation_blocks(allegro, "DexRep")["hand"] == 91
+    assert observation_blocks(load_hand("allegro_z1"), "DexRep")["hand"] == 91
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
     args = parser.parse_args(["features", "describe", "--hand", "adroit", "--set", "DexRep"])
     assert args.func(args) == 0
     assert "occ_surf 1088" in capsys.readouterr().out
-
-
-def _has_hand(name):
-    from dexdrake.hands.description import hand_names
-
-    return name in hand_names()
 
 
 # --- the SceneGraph path -----------------------------------------------------------------

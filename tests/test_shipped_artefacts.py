@@ -1,6 +1,6 @@
 """The shipped tables agree with each other and with the weights they describe: each policy's
-manifest, its evaluation tables and the README give the same numbers, the ablation table's
-markdown and csv hold the same rows, and every command a table names parses as written."""
+manifest, its evaluation tables (markdown and csv) and the README give the same numbers, the
+ablation table's markdown and csv hold the same rows, and every command a table names parses as written."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from dexdrake.cli import build_parser
+from dexdrake.eval.paper import PAPER_AVERAGE, PAPER_UNSEEN
 from dexdrake.paths import models_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,6 +72,36 @@ def test_eval_table_matches_the_manifest(name, label):
     summary = re.search(r"^- average ([\d.]+) % over (\d+) objects, .* \((\d+) episodes pooled\)", md, re.MULTILINE)
     assert summary, md[:500]
     assert summary.groups() == (f"{metrics['average_pct']:.1f}", str(len(per_object)), str(episodes))
+
+
+@pytest.mark.parametrize("name", POLICIES)
+@pytest.mark.parametrize("label", ["seen", "unseen"])
+def test_eval_csv_matches_the_manifest_and_its_markdown(name, label):
+    metrics = _manifest(name)["metrics"][label]
+    per_object = metrics["per_object"]
+    stem = WEIGHTS / f"{POLICIES[name]}_{label}"
+    with open(stem.with_suffix(".csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["object", "successes", "ours_pct", "paper_pct", "mean_max_lift_m", "ci95_pct"]
+    average = rows.pop()
+    assert [r["object"] for r in rows] == list(per_object) and average["object"] == "average"
+    for row in rows:
+        m = per_object[row["object"]]
+        assert row["successes"] == f"{m['successes']}/{m['episodes']}", row
+        assert row["ours_pct"] == f"{m['success_pct']:.1f}", row
+        assert row["mean_max_lift_m"] == f"{m['mean_max_lift']:.3f}", row
+        assert row["ci95_pct"] == "{:.1f}-{:.1f}".format(*m["ci95_pct"]), row
+        paper = PAPER_UNSEEN.get(row["object"]) if label == "unseen" else None
+        assert row["paper_pct"] == ("" if paper is None else f"{paper:.1f}"), row
+    wins = sum(m["successes"] for m in per_object.values())
+    episodes = sum(m["episodes"] for m in per_object.values())
+    lift = sum(m["mean_max_lift"] * m["episodes"] for m in per_object.values()) / episodes
+    assert average == {"object": "average", "successes": f"{wins}/{episodes}",
+                       "ours_pct": f"{metrics['average_pct']:.1f}", "paper_pct": f"{PAPER_AVERAGE[label]:.1f}",
+                       "mean_max_lift_m": f"{lift:.3f}", "ci95_pct": "{:.1f}-{:.1f}".format(*metrics["average_ci95_pct"])}
+    # the markdown table holds the same cells in the same order (the average row's name in bold)
+    md_rows = _table_rows(stem.with_suffix(".md").read_text())
+    assert [[r[0].strip("*"), *r[1:]] for r in md_rows] == [list(r.values()) for r in [*rows, average]]
 
 
 @pytest.mark.parametrize("name", POLICIES)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -13,7 +14,7 @@ from dexdrake.cli import main
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.eval.evaluate import EvalReport, evaluate_policy
 from dexdrake.eval.paper import PAPER_UNSEEN
-from dexdrake.eval.tables import csv_table, markdown_table, table_rows, write_report
+from dexdrake.eval.tables import csv_from_markdown, csv_table, markdown_table, table_rows, write_report
 from dexdrake.learn.demo_dataset import save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.objects.library import resolve_objects
@@ -162,8 +163,14 @@ def test_seen_table_uses_the_seen_average_only(tmp_path):
     rows = {r["object"]: r for r in table_rows(report)}
     assert rows["mug"]["paper_pct"] == "" and rows["average"]["paper_pct"] == "93.0"
     paths = write_report(report, tmp_path)
-    assert paths["md"].name == "eval_seen.md" and paths["csv"].is_file()
+    assert paths["md"].name == "eval_seen.md" and paths["csv"].name == "eval_seen.csv"
     assert json.loads(paths["json"].read_text())["average_pct"] == 75.0
+    # the csv, made from the markdown, holds the rows exactly; nothing else is left in the folder
+    with open(paths["csv"], newline="") as f:
+        assert list(csv.DictReader(f)) == table_rows(report)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_seen.csv", "eval_seen.json", "eval_seen.md"]
+    with pytest.raises(ValueError, match="not an evaluation table"):
+        csv_from_markdown("| feature set | obs dim |\n|---|---|\n| DexRep | 2601 |\n")
 
 
 def test_paper_numbers_cover_the_ten_unseen_grab_objects():

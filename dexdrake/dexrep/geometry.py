@@ -44,28 +44,9 @@ class SdfGrid:
     spacing: float
     values: np.ndarray  # (nx, ny, nz) float32
 
-    @property
-    def upper(self) -> np.ndarray:
-        return self.origin + self.spacing * (np.array(self.values.shape) - 1)
-
-    def evaluate(self, p: np.ndarray, with_gradient: bool = False):
-        """Trilinear signed distance at (m, 3) points (and its gradient if asked).
-
-        Points outside the grid get sd(clamped point) + distance to it, which is at least
-        about SDF_PAD: they are never near the object.
-        """
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
-        q = np.clip(p, self.origin, self.upper)
-        outside = np.sqrt(np.einsum("ij,ij->i", p - q, p - q))
-        u = (q - self.origin) * (1.0 / self.spacing)
-        if not with_gradient:
-            return self.trilinear_index(u) + outside
-        sd, grad = self.trilinear_index(u, with_gradient=True)
-        return sd + outside, grad * (1.0 / self.spacing)
-
     def trilinear_index(self, u: np.ndarray, with_gradient: bool = False):
         """Trilinear sd at (m, 3) points in index coordinates u = (p - origin) / spacing
-        (inside the grid; outside it extrapolates from the border cell). The gradient,
+        (inside the grid; outside it extrapolates linearly from the border cell). The gradient,
         if asked, is per index step (multiply by 1/spacing for per metre)."""
         i0 = u.astype(np.intp)  # floor, for u >= 0
         np.maximum(i0, 0, out=i0)

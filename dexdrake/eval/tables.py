@@ -2,7 +2,9 @@
 
 One row per object (successes, our rate, the paper's DexRep rate where it has one, mean
 lift, 95 % Wilson interval) and an average row; the markdown header names the command that
-made the table, runnable as written, and the seeds.
+made the table, runnable as written, and the seeds. The CSV is made from the markdown table
+(`csv_from_markdown`), so the two never disagree, and a shipped markdown table gets its CSV
+without evaluating again.
 """
 
 from __future__ import annotations
@@ -15,9 +17,15 @@ from typing import TYPE_CHECKING
 
 from dexdrake.eval.paper import PAPER_AVERAGE, PAPER_UNSEEN
 from dexdrake.eval.seeds import EVALUATION_SEEDS
+from dexdrake.objects.meshfile import write_atomic
 
 if TYPE_CHECKING:
     from dexdrake.eval.evaluate import EvalReport
+
+
+# (CSV column, markdown header) of the table, in order
+COLUMNS = (("object", "object"), ("successes", "successes"), ("ours_pct", "ours (%)"),
+           ("paper_pct", "paper DexRep (%)"), ("mean_max_lift_m", "mean max lift (m)"), ("ci95_pct", "95 % CI (%)"))
 
 
 def _fmt(value: float | None) -> str:
@@ -84,8 +92,8 @@ def markdown_table(report: EvalReport) -> str:
         f"{low:.1f}-{high:.1f} % ({len(report.episodes)} episodes pooled)",
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s)",
         "",
-        "| object | successes | ours (%) | paper DexRep (%) | mean max lift (m) | 95 % CI (%) |",
-        "|---|---|---|---|---|---|",
+        "| " + " | ".join(header for _, header in COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
     ]
     for row in table_rows(report):
         name = f"**{row['object']}**" if row["object"] == "average" else row["object"]
@@ -100,22 +108,41 @@ def markdown_table(report: EvalReport) -> str:
 
 
 def csv_table(report: EvalReport) -> str:
-    """The table rows as CSV text (columns of `table_rows`)."""
+    """The table as CSV text (columns of `table_rows`), made from its markdown."""
+    return csv_from_markdown(markdown_table(report))
+
+
+def csv_from_markdown(md: str) -> str:
+    """The table of an evaluation's markdown (`markdown_table`) as CSV text: the same cells,
+    headed by the CSV column names, the average row's name without its bold marks."""
+    lines = [line.strip() for line in md.splitlines() if line.startswith("|")]
+    header = [cell.strip() for cell in lines[0].strip("|").split("|")] if lines else []
+    if header != [h for _, h in COLUMNS]:
+        raise ValueError(f"not an evaluation table: header {header}")
     buf = io.StringIO()
-    rows = table_rows(report)
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
-    writer.writeheader()
-    writer.writerows(rows)
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow([key for key, _ in COLUMNS])
+    for line in lines[2:]:
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        writer.writerow([cells[0].strip("*"), *cells[1:]])
     return buf.getvalue()
 
 
+def write_csv_beside(md_path: str | Path) -> Path:
+    """Writes the CSV of an evaluation's markdown table beside it (same stem), atomically."""
+    md_path = Path(md_path)
+    path = md_path.with_suffix(".csv")
+    write_atomic(path, csv_from_markdown(md_path.read_text()).encode())
+    return path
+
+
 def write_report(report: EvalReport, out_dir: str | Path, stem: str | None = None) -> dict[str, Path]:
-    """Write eval_<label>.md, .csv and .json (every episode) into out_dir; returns the paths."""
+    """Write eval_<label>.md, .csv and .json (every episode) into out_dir, each atomically;
+    returns the paths."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     stem = stem or f"eval_{report.label}"
     paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv", "json": out_dir / f"{stem}.json"}
-    paths["md"].write_text(markdown_table(report))
-    paths["csv"].write_text(csv_table(report))
-    paths["json"].write_text(json.dumps(report.to_dict(), indent=1))
+    write_atomic(paths["md"], markdown_table(report).encode())
+    write_atomic(paths["csv"], csv_table(report).encode())
+    write_atomic(paths["json"], json.dumps(report.to_dict(), indent=1).encode())
     return paths

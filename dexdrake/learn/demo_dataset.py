@@ -9,6 +9,7 @@ File layout (written by the replay stage with `save_demo_dataset`):
 
 from __future__ import annotations
 
+import io
 import json
 import zipfile
 from collections.abc import Mapping
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.objects.meshfile import write_atomic
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ def save_demo_dataset(
     episode_starts: np.ndarray | None = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Validate and write a demo dataset in the layout `load_demo_dataset` reads."""
+    """Validate and write a demo dataset in the layout `load_demo_dataset` reads (atomically)."""
     path = Path(path)
     obs = np.asarray(observations, dtype=np.float32)
     act = np.asarray(actions, dtype=np.float32)
@@ -113,7 +115,7 @@ def save_demo_dataset(
     if starts is not None:
         arrays["episode_starts"] = starts
     arrays["metadata"] = np.array(json.dumps(dict(metadata or {})))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    write_atomic(path, buf.getvalue())  # a reader never sees half a dataset
     return path

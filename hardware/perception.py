@@ -4,6 +4,12 @@ registration of the known CAD mesh to the partial cloud (specs/kinect.md recipe)
     estimator = ObjectPoseEstimator(mesh_path)          # builds or loads the model features
     result = estimator.estimate(frame)                  # never raises on perception failure
     if result.success: X_WO = result.X_WO
+    result = estimator.track(next_frame, X_WO)          # cheap: ICP from the last pose
+
+`estimate` is global (RANSAC on FPFH features, then ICP: about 0.6 s); `track` refines the
+last pose on the next frame (point-to-plane ICP of the segmented points near it: a few ms)
+and reports lost tracking (too few points near the last pose, or too few of them on the
+model: occluded, moved too far) as a failure, for the caller to fall back to `estimate`.
 
 Registration runs scene -> model (source = segmented scene cloud, target = model cloud), so
 `fitness` is the fraction of observed points that lie on the posed model: about 1 for a
@@ -127,6 +133,33 @@ class RegistrationConfig:
             raise DexdrakeError("need ransac_runs >= 1, extra_runs >= 0 and ransac_n >= 3")
         if not 0 <= self.min_fitness <= 1:
             raise DexdrakeError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Frame-to-frame tracking (`ObjectPoseEstimator.track`); distances in m.
+
+    Only segmented points within the model's radius + `crop_margin` of the last pose's
+    centre are used (the rest of the scene, e.g. the arm, is not the object); ICP at each of
+    `icp_distances` (coarse to fine: the coarse one bounds the motion between frames). The
+    track holds while at least `min_points` of them lie within `fitness_distance` of the
+    posed model and they are at least `min_fitness` of the cropped points (fingers in front
+    of the object lower it, the object lost lowers it to 0)."""
+
+    voxel: float = 0.005
+    crop_margin: float = 0.04
+    icp_distances: tuple[float, ...] = (0.02, 0.0075, 0.004)
+    icp_max_iterations: int = 15
+    fitness_distance: float = 0.0075
+    min_points: int = 40
+    min_fitness: float = 0.6
+
+    def __post_init__(self) -> None:
+        if not (self.voxel > 0 and self.crop_margin >= 0 and self.fitness_distance > 0
+                and self.icp_distances and min(self.icp_distances) > 0):
+            raise DexdrakeError("tracking voxel, distances must be positive (m)")
+        if not 0 <= self.min_fitness <= 1 or self.min_points < 3:
+            raise DexdrakeError("tracking needs min_fitness in [0, 1] and min_points >= 3")
 
 
 @dataclass(frozen=True)
@@ -358,26 +391,73 @@ def nearest_twin(X_WO: RigidTransform, symmetries: np.ndarray, prior: RigidTrans
 class ObjectPoseEstimator:
     """Segment -> back-project -> register one known CAD mesh; failures become results.
     Of the model's symmetric twins (`model_symmetries`) the pose nearest a prior is reported
-    (`nearest_twin`), so that a symmetric object does not flip between estimates."""
+    (`nearest_twin`), so that a symmetric object does not flip between estimates; `track`
+    follows a pose from frame to frame."""
 
     def __init__(self, mesh_path: str | Path,
                  segmentation: GreenScreenConfig = GreenScreenConfig(),
-                 registration: RegistrationConfig = RegistrationConfig()):
+                 registration: RegistrationConfig = RegistrationConfig(),
+                 tracking: TrackingConfig = TrackingConfig()):
         self.mesh_path = Path(mesh_path)
         self.segmentation = segmentation
         self.registration = registration
+        self.tracking = tracking
         self.model = model_cloud(self.mesh_path, registration)
         self.symmetries = model_symmetries(self.model.points, 0.5 * registration.voxel)
+        self._target = self.model.point_cloud()
+        self._centre = self.model.points.mean(axis=0)
+        self._radius = float(np.linalg.norm(self.model.points - self._centre, axis=1).max())
+
+    def object_points(self, frame: RgbdFrame) -> tuple[np.ndarray, np.ndarray]:
+        """(mask, points in the camera frame) of the object's pixels in a validated frame."""
+        validate_frame(frame)
+        mask = segment_object(frame, self.segmentation)
+        return mask, backproject(frame.depth, frame.intrinsics, mask)
+
+    def track(self, frame: RgbdFrame, prior: RigidTransform, points_C: np.ndarray | None = None
+              ) -> PoseEstimate:
+        """The object pose in `frame` refined from `prior` (the last pose, in the world;
+        `frame` must carry X_WC) by point-to-plane ICP (`tracking`); lost tracking gives
+        success=False with the reason. `points_C`: the frame's `object_points`, if known."""
+        t0, cfg = time.perf_counter(), self.tracking
+        try:
+            if frame.X_WC is None:
+                raise FrameError("tracking needs the camera pose (frame.X_WC)")
+            if points_C is None:
+                points_C = self.object_points(frame)[1]
+            T_CO = (frame.X_WC.inverse() @ prior).GetAsMatrix4()
+            centre = T_CO[:3, :3] @ self._centre + T_CO[:3, 3]
+            near = points_C[np.linalg.norm(points_C - centre, axis=1) < self._radius + cfg.crop_margin]
+            scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near)).voxel_down_sample(cfg.voxel)
+            n = len(scene.points)
+            if n < cfg.min_points:
+                return PoseEstimate(False, f"tracking lost: {n} points near the last pose (< "
+                                    f"{cfg.min_points})", num_points=n, elapsed_s=time.perf_counter() - t0)
+            target = self._target
+            T_OC = np.linalg.inv(T_CO)
+            for d in cfg.icp_distances:
+                T_OC = _reg.registration_icp(
+                    scene, target, d, T_OC, _reg.TransformationEstimationPointToPlane(),
+                    _reg.ICPConvergenceCriteria(max_iteration=cfg.icp_max_iterations)).transformation
+            ev = _reg.evaluate_registration(scene, target, cfg.fitness_distance, T_OC)
+        except Exception as e:  # noqa: BLE001 - the contract: failures are results
+            return PoseEstimate(False, f"perception error: {type(e).__name__}: {e}",
+                                elapsed_s=time.perf_counter() - t0)
+        fitness, inliers = float(ev.fitness), len(ev.correspondence_set)
+        X_CO = RigidTransform(np.linalg.inv(T_OC))
+        ok = fitness >= cfg.min_fitness and inliers >= cfg.min_points
+        reason = "" if ok else (f"tracking lost: fitness {fitness:.2f} (min {cfg.min_fitness:.2f}), "
+                                f"{inliers} points on the model (min {cfg.min_points})")
+        return PoseEstimate(ok, reason, X_CO, frame.X_WC @ X_CO, fitness, float(ev.inlier_rmse),
+                            len(points_C), n, time.perf_counter() - t0)
 
     def estimate(self, frame: RgbdFrame, prior: RigidTransform | None = None) -> PoseEstimate:
         """The object pose in `frame` (the twin nearest `prior`, a previous pose in the
         world, or the upright one); invalid input or a poor fit gives success=False."""
         t0 = time.perf_counter()
         try:
-            validate_frame(frame)
-            mask = segment_object(frame, self.segmentation)
+            mask, points_C = self.object_points(frame)
             n_mask = int(mask.sum())
-            points_C = backproject(frame.depth, frame.intrinsics, mask)
             if len(points_C) < self.registration.min_points:
                 return PoseEstimate(False, f"too few object pixels ({n_mask}) after "
                                     "segmentation", num_mask_pixels=n_mask,

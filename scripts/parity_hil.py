@@ -28,6 +28,25 @@ import time
 import numpy as np
 
 
+class PoseError:
+    """An episode logger (the interface of systems/rerun_logger.RerunLogger that the episode
+    loop calls) that keeps, per control step, the distance (m) between the object position
+    the controller saw and the world's at the instant it was sampled (the world's pose
+    logged at the end of the previous step)."""
+
+    def __init__(self) -> None:
+        self.errors: list[float] = []
+        self._world: np.ndarray | None = None
+
+    def log_station_step(self, t, hand_state, command, object_pose, stats, world_pose) -> None:
+        if self._world is not None:
+            self.errors.append(float(np.linalg.norm(object_pose[:3] - self._world)))
+        self._world = world_pose.translation()
+
+    def log_fault(self, text: str) -> None:
+        pass
+
+
 def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
@@ -43,11 +62,37 @@ def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, c
         scenario.drivers.camera.kind = camera
     controller, _ = make_controller(scenario)
     t0, cpu0 = time.perf_counter(), time.process_time()
+    pose_error = PoseError() if mode == "hil" else None
     with make_station(scenario) as station:
-        result = run_station_episode(station, controller, steps)
-    return {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": result.success,
-            "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0,
-            "cpu_s": time.process_time() - cpu0}
+        result = run_station_episode(station, controller, steps, logger=pose_error)
+        log = station.perception.log if station.perception is not None else None
+    row = {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": result.success,
+           "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0,
+           "cpu_s": time.process_time() - cpu0}
+    if log is not None:
+        row.update(pose_error=pose_error.errors, track_cpu=log.cpu_s.get("track", []),
+                   global_cpu=log.cpu_s.get("global", []), losses=log.tracking_losses)
+    return row
+
+
+def perception_table(rows: list[dict], modes: list[tuple[str, float]]) -> str:
+    """Perception in the loop, per HIL scale (episodes with a perception log): its cost and
+    the pose error the controller saw, over every control step."""
+    lines = ["| PWM -> N*m scale | frames tracked | CPU per tracked frame: median / p95 (ms) | "
+             "global registrations (CPU, median s) | tracking lost | pose error the policy saw "
+             "(position, every control step): median / p95 / max (mm) |", "|---|---|---|---|---|---|"]
+    for mode, scale in modes:
+        sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale and "pose_error" in r]
+        if not sel:
+            continue
+        track = 1e3 * np.array([c for r in sel for c in r["track_cpu"]] or [np.nan])
+        glob = [c for r in sel for c in r["global_cpu"]]
+        err = 1e3 * np.array([e for r in sel for e in r["pose_error"]] or [np.nan])
+        lines.append(f"| {scale:g} x | {sum(len(r['track_cpu']) for r in sel)} | {np.median(track):.1f} / "
+                     f"{np.percentile(track, 95):.1f} | {len(glob)} ({np.median(glob or [np.nan]):.2f}) | "
+                     f"{sum(r['losses'] for r in sel)} | {np.median(err):.1f} / {np.percentile(err, 95):.1f} / "
+                     f"{err.max():.1f} |")
+    return "\n".join(lines) if len(lines) > 2 else ""
 
 
 def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
@@ -82,6 +127,10 @@ def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config
               + ", ".join(f"{m}{'' if m == 'sim' else f' {s:g}x'} "
                           f"{np.mean([r['cpu_s'] for r in rows if r['mode'] == m and r['scale'] == s]):.0f} s"
                           for m, s in modes if any(r["mode"] == m and r["scale"] == s for r in rows)) + "."]
+    perception = perception_table(rows, modes)
+    if perception:
+        lines += ["", "Perception in the loop (the perception worker's CPU per frame: segmentation, "
+                  "back-projection, registration; not the rendering):", "", perception]
     return "\n".join(lines)
 
 

@@ -89,6 +89,12 @@ class CameraDriver:
     device_id: int = 0  # kind "k4a"
     depth_noise: bool = True  # kind "rendered": Kinect-like depth noise
     period_s: float = 0.5  # how often a new pose estimate is started
+    # follow the last pose frame to frame (ICP, a few ms) and register globally (about
+    # 0.6 s) only for the first pose or when tracking is lost; false: register every frame
+    tracking: bool = True
+    # the pose used is the last estimate moved on at its track's velocity (from the last two
+    # frames) to the present, by at most this (s): the frame's age; 0: the estimate as is
+    predict_s: float = 0.1
     first_pose_timeout_s: float = 30.0  # no pose at all by then -> stop
     max_consecutive_failures: int = 3  # then `on_failure` applies
     on_failure: str = "hold"  # hold: keep the last pose | stop: safe stop the station
@@ -272,6 +278,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(c.period_s > 0 and c.first_pose_timeout_s > 0 and c.max_consecutive_failures >= 1,
                  source, "drivers.camera.period_s, .first_pose_timeout_s must be > 0 and "
                  ".max_consecutive_failures >= 1")
+        _require(c.predict_s >= 0, source, f"drivers.camera.predict_s must be >= 0 (s), got {c.predict_s}")
         _require(c.on_failure in PERCEPTION_FAILURE_POLICIES, source,
                  f"drivers.camera.on_failure {c.on_failure!r} is not one of "
                  f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")

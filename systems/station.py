@@ -42,8 +42,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RigidTransform
+from pydrake.common.eigen_geometry import AngleAxis, Quaternion
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import (
     Context,
     Diagram,
@@ -155,25 +155,35 @@ def _worker_init(mesh_path: str) -> None:
 
 
 def _worker_estimate(color: np.ndarray, depth: np.ndarray, intrinsics: tuple,
-                     X_WC: np.ndarray | None, prior: np.ndarray | None = None) -> dict:
-    """Segment + register one frame (in the perception worker process); of a symmetric
-    object's twins the pose nearest `prior` (the last pose, 4x4) is kept."""
+                     X_WC: np.ndarray | None, prior: np.ndarray | None = None,
+                     track: bool = False) -> dict:
+    """The object pose in one frame (in the perception worker process): with `track`,
+    refined from `prior` (the last pose, 4x4; ObjectPoseEstimator.track), else, or when
+    tracking is lost ("tracking_lost": why), by global registration (of a symmetric object's
+    twins the one nearest `prior`). "method": which gave the pose; "cpu_s": this call's CPU."""
     from dexdrake.hardware.kinect import CameraIntrinsics, RgbdFrame
-    from dexdrake.hardware.perception import backproject, segment_object, transform_points
+    from dexdrake.hardware.perception import transform_points
 
+    cpu0 = time.process_time()
     est = _WORKER["estimator"]
     pose_C = None if X_WC is None else RigidTransform(X_WC)
     frame = RgbdFrame(color, depth, CameraIntrinsics(*intrinsics), 0.0, pose_C)
-    result = est.estimate(frame, None if prior is None else RigidTransform(prior))
-    mask = segment_object(frame, est.segmentation)
-    cloud = backproject(frame.depth, frame.intrinsics, mask)
+    prior_W = None if prior is None else RigidTransform(prior)
+    mask, cloud = est.object_points(frame)
+    result, method, lost = None, "track", ""
+    if track and prior_W is not None:
+        result = est.track(frame, prior_W, cloud)
+        lost = result.reason
+    if result is None or not result.success:
+        result, method = est.estimate(frame, prior_W), "global"
     if pose_C is not None and len(cloud):
         cloud = transform_points(pose_C, cloud)
     return {"success": result.success and result.X_WO is not None,
             "reason": result.reason or ("no camera pose" if result.X_WO is None else ""),
             "X_WO": None if result.X_WO is None else result.X_WO.GetAsMatrix4(),
             "fitness": result.fitness, "mask": mask, "cloud": cloud[::4],
-            "elapsed_s": result.elapsed_s}
+            "elapsed_s": result.elapsed_s, "method": method, "tracking_lost": lost,
+            "cpu_s": time.process_time() - cpu0}
 
 
 def perception_executor(mesh_path: str) -> cf.Executor:
@@ -192,6 +202,8 @@ class PerceptionLog:
     consecutive_failures: int = 0
     successes: int = 0
     events: list[str] = field(default_factory=list)
+    cpu_s: dict[str, list[float]] = field(default_factory=dict)  # per method ("track", "global"): CPU per frame
+    tracking_losses: int = 0
 
 
 class PerceptionSystem(LeafSystem):
@@ -208,7 +220,7 @@ class PerceptionSystem(LeafSystem):
     def __init__(self, read_frame: Callable[[], object], executor: cf.Executor,
                  camera: CameraDriver, estimate: Callable = _worker_estimate,
                  on_result: Callable[[PerceptionLog], None] | None = None,
-                 simulated_clock: bool = False):
+                 simulated_clock: bool = False, period: float | None = None):
         super().__init__()
         self._read_frame, self._executor, self._estimate = read_frame, executor, estimate
         self.camera = camera
@@ -220,22 +232,27 @@ class PerceptionSystem(LeafSystem):
         self._pending_frame = None
         self._t0: float | None = None
         self.has_pose = False
-        self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])
+        self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])  # the last estimate
+        self._now = 0.0  # the clock's time at the last poll (simulated or wall)
+        self._frame_time = 0.0  # the clock's time of the pending frame
+        self._motion: list[tuple[float, RigidTransform]] = []  # the last 2 estimates of one track
         state = self.DeclareDiscreteState(self.pose)
         self.DeclareStateOutputPort("object_pose", state)
         self.DeclareInitializationDiscreteUpdateEvent(self._init)
         # sampled before the controller runs (an unrestricted update), like DriverSystem's state
-        self.DeclarePeriodicUnrestrictedUpdateEvent(min(camera.period_s, 0.05), 0.0, self._update)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period or min(camera.period_s, 0.05), 0.0, self._update)
         self._next_request = 0.0
 
     def _submit(self) -> None:
         frame = self._read_frame()
-        self._pending_frame = frame
+        self._pending_frame, self._frame_time = frame, self._now
         k = frame.intrinsics
         X_WC = None if frame.X_WC is None else frame.X_WC.GetAsMatrix4()
-        prior = pose_from_vector(self.pose).GetAsMatrix4() if self.has_pose else None
+        # the prior: the pose predicted for this frame's time (tracking starts from it)
+        prior = pose_from_vector(self.predicted_pose()).GetAsMatrix4() if self.has_pose else None
         self._future = self._executor.submit(self._estimate, frame.color, frame.depth,
-                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC, prior)
+                                             (k.width, k.height, k.fx, k.fy, k.cx, k.cy), X_WC, prior,
+                                             track=self.camera.tracking and self.has_pose)
 
     def poll(self, sim_time: float | None = None) -> None:
         """Collect a finished estimate and start the next one when due (plain method);
@@ -244,7 +261,7 @@ class PerceptionSystem(LeafSystem):
         if self._t0 is None:
             self._t0 = wall
         on_sim = self.simulated_clock and sim_time is not None
-        now = sim_time if on_sim else wall
+        now = self._now = sim_time if on_sim else wall
         cam, log = self.camera, self.log
         due = not on_sim or now >= self._due - 1e-9
         if on_sim and due and self._future is not None:
@@ -256,11 +273,19 @@ class PerceptionSystem(LeafSystem):
                 result = {"success": False, "reason": f"perception worker failed: {err}"}
             self._future = None
             log.frame, log.result = self._pending_frame, result
+            if "method" in result:
+                log.cpu_s.setdefault(result["method"], []).append(result["cpu_s"])
+            if result.get("tracking_lost"):
+                log.tracking_losses += 1
+                log.events.append(f"t={sim_time or 0.0:.2f}s: {result['tracking_lost']}")
             if result["success"]:
                 log.successes += 1
                 log.consecutive_failures = 0
                 self.has_pose = True
-                self.pose = pose_vector(RigidTransform(result["X_WO"]))
+                X = RigidTransform(result["X_WO"])
+                self.pose = pose_vector(X)
+                tracked = result.get("method") == "track"  # a global registration starts a new track
+                self._motion = [*self._motion[-1:], (self._frame_time, X)] if tracked else [(self._frame_time, X)]
             else:
                 log.failures += 1
                 log.consecutive_failures += 1
@@ -287,12 +312,29 @@ class PerceptionSystem(LeafSystem):
 
     def _init(self, context: Context, state: DiscreteValues) -> None:
         if self.simulated_clock:  # the episode starts: pace on the simulated clock from here
-            self._next_request = self._due = context.get_time()
+            self._next_request = self._due = self._now = context.get_time()
+            # (the world has been paused at this time since the frames before it were taken)
+            self._frame_time, self._motion = self._now, [(self._now, X) for _, X in self._motion[-1:]]
         state.set_value(0, self.pose)
+
+    def predicted_pose(self) -> np.ndarray:
+        """The last estimate moved on at the velocity between the last two frames of its track
+        (translation and rotation) from its frame's time to the last poll's, by at most the
+        camera's `predict_s`: the pose now rather than when the frame was taken."""
+        if len(self._motion) < 2 or self.camera.predict_s <= 0:
+            return self.pose
+        (t0, X0), (t1, X1) = self._motion
+        if t1 <= t0:
+            return self.pose
+        h = min(self._now - t1, self.camera.predict_s) / (t1 - t0)
+        turn = (X1.rotation() @ X0.rotation().inverse()).ToAngleAxis()
+        R = RotationMatrix(AngleAxis(turn.angle() * h, turn.axis())) @ X1.rotation()
+        p = X1.translation() + (X1.translation() - X0.translation()) * h
+        return pose_vector(RigidTransform(R, p))
 
     def _update(self, context: Context, state) -> None:
         self.poll(context.get_time())
-        state.get_mutable_discrete_state().set_value(0, self.pose)
+        state.get_mutable_discrete_state().set_value(0, self.predicted_pose())
 
 
 class WorldPoseSystem(LeafSystem):
@@ -580,7 +622,7 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         executor = perception_executor(str(get_object(scenario.object).mesh_path))
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
-            read_frame, executor, cam, simulated_clock=scenario.mode == "hil"))
+            read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
     station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
     station._stop = stack.pop_all()

@@ -299,7 +299,7 @@ def _perception(outcomes, on_failure="hold", max_failures=2):
 
     results = iter(outcomes)
 
-    def estimate(color, depth, intrinsics, X_WC, prior=None):
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
         X = next(results)
         return {"success": X is not None, "reason": "segmentation found no object" if X is None else "",
                 "X_WO": X, "fitness": 0.9 if X is not None else 0.0}
@@ -318,7 +318,7 @@ def test_perception_on_the_simulated_clock_uses_each_pose_one_period_after_its_f
 
     frames, release = [], threading.Event()
 
-    def estimate(color, depth, intrinsics, X_WC, prior=None):
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
         release.wait(5.0)  # the first estimate finishes only when the test says so
         X = np.eye(4)
         X[0, 3] = len(frames)

@@ -152,8 +152,10 @@ class StationEpisode:
     """A built diagram with a controller in its slot as an env of the one episode loop: each
     `step` advances one control period (the slot acts; the loop's action is unused). Scored
     with dexdrake.task on the object's true pose (sim: the plant, hil: the world; real: not
-    known, lift NaN). A StationFault or HardwareError ends the episode (info["fault"]); the
-    station is stopped by its owner's context manager. A `logger` (a RerunLogger attached to
+    known, lift NaN). A StationFault or HardwareError, in a step or in the held start before
+    the first one (`reset`: the world's begin, the wait for the first pose, the diagram's
+    initialization), ends the episode (info["fault"]; a fault in the held start at the first
+    step, which then sends nothing); the station is stopped by its owner's context manager. A `logger` (a RerunLogger attached to
     the station) records every control step and the fault that ended the episode."""
 
     def __init__(self, built: BuiltDiagram, steps: int, logger=None):
@@ -183,42 +185,47 @@ class StationEpisode:
                                     scene.hand.pregrasp_vector())
         elif station.world is None:  # real: the devices run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
-        if station.world is not None:  # the world starts the episode paused, from its initial
-            station.world.begin(period)  # state (lockstep; the drivers run on its clock)
-            self._world_paused = True
-        if station.perception is not None:
-            _await_first_pose(station)
-        self.built.hold_measured(self.context)
-        self.simulator.Initialize()
+        self.start_fault = None
+        try:  # the held start: a fault here ends the episode as a fault, before its first step
+            if station.world is not None:  # the world starts the episode paused, from its initial
+                station.world.begin(period)  # state (lockstep; the drivers run on its clock)
+                self._world_paused = True
+            if station.perception is not None:
+                _await_first_pose(station)
+            self.built.hold_measured(self.context)
+            self.simulator.Initialize()
+        except Exception as err:
+            self.start_fault = _fault_text(err)
+            if self.start_fault is None:
+                raise
+            if self.logger is not None:
+                self.logger.log_fault(self.start_fault)
         self.t_start, self.k, self.period = self.context.get_time(), 0, period
         self.t_world = station.world.time if station.world is not None else 0.0
         p = self._object_position()
         self.tracker = None if p is None else SuccessTracker(p)
 
     def step(self, action=None) -> tuple[None, float, bool, dict]:
-        from dexdrake.hardware.safety import HardwareError
-
         station = self.built.station
         k = self.k + 1
-        fault = None
-        try:  # the controller acts on the measurements of this instant (station.DriverSystem),
-            self.simulator.AdvanceTo(self.t_start + k * self.period)
-            if station.world is not None:  # then the world runs one control period and pauses
-                station.world.advance_to(self.t_world + k * self.period)
-        except (StationFault, HardwareError) as err:
-            fault = str(err)
-        except RuntimeError as err:  # a Python exception raised inside a Drake event
-            if "StationFault" not in repr(err) and "fault" not in str(err).lower():
-                raise
-            fault = str(err)
+        fault = self.start_fault
+        if fault is None:
+            try:  # the controller acts on the measurements of this instant (station.DriverSystem),
+                self.simulator.AdvanceTo(self.t_start + k * self.period)
+                if station.world is not None:  # then the world runs one control period and pauses
+                    station.world.advance_to(self.t_world + k * self.period)
+            except Exception as err:
+                fault = _fault_text(err)
+                if fault is None:
+                    raise
+                if self.logger is not None:
+                    self.logger.log_fault(fault)
         if fault is None:
             self.k = k
             if self.tracker is not None:
                 self.tracker.update(self._object_position())
             if self.logger is not None:
                 self._log(station)
-        elif self.logger is not None:
-            self.logger.log_fault(fault)
         info = {"success": self.tracker.success if self.tracker else False,
                 "lift": self.tracker.max_lift if self.tracker else float("nan"), "fault": fault}
         return None, 0.0, k >= self.horizon, info
@@ -235,6 +242,17 @@ class StationEpisode:
         if self._world_paused:
             self.built.station.world.release()
             self._world_paused = False
+
+
+def _fault_text(err: Exception) -> str | None:
+    """What went wrong, if `err` is a station's fault (a StationFault or HardwareError, also
+    as Drake re-raises one from inside an event), else None (a bug: not an episode's end)."""
+    from dexdrake.hardware.safety import HardwareError
+
+    if isinstance(err, (StationFault, HardwareError)) or (isinstance(err, RuntimeError) and (
+            "StationFault" in repr(err) or "fault" in str(err).lower())):
+        return str(err)
+    return None
 
 
 def _await_first_pose(station: Station) -> None:

@@ -732,6 +732,58 @@ def test_device_station_adds_no_control_period_of_latency():
     np.testing.assert_allclose(np.diff(seen), 0.01, atol=1e-12)
 
 
+class _FaultedJoints(_IdealJoints):
+    """_IdealJoints whose driver has latched a fault (e.g. over-temperature) before the episode."""
+
+    def state(self):
+        st = super().state()
+        st.fault = "over-temperature on joint 3"
+        return st
+
+    def command_positions(self, q) -> None:
+        raise AssertionError("a command was sent to a faulted driver")
+
+
+@pytest.mark.parametrize("with_perception", [False, True])
+def test_driver_fault_during_the_held_start_ends_the_episode_as_a_fault(with_perception):
+    """A driver that faults before the episode's first step (in the held start: while the
+    station waits for the first object pose, or when the diagram initialises) ends the episode
+    with the fault recorded and nothing sent, instead of raising out of the episode loop."""
+    from pydrake.systems.framework import DiagramBuilder
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.diagram import run_station_episode
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import DriverSystem, PerceptionSystem, Station, WorldPoseSystem
+
+    scenario = hil_scenario()
+    hand = load_hand(scenario.hand)
+    robot = _FaultedJoints(hand.pregrasp_vector())
+    builder = DiagramBuilder()
+    n, period = hand.num_actuators, scenario.control_period
+    driver = builder.AddSystem(DriverSystem(robot, n, period, "joints"))
+    builder.ExportInput(driver.get_input_port(), "command")
+    builder.ExportOutput(driver.get_output_port(), "hand_state")
+    perception = None
+    if with_perception:  # the first pose never comes: the station waits, checking the drivers
+
+        def estimate(*args, **kwargs):
+            return {"success": False, "reason": "segmentation found no object", "X_WO": None, "fitness": 0.0}
+
+        camera = CameraDriver(kind="rendered", period_s=0.01, first_pose_timeout_s=30.0,
+                              max_consecutive_failures=10**6)
+        pose = perception = builder.AddSystem(PerceptionSystem(
+            _Frame, cf.ThreadPoolExecutor(1), camera, estimate, simulated_clock=True, period=period))
+    else:
+        pose = builder.AddSystem(WorldPoseSystem(robot, period))
+    builder.ExportOutput(pose.get_output_port(), "object_pose")
+    station = Station(scenario, builder.Build(), hand, world=robot, devices={"allegro": robot},
+                      perception=perception)
+    result = run_station_episode(station, lambda t, hand_state, object_pose: hand_state[:n], 10)
+    assert result.fault is not None and "over-temperature on joint 3" in result.fault
+    assert result.steps == 0 and not result.success
+
+
 def test_world_pauses_only_after_its_step_exchange_is_done(monkeypatch):
     """advance_to(t) returns once the step to t is complete, the drivers' replies included:
     the world's clock moves at a step's start (the devices run on it during the step), and a

@@ -272,35 +272,46 @@ class PerceptionSystem(LeafSystem):
             except Exception as err:  # a crashed worker is a perception failure
                 result = {"success": False, "reason": f"perception worker failed: {err}"}
             self._future = None
-            log.frame, log.result = self._pending_frame, result
-            if "method" in result:
-                log.cpu_s.setdefault(result["method"], []).append(result["cpu_s"])
-            if result.get("tracking_lost"):
-                log.tracking_losses += 1
-                log.events.append(f"t={sim_time or 0.0:.2f}s: {result['tracking_lost']}")
-            if result["success"]:
-                log.successes += 1
-                log.consecutive_failures = 0
-                self.has_pose = True
-                X = RigidTransform(result["X_WO"])
-                self.pose = pose_vector(X)
-                tracked = result.get("method") == "track"  # a global registration starts a new track
-                self._motion = [*self._motion[-1:], (self._frame_time, X)] if tracked else [(self._frame_time, X)]
-            else:
-                log.failures += 1
-                log.consecutive_failures += 1
-                log.events.append(f"t={sim_time or 0.0:.2f}s: {result['reason']}")
-                if log.consecutive_failures >= cam.max_consecutive_failures and (
-                        cam.on_failure == "stop" or not self.has_pose):
-                    raise StationFault(f"perception failed {log.consecutive_failures} times in a "
-                                       f"row (last: {result['reason']})")
-            if self.on_result is not None:
-                self.on_result(log)
+            self._record(result, self._pending_frame, sim_time)
         if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
             raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
         if self._future is None and now >= self._next_request - 1e-9:
             self._next_request = self._due = now + cam.period_s
-            self._submit()
+            try:
+                self._submit()
+            except StationFault:
+                raise
+            except Exception as err:  # a camera that delivers no frame is a perception failure
+                self._record({"success": False, "reason": f"camera read failed: {type(err).__name__}: {err}"},
+                             None, sim_time)
+
+    def _record(self, result: dict, frame, sim_time: float | None) -> None:
+        """Take one outcome: a pose, or a failure (counted; StationFault per the camera's rules)."""
+        cam, log = self.camera, self.log
+        log.frame, log.result = frame, result
+        if "method" in result:
+            log.cpu_s.setdefault(result["method"], []).append(result["cpu_s"])
+        if result.get("tracking_lost"):
+            log.tracking_losses += 1
+            log.events.append(f"t={sim_time or 0.0:.2f}s: {result['tracking_lost']}")
+        if result["success"]:
+            log.successes += 1
+            log.consecutive_failures = 0
+            self.has_pose = True
+            X = RigidTransform(result["X_WO"])
+            self.pose = pose_vector(X)
+            tracked = result.get("method") == "track"  # a global registration starts a new track
+            self._motion = [*self._motion[-1:], (self._frame_time, X)] if tracked else [(self._frame_time, X)]
+        else:
+            log.failures += 1
+            log.consecutive_failures += 1
+            log.events.append(f"t={sim_time or 0.0:.2f}s: {result['reason']}")
+            if log.consecutive_failures >= cam.max_consecutive_failures and (
+                    cam.on_failure == "stop" or not self.has_pose):
+                raise StationFault(f"perception failed {log.consecutive_failures} times in a "
+                                   f"row (last: {result['reason']})")
+        if self.on_result is not None:
+            self.on_result(log)
 
     def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
         """Block until the first pose arrives (StationFault after first_pose_timeout_s);

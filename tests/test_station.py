@@ -374,6 +374,66 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
         _drain(_perception([None, None, None], on_failure="hold"), 5)
 
 
+def test_perception_moves_the_tracked_pose_on_to_the_present():
+    """The pose the controller gets is the last estimate moved on at its track's velocity
+    (between the last two frames) by the estimate's age, at most predict_s; the first pose
+    of a track (a global registration) is used as it is."""
+    from pydrake.math import RigidTransform, RollPitchYaw
+
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem, pose_from_vector
+
+    poses = iter([(RigidTransform([0.0, 0.0, 0.05]), "global"),
+                  (RigidTransform(RollPitchYaw(0, 0, 0.02), [0.004, 0.0, 0.05]), "track"),
+                  (RigidTransform(RollPitchYaw(0, 0, 0.04), [0.008, 0.0, 0.05]), "track")])
+    priors = []
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
+        priors.append(prior)
+        X, method = next(poses)
+        return {"success": True, "reason": "", "X_WO": X.GetAsMatrix4(), "fitness": 1.0,
+                "method": method, "cpu_s": 0.0}
+
+    camera = CameraDriver(kind="rendered", period_s=0.04, predict_s=0.05)
+    system = PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate, simulated_clock=True)
+    system.poll(0.0)
+    system.poll(0.04)  # the first pose (frame at 0): held as it is
+    np.testing.assert_allclose(system.predicted_pose()[:3], [0.0, 0.0, 0.05])
+    system.poll(0.08)  # the second (frame at 0.04): moved on by 0.04 s at 0.1 m/s, 0.5 rad/s
+    X = pose_from_vector(system.predicted_pose())
+    np.testing.assert_allclose(X.translation(), [0.008, 0.0, 0.05], atol=1e-12)
+    assert np.isclose(RollPitchYaw(X.rotation()).yaw_angle(), 0.04)
+    # the third frame (at 0.08) was tracked from the pose predicted for its time
+    np.testing.assert_allclose(np.asarray(priors[2])[:3, 3], [0.008, 0.0, 0.05], atol=1e-12)
+    system.poll(0.20)  # the third (frame at 0.08), 0.12 s old: moved on by predict_s only
+    np.testing.assert_allclose(system.predicted_pose()[:3], [0.013, 0.0, 0.05], atol=1e-12)
+
+
+def test_a_camera_that_delivers_no_frame_is_a_perception_failure():
+    """A camera read that raises (a malformed or timed-out capture) counts as a perception
+    failure, held and then stopped by the camera's rules, not an exception out of the diagram."""
+    from dexdrake.hardware.kinect import FrameError
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem, StationFault
+
+    frames = iter([_Frame()])
+
+    def read_frame():
+        frame = next(frames, None)
+        if frame is None:
+            raise FrameError("capture lacks colour or transformed depth")
+        return frame
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
+        return {"success": True, "reason": "", "X_WO": np.eye(4), "fitness": 1.0}
+
+    camera = CameraDriver(kind="k4a", period_s=1e-6, max_consecutive_failures=3, on_failure="stop")
+    system = PerceptionSystem(read_frame, cf.ThreadPoolExecutor(1), camera, estimate)
+    with pytest.raises(StationFault, match="perception failed 3 times.*camera read failed: FrameError"):
+        _drain(system, 10)
+    assert system.has_pose and system.log.failures == 3
+
+
 @pytest.mark.slow
 def test_full_hil_grasp_with_rendered_perception(tmp_path):
     """The whole `dexdrake hil` episode: perception on rendered images, the configured controller."""

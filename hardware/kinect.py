@@ -17,6 +17,8 @@ A single `.npz` file of that layout is a one-frame sequence.
 from __future__ import annotations
 
 import math
+import threading
+import time
 import zipfile
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping
@@ -318,6 +320,57 @@ class K4ADevice(CameraSource):
     def close(self) -> None:
         """Stop the device."""
         self._k4a.stop()
+
+
+class LatestFrame(CameraSource):
+    """A live source read continuously in a thread, keeping its newest frame: `read()` returns
+    it at once (a K4A capture otherwise blocks its caller, a control loop, up to a frame
+    period), the same frame again until a newer one arrives. Watchdog: FrameError when the
+    newest frame is older than `timeout_s` (a stalled or unplugged camera; the thread's
+    last error, if it had one); before the first frame `read()` waits up to `timeout_s`."""
+
+    def __init__(self, source: CameraSource, timeout_s: float = 0.5):
+        if not timeout_s > 0:
+            raise DexdrakeError(f"timeout_s must be positive, got {timeout_s}")
+        self._source, self._timeout = source, timeout_s
+        self._cond = threading.Condition()
+        self._frame: RgbdFrame | None = None
+        self._received = time.monotonic()  # when the newest frame (or the start) came
+        self._error: Exception | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="camera-reader", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                frame, error = self._source.read(), None
+            except Exception as err:  # noqa: BLE001 - reported by read() when frames stop
+                frame, error = None, err
+            with self._cond:
+                self._error = error
+                if frame is not None:
+                    self._frame, self._received = frame, time.monotonic()
+                    self._cond.notify_all()
+            if error is not None:
+                self._stop.wait(0.01)
+
+    def read(self) -> RgbdFrame:
+        """The newest frame; FrameError when it is older than `timeout_s`."""
+        with self._cond:
+            if self._frame is None:
+                self._cond.wait_for(lambda: self._frame is not None, self._timeout)
+            age = time.monotonic() - self._received
+            if self._frame is None or age > self._timeout:
+                why = f" (last error: {self._error})" if self._error is not None else ""
+                raise FrameError(f"no camera frame for {age:.2f} s (timeout {self._timeout} s){why}")
+            return self._frame
+
+    def close(self) -> None:
+        """Stop the reading thread, then the source."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self._source.close()
 
 
 # ---------------------------------------------------------------- Drake rendering

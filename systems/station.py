@@ -15,10 +15,12 @@ hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus,
       every device and the control loop run on its simulated clock, in lockstep with the
       hand's PD loop and never faster than real time: see systems/hil_world.py); object
       pose from PerceptionSystem (rendered RGB-D of the world -> segmentation ->
-      registration, in a worker process; during the episode on the simulated clock, each
-      pose used one camera period after its frame) or, with
+      registration of the first pose, then tracking frame to frame, in a worker process;
+      during the episode on the simulated clock, each pose used one camera period after
+      its frame, moved on to the present at its track's velocity) or, with
       camera kind "sim", straight from the world.
-real: the same driver systems on socketcan / the real z1_controller, and a K4A camera.
+real: the same driver systems on socketcan / the real z1_controller, and a K4A camera
+      (read in a thread that keeps the newest frame) with the same PerceptionSystem.
 
 Safety at the station level (the drivers keep their own limits, watchdogs and safe stop):
 - `Station` is a context manager; leaving it (normally, by exception, Ctrl-C or SIGTERM)
@@ -27,7 +29,8 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   StationFault at its next update, which ends the episode and triggers the safe stop.
 - A non-finite controller output is never sent: ControllerSystem holds the last command
   (systems/command_guard.py, the rule of every mode).
-- Perception failures hold the last pose; after `max_consecutive_failures` failures in a
+- Perception failures (a failed camera read, lost tracking that global registration cannot
+  recover, a crashed worker) hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
   at all within `first_pose_timeout_s` raises StationFault.
 """
@@ -208,8 +211,11 @@ class PerceptionLog:
 
 class PerceptionSystem(LeafSystem):
     """Object pose from a camera: every `period_s` a frame is read (`read_frame()`) and
-    handed to `executor` (`_worker_estimate`); results arrive asynchronously. Output
-    "object_pose" (7) holds the last good pose; see the module doc for the failure rules.
+    handed to `executor` (`_worker_estimate`: with the camera's `tracking`, tracked from the
+    pose predicted for the frame, else registered globally); results arrive asynchronously.
+    Output "object_pose" (7), updated every `period` (default min(period_s, 0.05)): the last
+    good pose moved on to the present (`predicted_pose`); see the module doc for the failure
+    rules.
 
     With `simulated_clock` (hil) the episode's frames are paced on the diagram's simulated
     clock and each estimate is used exactly `period_s` of simulated time after its frame
@@ -652,7 +658,9 @@ def _camera_pose(cam: CameraDriver) -> RigidTransform:
 
 def _camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Callable[[], object]:
     """A function returning the next RgbdFrame of the configured camera."""
-    from dexdrake.hardware.kinect import DepthNoiseModel, DrakeRenderedCamera, K4ADevice, RecordedSequence
+    from dexdrake.hardware.kinect import (
+        DepthNoiseModel, DrakeRenderedCamera, K4ADevice, LatestFrame, RecordedSequence,
+    )
     from dexdrake.objects.library import get_object
 
     cam = scenario.drivers.camera
@@ -670,7 +678,7 @@ def _camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Ca
     if cam.kind == "recorded":
         source = RecordedSequence(cam.recording, loop=True)
     else:
-        source = K4ADevice(cam.device_id, X_WC=X_WC)
+        source = LatestFrame(K4ADevice(cam.device_id, X_WC=X_WC))  # reads never block the loop
     stack.callback(source.close)
 
     def read_posed():

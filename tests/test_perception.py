@@ -189,6 +189,44 @@ def test_k4a_device_converts_bgra_and_reads_calibration(monkeypatch):
     assert not cam._k4a.started
 
 
+def test_latest_frame_never_blocks_and_reports_a_stalled_camera():
+    """LatestFrame keeps the newest frame of a slow source (read returns at once) and raises
+    FrameError once its frames stop for longer than the timeout; close stops the source."""
+    import threading
+    import time
+
+    from dexdrake.hardware.kinect import CameraSource, LatestFrame
+
+    class Slow(CameraSource):  # a frame every 0.1 s until stalled; then reads fail
+        def __init__(self):
+            self.count, self.stalled, self.closed = 0, threading.Event(), False
+
+        def read(self):
+            time.sleep(0.1)
+            if self.stalled.is_set():
+                raise FrameError("capture timed out")
+            self.count += 1
+            return _frame(t=float(self.count))
+
+        def close(self):
+            self.closed = True
+
+    source = Slow()
+    reader = LatestFrame(source, timeout_s=0.5)
+    first = reader.read()  # waits for the first frame only
+    t0 = time.perf_counter()
+    again = reader.read()  # not for the next one (0.1 s away)
+    assert time.perf_counter() - t0 < 0.05 and again.timestamp >= first.timestamp
+    time.sleep(0.25)
+    assert reader.read().timestamp > first.timestamp  # newer frames arrived meanwhile
+    source.stalled.set()
+    time.sleep(0.8)
+    with pytest.raises(FrameError, match="no camera frame for .* capture timed out"):
+        reader.read()
+    reader.close()
+    assert source.closed and not reader._thread.is_alive()
+
+
 def test_k4a_device_without_pyk4a_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyk4a", None)
     with pytest.raises(DexdrakeError, match="pyk4a"):

@@ -449,7 +449,7 @@ class ObjectPoseEstimator:
         reason = "" if ok else (f"tracking lost: fitness {fitness:.2f} (min {cfg.min_fitness:.2f}), "
                                 f"{inliers} points on the model (min {cfg.min_points})")
         return PoseEstimate(ok, reason, X_CO, frame.X_WC @ X_CO, fitness, float(ev.inlier_rmse),
-                            len(points_C), n, time.perf_counter() - t0)
+                            num_points=n, elapsed_s=time.perf_counter() - t0)
 
     def estimate(self, frame: RgbdFrame, prior: RigidTransform | None = None) -> PoseEstimate:
         """The object pose in `frame` (the twin nearest `prior`, a previous pose in the

@@ -757,28 +757,39 @@ class _IdealJoints:
         return {}
 
 
+def _stand_in_station(robot_type, make_pose=None):
+    """A HIL station whose world and joint driver are one stand-in robot (`robot_type`, made at
+    the pre-grasp pose), the object pose from `make_pose(period)` (default: WorldPoseSystem)."""
+    from pydrake.systems.framework import DiagramBuilder
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.station import DriverSystem, PerceptionSystem, Station, WorldPoseSystem
+
+    scenario = hil_scenario()
+    hand = load_hand(scenario.hand)
+    robot = robot_type(hand.pregrasp_vector())
+    builder = DiagramBuilder()
+    period = scenario.control_period
+    driver = builder.AddSystem(DriverSystem(robot, hand.num_actuators, period, "joints"))
+    builder.ExportInput(driver.get_input_port(), "command")
+    builder.ExportOutput(driver.get_output_port(), "hand_state")
+    pose = builder.AddSystem(make_pose(period) if make_pose else WorldPoseSystem(robot, period))
+    builder.ExportOutput(pose.get_output_port(), "object_pose")
+    perception = pose if isinstance(pose, PerceptionSystem) else None
+    return Station(scenario, builder.Build(), hand, world=robot, devices={"allegro": robot},
+                   perception=perception)
+
+
 def test_device_station_adds_no_control_period_of_latency():
     """The station's driver systems sample the measurement before the controller runs and
     send its command before the world moves on, as in the simulated station: a controller
     stepping a joint by 0.01 rad from what it measures sees the robot reach each of its
     commands one control period later (before this, measurement and command each lagged
     one period: HIL responded 40 ms after simulation)."""
-    from pydrake.systems.framework import DiagramBuilder
-
-    from dexdrake.hands.description import load_hand
     from dexdrake.systems.diagram import run_station_episode
-    from dexdrake.systems.station import DriverSystem, Station, WorldPoseSystem
 
-    scenario = hil_scenario()
-    hand = load_hand(scenario.hand)
-    robot = _IdealJoints(hand.pregrasp_vector())
-    builder = DiagramBuilder()
-    n, period = hand.num_actuators, scenario.control_period
-    driver = builder.AddSystem(DriverSystem(robot, n, period, "joints"))
-    builder.ExportInput(driver.get_input_port(), "command")
-    builder.ExportOutput(driver.get_output_port(), "hand_state")
-    builder.ExportOutput(builder.AddSystem(WorldPoseSystem(robot, period)).get_output_port(), "object_pose")
-    station = Station(scenario, builder.Build(), hand, world=robot)
+    station = _stand_in_station(_IdealJoints)
+    n = station.hand.num_actuators
     seen = []
 
     def controller(t, hand_state, object_pose):
@@ -809,36 +820,21 @@ def test_driver_fault_during_the_held_start_ends_the_episode_as_a_fault(with_per
     """A driver that faults before the episode's first step (in the held start: while the
     station waits for the first object pose, or when the diagram initialises) ends the episode
     with the fault recorded and nothing sent, instead of raising out of the episode loop."""
-    from pydrake.systems.framework import DiagramBuilder
-
-    from dexdrake.hands.description import load_hand
     from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import CameraDriver
-    from dexdrake.systems.station import DriverSystem, PerceptionSystem, Station, WorldPoseSystem
+    from dexdrake.systems.station import PerceptionSystem
 
-    scenario = hil_scenario()
-    hand = load_hand(scenario.hand)
-    robot = _FaultedJoints(hand.pregrasp_vector())
-    builder = DiagramBuilder()
-    n, period = hand.num_actuators, scenario.control_period
-    driver = builder.AddSystem(DriverSystem(robot, n, period, "joints"))
-    builder.ExportInput(driver.get_input_port(), "command")
-    builder.ExportOutput(driver.get_output_port(), "hand_state")
-    perception = None
-    if with_perception:  # the first pose never comes: the station waits, checking the drivers
+    def estimate(*args, **kwargs):  # the first pose never comes: the station waits, checking the drivers
+        return {"success": False, "reason": "segmentation found no object", "X_WO": None, "fitness": 0.0}
 
-        def estimate(*args, **kwargs):
-            return {"success": False, "reason": "segmentation found no object", "X_WO": None, "fitness": 0.0}
-
+    def perception(period):
         camera = CameraDriver(kind="rendered", period_s=0.01, first_pose_timeout_s=30.0,
                               max_consecutive_failures=10**6)
-        pose = perception = builder.AddSystem(PerceptionSystem(
-            _Frame, cf.ThreadPoolExecutor(1), camera, estimate, simulated_clock=True, period=period))
-    else:
-        pose = builder.AddSystem(WorldPoseSystem(robot, period))
-    builder.ExportOutput(pose.get_output_port(), "object_pose")
-    station = Station(scenario, builder.Build(), hand, world=robot, devices={"allegro": robot},
-                      perception=perception)
+        return PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate, simulated_clock=True,
+                                period=period)
+
+    station = _stand_in_station(_FaultedJoints, perception if with_perception else None)
+    n = station.hand.num_actuators
     result = run_station_episode(station, lambda t, hand_state, object_pose: hand_state[:n], 10)
     assert result.fault is not None and "over-temperature on joint 3" in result.fault
     assert result.steps == 0 and not result.success

@@ -66,8 +66,9 @@ class WallTimeUp(Exception):
 
 
 class SoakMonitor:
-    """Duck-types the episode logger (`log_step`): samples the loops every `sample_s` and
-    ends the run (WallTimeUp) once `wall_limit_s` of wall time have passed."""
+    """An episode logger (the calls the episode loop makes on systems/rerun_logger.RerunLogger:
+    `log_station_step`, `log_fault`): samples the loops every `sample_s` and ends the run
+    (WallTimeUp) once `wall_limit_s` of wall time have passed."""
 
     def __init__(self, station, sample_s: float, wall_limit_s: float = np.inf):
         self.station = station
@@ -86,15 +87,18 @@ class SoakMonitor:
         self.z1.take(d["z1"]._tick_times)
         self.world.take(self.station.world._step_walls)
 
-    def log_step(self, k, diagram, context, controller, station) -> None:
+    def log_station_step(self, t, hand_state, command, object_pose, stats, world_pose) -> None:
         now = time.perf_counter()
         self.step_walls.append(now - self._wall)
         self._wall = now
-        if k % self.every == 0:
+        if len(self.step_walls) % self.every == 0:
             self.sample()
-            self.rss.append((context.get_time(), rss_mb()))
+            self.rss.append((t, rss_mb()))
         if now > self.wall_end:
-            raise WallTimeUp(f"wall-time limit reached at t = {context.get_time():.1f} s simulated")
+            raise WallTimeUp(f"wall-time limit reached at t = {t:.1f} s simulated")
+
+    def log_fault(self, text: str) -> None:
+        pass
 
     def close(self) -> None:
         self.sample()

@@ -123,6 +123,11 @@ def dry_run(scenario) -> int:
           "z1_controller/config/config.xml")
     controller, description = make_controller(scenario)  # a policy that cannot run is refused here
     print(f"  controller: {description}; control period {scenario.control_period * 1e3:.0f} ms")
+    print(f"  perception ({c.kind}): a frame every {c.period_s * 1e3:.0f} ms, "
+          + ("tracked from the last pose (global registration for the first pose and when tracking is lost)"
+             if c.tracking else "each registered globally")
+          + f", the pose moved on to the present by at most {c.predict_s * 1e3:.0f} ms; "
+          f"{c.max_consecutive_failures} failures in a row: {c.on_failure}")
     ok = True
     # the mode's whole diagram, around drivers that are made but never started (nothing is sent)
     try:

@@ -164,7 +164,9 @@ def main() -> int:
         rows.append(row)
         print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
               f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
-              f"{row['cpu_s']:.0f} s CPU)", flush=True)
+              f"{row['cpu_s']:.0f} s CPU)"
+              + (f"; pose error max {1e3 * max(row['pose_error'], default=np.nan):.0f} mm, tracking lost "
+                 f"{row['losses']}" if "pose_error" in row else ""), flush=True)
         if args.out:
             write_atomic(args.out, table(rows, modes, command, args.config))
     print(table(rows, modes, command, args.config))

@@ -138,6 +138,9 @@ def blueprint(mode: str, groups: dict[str, list[str]], eye: np.ndarray, target: 
         rrb.TimePanel(state="expanded", timeline="step"))
 
 
+IMAGE_PERIOD_S = 0.5  # camera images (colour, depth, mask) are recorded about this often; poses at every frame
+
+
 class RerunLogger:
     """Records episodes to an .rrd file (or a live viewer with spawn=True) in one of MODES.
 
@@ -167,10 +170,12 @@ class RerunLogger:
         self._tracker: SuccessTracker | None = None
         self._faults: dict[str, str] = {}
         self._perception_results = 0
+        self._image_every = 1  # log the camera's images with every k-th perception result
         self._series: dict[str, list[tuple[int, float, int, float]]] = {}  # scalars not yet sent
         self._time = (0, 0.0, 0)  # (step, sim_time, episode) of the current step
         if scenario is not None:  # built before the station starts its devices
             self._mirror = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=1)
+            self._image_every = max(1, round(IMAGE_PERIOD_S / scenario.drivers.camera.period_s))
 
     def attach(self, station) -> None:
         """Records `station`'s loop (hil, real): its devices' statistics and perception results."""
@@ -244,11 +249,12 @@ class RerunLogger:
         self._perception_results += 1
         rec.set_time("perception", sequence=self._perception_results)
         frame, result = log.frame, log.result or {}
-        if frame is not None:
-            rec.log("camera/image", rr.Image(frame.color))
-            rec.log("camera/depth", rr.DepthImage(frame.depth, meter=1000.0))
-        if result.get("mask") is not None:
-            rec.log("camera/mask", rr.SegmentationImage(result["mask"].astype(np.uint8)))
+        if (self._perception_results - 1) % self._image_every == 0:
+            if frame is not None:
+                rec.log("camera/image", rr.Image(frame.color))
+                rec.log("camera/depth", rr.DepthImage(frame.depth, meter=1000.0))
+            if result.get("mask") is not None:
+                rec.log("camera/mask", rr.SegmentationImage(result["mask"].astype(np.uint8)))
         if result.get("cloud") is not None and len(result["cloud"]):
             rec.log("world/cloud", rr.Points3D(result["cloud"], radii=0.002, colors=[[200, 200, 60]]))
         if result.get("success"):

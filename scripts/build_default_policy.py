@@ -81,10 +81,11 @@ def main() -> None:
     start = time.perf_counter()
     if args.dagger and not (dagger / "dagger_policy.pt").is_file():
         sys.exit(f"build_default_policy: error: {dagger} has no dagger_policy.pt")
-    run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
-         "--iterations", str(args.iterations), "--per-object",
-         str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
-         "--seed", "0"], dagger / "dagger_policy.pt", log)
+    if not args.dagger:
+        run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
+             "--iterations", str(args.iterations), "--per-object",
+             str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
+             "--seed", "0"], dagger / "dagger_policy.pt", log)
     policy = dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
     for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
@@ -102,6 +103,8 @@ def main() -> None:
         metrics[label] = {k: report[k] for k in ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object",
                                                   "seed", "seeds_reserved_for_evaluation", "horizon", "command",
                                                   "wall_s", "workers")}
+        metrics[label]["successful_seeds"] = {name: [e["seed"] for e in report["episodes"] if e["object"] == name and e["success"]]
+                                              for name in report["per_object"]}
         text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
         text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
         write_atomic(weights / f"{tables}_{label}.md", text.encode())
@@ -134,7 +137,7 @@ def main() -> None:
             "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },
         "dataset": {"source": DATA_SOURCE, "path": str(dagger), "objects": meta.get("objects", args.objects),
-                    "chosen_iteration": meta.get("iteration"),
+                    "chosen_iteration": meta.get("iteration"), "samples": meta.get("samples"),
                     "seeds": f"iteration i, episode k: {dagger_config.get('seed', 0)} * 10**6 + i * 10**4 + k, "
                              "every training object"},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],

@@ -41,6 +41,17 @@ def best_unseen_object(manifest_path: Path) -> str:
     return min(per_object, key=lambda n: (-per_object[n]["success_pct"], -per_object[n]["mean_max_lift"], n))
 
 
+def recorded_success_seed(manifest_path: Path, name: str) -> int | None:
+    """The first evaluation seed on which the manifest records a success on `name` (the demo
+    then replays that evaluation episode), or None."""
+    try:
+        metrics = json.loads(manifest_path.read_text())["metrics"]
+        seeds = [s for label in ("unseen", "seen") for s in metrics.get(label, {}).get("successful_seeds", {}).get(name, [])]
+    except (OSError, KeyError, TypeError, AttributeError, json.JSONDecodeError):
+        return None
+    return min(seeds) if seeds else None
+
+
 def measured_rates(manifest_path: Path) -> str:
     """One line with the seen/unseen success rates the policy's manifest records."""
     try:
@@ -68,7 +79,8 @@ def add_parser(subparsers) -> None:
     demo = subparsers.add_parser("demo", help="the shipped policy tries to grasp an object (writes a rerun recording)")
     demo.add_argument("--object", help="any object name: training, unseen or user-imported "
                                        "(default: the unseen object the shipped policy grasps best)")
-    demo.add_argument("--seed", type=argtypes.seed, default=0, help="placement seed")
+    demo.add_argument("--seed", type=argtypes.seed, help="placement seed (default: the first evaluation seed on which "
+                                                         "the manifest records a success on the object, else 0)")
     demo.add_argument("--rrd", type=argtypes.output_file(".rrd"), default=Path("demo.rrd"), help="rerun recording to write")
     demo.add_argument("--policy", type=Path, help="policy checkpoint (default: the shipped one)")
     demo.add_argument("--steps", type=argtypes.count, default=100, help="control steps (50 Hz; paper evaluation: 100)")
@@ -97,17 +109,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     manifest = Path(policy_path).with_suffix(".json")
     name = args.object or best_unseen_object(manifest)
     info = get_object(name)
+    recorded = recorded_success_seed(manifest, name) if args.seed is None else None
+    seed = args.seed if args.seed is not None else recorded if recorded is not None else 0
     policy, _ = load_policy(policy_path)
     env = env_factory_for_policy(policy.config, [name], args.steps)()
     check_env_matches(env, policy)
     logger = RerunLogger(args.rrd, "demo")
     start = time.perf_counter()
     try:
-        result = run_episode(env, mean_actor(policy), args.seed, args.steps, **logger.hooks(env))
+        result = run_episode(env, mean_actor(policy), seed, args.steps, **logger.hooks(env))
     finally:
         logger.close()
     wall = time.perf_counter() - start
-    print(f"object={name} ({info.split}) seed={args.seed} success={result.success} max_lift={result.max_lift:.3f}m "
+    print(f"object={name} ({info.split}) seed={seed} success={result.success} max_lift={result.max_lift:.3f}m "
           f"steps={result.steps} reward={result.total_reward:.1f} wall={wall:.1f}s rrd={args.rrd}")
+    if recorded is not None:
+        print(f"seed {seed} replays an evaluation episode the manifest records as a success; --seed N tries any other")
     print(measured_rates(manifest))
     return 0

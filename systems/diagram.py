@@ -24,6 +24,7 @@ through the one episode loop (dexdrake/episode.py).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,8 +156,9 @@ class StationEpisode:
     known, lift NaN). A StationFault or HardwareError, in a step or in the held start before
     the first one (`reset`: the world's begin, the wait for the first pose, the diagram's
     initialization), ends the episode (info["fault"]; a fault in the held start at the first
-    step, which then sends nothing); the station is stopped by its owner's context manager. A `logger` (a RerunLogger attached to
-    the station) records every control step and the fault that ended the episode."""
+    step, which then sends nothing); the station is stopped by its owner's context manager.
+    A `logger` (a RerunLogger attached to the station) records every control step and the
+    fault that ended the episode."""
 
     def __init__(self, built: BuiltDiagram, steps: int, logger=None):
         self.built, self.horizon, self.logger = built, steps, logger
@@ -185,8 +187,7 @@ class StationEpisode:
                                     scene.hand.pregrasp_vector())
         elif station.world is None:  # real: the devices run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
-        self.start_fault = None
-        try:  # the held start: a fault here ends the episode as a fault, before its first step
+        def held_start() -> None:  # a fault here ends the episode as a fault, before its first step
             if station.world is not None:  # the world starts the episode paused, from its initial
                 station.world.begin(period)  # state (lockstep; the drivers run on its clock)
                 self._world_paused = True
@@ -194,12 +195,8 @@ class StationEpisode:
                 _await_first_pose(station)
             self.built.hold_measured(self.context)
             self.simulator.Initialize()
-        except Exception as err:
-            self.start_fault = _fault_text(err)
-            if self.start_fault is None:
-                raise
-            if self.logger is not None:
-                self.logger.log_fault(self.start_fault)
+
+        self.start_fault = self._fault_of(held_start)
         self.t_start, self.k, self.period = self.context.get_time(), 0, period
         self.t_world = station.world.time if station.world is not None else 0.0
         p = self._object_position()
@@ -208,18 +205,13 @@ class StationEpisode:
     def step(self, action=None) -> tuple[None, float, bool, dict]:
         station = self.built.station
         k = self.k + 1
-        fault = self.start_fault
-        if fault is None:
-            try:  # the controller acts on the measurements of this instant (station.DriverSystem),
-                self.simulator.AdvanceTo(self.t_start + k * self.period)
-                if station.world is not None:  # then the world runs one control period and pauses
-                    station.world.advance_to(self.t_world + k * self.period)
-            except Exception as err:
-                fault = _fault_text(err)
-                if fault is None:
-                    raise
-                if self.logger is not None:
-                    self.logger.log_fault(fault)
+
+        def advance() -> None:  # the controller acts on this instant's measurements (DriverSystem),
+            self.simulator.AdvanceTo(self.t_start + k * self.period)
+            if station.world is not None:  # then the world runs one control period and pauses
+                station.world.advance_to(self.t_world + k * self.period)
+
+        fault = self.start_fault or self._fault_of(advance)
         if fault is None:
             self.k = k
             if self.tracker is not None:
@@ -242,6 +234,20 @@ class StationEpisode:
         if self._world_paused:
             self.built.station.world.release()
             self._world_paused = False
+
+    def _fault_of(self, run: Callable[[], None]) -> str | None:
+        """Run `run`; a station's fault it raises is logged and returned (the episode ends
+        with it), any other exception (a bug) propagates."""
+        try:
+            run()
+        except Exception as err:
+            fault = _fault_text(err)
+            if fault is None:
+                raise
+            if self.logger is not None:
+                self.logger.log_fault(fault)
+            return fault
+        return None
 
 
 def _fault_text(err: Exception) -> str | None:

@@ -1,13 +1,13 @@
-"""CPU cost of one state-driven expert label, against the full IK solve it replaced, in one run.
+"""CPU cost of one state-driven expert label, against the full IK solve its lift replaced, in one run.
 
     python scripts/bench_expert_label.py [--objects sphere_small,can_soda,box_cube,bottle_wine,cylinder_lying,egg_large]
         [--seeds 3] [--horizon 150]
 
-Each episode is driven by `ReactiveGrasp` (the DAgger expert: lift set-points and re-planned
-way-points from a few Jacobian steps); on every visited state a twin expert whose lift and
-re-plans run the full least-squares IK (`ArmIK.solve`, the previous method) labels the same
-state. Prints ms per label (time.process_time) of both, their ratio, the phases' shares and
-how often and where the two labels differ (normalised action units).
+Each episode is driven by `ReactiveGrasp` (the DAgger expert: lift set-points from a few
+Jacobian steps); on every visited state a twin expert whose lift runs the full least-squares
+IK (`ArmIK.solve`, the previous method) labels the same state. Prints ms per label
+(time.process_time) of both, their ratio, the phases' shares and how often and where the two
+labels differ (normalised action units).
 """
 
 from __future__ import annotations
@@ -29,18 +29,13 @@ def main() -> None:
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
     from dexdrake.systems.scene import SceneConfig
-    from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     class FullIKExpert(ReactiveGrasp):
-        """The expert as it was: an IK solve for every lift label and every re-plan."""
+        """The expert with an IK solve for every lift label."""
 
         def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
-            p = self.ik.palm_pose(q_arm)[0]
-            return self.ik.solve(np.array([p[0], p[1], self.grasp_point[2] + self.script.lift]), q_arm, self.R_grasp)
-
-        def _replan(self, env) -> None:
-            ScriptedGrasp._plan(self, env)
-            self._planned(env)
+            p, R = self.ik.palm_pose(q_arm)
+            return self.ik.solve(np.array([p[0], p[1], self.lift_height]), q_arm, R)
 
     cpu = {"jacobian": 0.0, "full IK": 0.0}
     phases, labels, worst, apart = Counter(), 0, (0.0, ""), Counter()

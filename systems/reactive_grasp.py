@@ -17,9 +17,15 @@ visits (DAgger) and re-tries when a grasp fails:
   above it (continuous in the state, so a cloned policy can follow it).
 
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
-toward the phase's way-point, so the label always says which way to move. The way-points are
-re-planned when the object has been pushed before it is grasped. The grasp geometry is the
-hand's `GraspScript` with the variant chosen for the object by simulated trials
+toward the phase's way-point, so the label always says which way to move. The label is a
+function of the state, not of the episode's past, so a policy can clone it: the way-points
+are solved from one fixed arm seed (the pre-grasp pose) and re-planned whenever the grasp for
+the object's pose has moved or turned (`replan_shift`, `replan_turn`) before the fingers
+close; the lift keeps the palm's rotation and rises to a height set by the object's resting
+height. (Way-points moved a few IK steps from the old ones, and a lift toward the plan's
+rotation, made the arm label depend on the episode's history: along policy rollouts an expert
+planned afresh at the same state disagreed on 40 % of the steps.) The grasp geometry is
+the hand's `GraspScript` with the variant chosen for the object by simulated trials
 (`models/weights/<hand>_expert_grasps.json`, scripts/choose_expert_grasps.py).
 """
 
@@ -31,10 +37,12 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.hands.description import HandDescription
 from dexdrake.paths import models_dir
-from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp, script_for, with_overrides
+from dexdrake.systems.scripted_grasp import (GraspPlan, GraspScript, ScriptedGrasp, plan_grasp, script_for,
+                                              with_overrides)
 
 
 @dataclass(frozen=True)
@@ -58,9 +66,9 @@ class ReactiveRules:
     missed: float = 0.9  # fingers this closed without holding have missed
     settled_speed: float = 1.0  # fingers slower than this (rad/s, largest joint) have settled
     lifted: float = 0.01  # object this far above its start is lifted (m)
-    replan_shift: float = 0.01  # re-plan when the object moved this far before the grasp (m)
-    lift_steps: int = 3  # IK steps of the lift set-point ...
-    replan_steps: int = 3  # ... and of each re-planned way-point (from the old one)
+    replan_shift: float = 0.003  # re-plan when the grasp point moved this far (m) ...
+    replan_turn: float = 0.03  # ... or the palm's grasp rotation turned this far (rad), until the fingers close
+    lift_steps: int = 3  # IK steps of the lift set-point
 
 
 def expert_grasps_path(hand: str) -> Path:
@@ -91,6 +99,9 @@ class ReactiveGrasp(ScriptedGrasp):
         self.rules = rules or with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert")
         super().__init__(env, script or expert_script(hand, env.scene.object_info.name))
         self.p_start = env.object_position()
+        info = env.scene.object_info  # the lift height: the grasp height on the object at rest, plus the lift
+        at_rest = plan_grasp(self.script, info, RigidTransform([0.0, 0.0, info.rest_height]), self.R_grasp)
+        self.lift_height = at_rest.grasp[2] + self.script.lift
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2
         self._span = self.q_closed - self.q_open
         self._fingers = np.abs(self._span) > 1e-9
@@ -99,21 +110,23 @@ class ReactiveGrasp(ScriptedGrasp):
         self.thumb_tip = next((i for i, name in enumerate(tips) if name.startswith("th")), len(tips) - 1)
 
     def _plan(self, env) -> None:
-        super()._plan(env)
-        self._planned(env)
+        self._solve(self._grasp_plan(env))
 
-    def _replan(self, env) -> None:
-        """The plan for the object's new pose, its way-points a few IK steps from the old ones."""
-        self._choose_grasp(env)
-        steps = self.rules.replan_steps
-        self.q_above = self.ik.step(self.plan.above, self.R_grasp, self.q_above, steps)
-        self.q_grasp = self.ik.step(self.plan.grasp, self.R_grasp, self.q_grasp, steps)
-        self.q_lift = self.ik.step(self.plan.lift, self.R_grasp, self.q_lift, steps)
-        self._planned(env)
-
-    def _planned(self, env) -> None:
-        self.p_planned = env.object_position()
+    def _solve(self, plan: GraspPlan) -> None:
+        """Adopt `plan`: its way-points solved from the fixed arm seed (so they depend on the
+        object's pose only, not on when or from where they were planned)."""
+        self.plan, self.R_grasp = plan, plan.R
+        self.q_above = self.ik.solve(plan.above, self.q_open[: self.n_arm], plan.R)
+        self.q_grasp = self.ik.solve(plan.grasp, self.q_above, plan.R)
         self.grasp_point = self.ik.palm_pose(self.q_grasp)[0]
+
+    def _follow(self, env) -> None:
+        """Re-plan when the grasp for the object's pose now has moved or turned beyond the
+        thresholds from the adopted one (a cheap check; the IK runs only then)."""
+        plan = self._grasp_plan(env)
+        turn = RotationMatrix(self.plan.R.T @ plan.R).ToAngleAxis().angle()
+        if float(np.linalg.norm(plan.grasp - self.plan.grasp)) > self.rules.replan_shift or turn > self.rules.replan_turn:
+            self._solve(plan)
 
     def closure(self, q: np.ndarray) -> float:
         """How far the fingers are from open (0) toward the closed pose (1), averaged over joints."""
@@ -136,8 +149,8 @@ class ReactiveGrasp(ScriptedGrasp):
         arm_stopped = float(np.max(np.abs(v[: self.n_arm]))) < r.stopped_speed
         holding = (closure > r.started and settled and (thumb_and_fingers or closure > r.closed_hold)
                    and float(np.linalg.norm(offset)) < r.hold_reach)
-        if not holding and not lifted and np.linalg.norm((p_obj - self.p_planned)[:2]) > r.replan_shift and closure < r.closed:
-            self._replan(env)
+        if not holding and not lifted and closure < r.closed:
+            self._follow(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self._straight_up(q[: self.n_arm]), self.q_closed
@@ -159,11 +172,10 @@ class ReactiveGrasp(ScriptedGrasp):
 
     def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
         """Arm set-points that lift the grasp centre vertically from where it is now to the
-        lift height (the object's start position cannot be seen once it is in the hand): a
-        few IK steps from q_arm, so the label stays a cheap function of the state."""
-        p = self.ik.palm_pose(q_arm)[0]
-        target = np.array([p[0], p[1], self.grasp_point[2] + self.script.lift])
-        return self.ik.step(target, self.R_grasp, q_arm, self.rules.lift_steps)
+        lift height, the palm keeping its rotation (the object's start position cannot be seen
+        once it is in the hand): a few IK steps from q_arm, a cheap function of the state."""
+        p, R = self.ik.palm_pose(q_arm)
+        return self.ik.step(np.array([p[0], p[1], self.lift_height]), R, q_arm, self.rules.lift_steps)
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

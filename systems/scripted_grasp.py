@@ -147,16 +147,16 @@ class ScriptedGrasp:
 
     def _plan(self, env) -> None:
         self.q_start_arm = env.scene.hand_positions(env.plant_context)[: self.n_arm]
-        self._choose_grasp(env)
+        self.plan = self._grasp_plan(env)
+        self.R_grasp = self.plan.R
         self.q_above = self.ik.solve(self.plan.above, self.q_start_arm, self.R_grasp)
         self.q_grasp = self.ik.solve(self.plan.grasp, self.q_above, self.R_grasp)
         self.q_lift = self.ik.solve(self.plan.lift, self.q_grasp, self.R_grasp)
 
-    def _choose_grasp(self, env) -> None:
+    def _grasp_plan(self, env) -> GraspPlan:
         """The grasp plan for the object where it is now (the palm's pre-grasp rotation as reference)."""
         R_pregrasp = self.ik.palm_pose(self.q_open[: self.n_arm])[1]
-        self.plan = plan_grasp(self.script, env.scene.object_info, env.object_pose(), R_pregrasp)
-        self.R_grasp = self.plan.R
+        return plan_grasp(self.script, env.scene.object_info, env.object_pose(), R_pregrasp)
 
     def __call__(self, env) -> np.ndarray:
         t, s = env.context.get_time(), self.script

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -9,10 +11,11 @@ import torch
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
-from dexdrake.learn.dagger import Aggregate, DaggerConfig, DaggerData, labelled_episode, run_capacity, train_dagger
+from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, labelled_episode, relabel_job, run_capacity,
+                                  train_dagger)
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
-from dexdrake.systems.reactive_grasp import ReactiveGrasp
+from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
 
 OBJECT = "sphere_small"
 
@@ -35,8 +38,8 @@ def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
         success = env.step_positions(q)[3]["success"] or success
     assert success
     assert phases[-3:] == ["descend", "close", "lift"]  # from the start pose, inside the funnel
-    lifting = np.array(lifting)  # straight up from where the grasp closed
-    assert np.abs(lifting[:, :2] - lifting[0, :2]).max() < 0.01 and lifting[-1, 2] - lifting[0, 2] > 0.1
+    lifting = np.array(lifting)  # up from where the grasp closed (the palm held at its rotation drifts ~1 cm)
+    assert np.abs(lifting[:, :2] - lifting[0, :2]).max() < 0.02 and lifting[-1, 2] - lifting[0, 2] > 0.1
 
 
 def test_expert_label_depends_on_state_not_time_and_leads_the_arm(env):
@@ -131,6 +134,38 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert (tmp_path / "c" / "dagger_policy.pt").is_file()
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
+
+
+class HalfLeadExpert(ReactiveGrasp):
+    """Another expert (half the arm lead), to tell which expert labelled a state."""
+
+    def __init__(self, env):
+        super().__init__(env, rules=replace(ReactiveRules(), max_lead=0.15, lift_lead=0.15))
+
+
+def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one(tmp_path, env, capsys,
+                                                                                 one_torch_thread):
+    data = labelled_episode(env, "can_soda", 4, None, 0.0, ReactiveGrasp)
+    again = relabel_job(ReactiveGrasp, env, None, ("can_soda", 4, data.positions))
+    assert np.mean(np.abs(again - data.labels).max(axis=1) > 0.02) < 0.03  # the same expert, the same labels
+    config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, backend="sequential")
+    train_dagger([OBJECT], tmp_path / "a", GraspEnvFactory, ReactiveGrasp, config)
+    later = replace(config, init=str(tmp_path / "a" / "policy_00.pt"), prior=str(tmp_path / "a"), seed=1)
+    train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, later)
+    source, prior = DaggerData.load(tmp_path / "a" / "data_00.npz"), DaggerData.load(tmp_path / "b" / "prior_00.npz")
+    assert np.array_equal(prior.observations, source.observations) and np.array_equal(prior.positions, source.positions)
+    n_arm = len(env.scene.hand.arm_joints)
+    q_arm = env.normalise(source.positions[:, env.scene.q_index])[:, :n_arm]
+    assert np.abs(source.labels[:, :n_arm] - q_arm).max() > 0.25  # the first expert led by up to 0.3 ...
+    assert np.abs(prior.labels[:, :n_arm] - q_arm).max() < 0.15 + 1e-4  # ... the second, which relabelled, by 0.15
+    (row,) = read_csv(tmp_path / "b" / "dagger_log.csv")
+    assert row["driver"] == "init" and int(row["samples_total"]) == 200  # the prior's states, then its own
+    with pytest.raises(DexdrakeError, match="prior"):  # resumed with another prior: refused
+        train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, replace(later, prior=str(tmp_path / "b")))
+    assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--prior", str(tmp_path / "none")]) == 2
+    assert "holds no DAgger data" in capsys.readouterr().err
+    with pytest.raises(DexdrakeError, match="trained for adroit with Hand2obj features"):
+        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=""))
 
 
 def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one_torch_thread):

@@ -3,6 +3,7 @@ an expert label (a few Jacobian steps, not an IK solve)."""
 
 import numpy as np
 import pytest
+from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
@@ -33,13 +34,38 @@ def test_plan_is_geometry_only_and_tall_objects_are_grasped_deeper(can_env):
 def test_lift_label_is_a_few_jacobian_steps_that_match_the_full_ik(can_env):
     can_env.reset(1)
     expert = ReactiveGrasp(can_env)
+    assert expert.lift_height == pytest.approx(expert.plan.grasp[2] + expert.script.lift)  # planned at rest
     q_arm = expert.q_grasp + np.array([0.01, 0.01, 0.02, 0.05, -0.05, 0.03])  # off the plan, tilted
-    p = expert.ik.palm_pose(q_arm)[0]
-    target = np.array([p[0], p[1], expert.grasp_point[2] + expert.script.lift])
-    full = expert.ik.solve(target, q_arm, expert.R_grasp)
+    p, R = expert.ik.palm_pose(q_arm)
+    target = np.array([p[0], p[1], expert.lift_height])
+    full = expert.ik.solve(target, q_arm, R)
     label = expert._straight_up(q_arm)
     np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target, atol=1e-3)  # straight up, to the lift height
+    np.testing.assert_allclose(expert.ik.palm_pose(label)[1], R, atol=1e-2)  # the palm keeps its rotation
     np.testing.assert_allclose(label, full, atol=5e-3)
+
+
+def test_expert_label_is_a_function_of_the_state_not_of_the_episode_past(can_env):
+    """Along an expert-driven grasp whose object is pushed before the grasp, an expert made
+    afresh at each state (knowing only the object's start height) labels it as the running
+    one does: a policy can clone only what the state determines."""
+    can_env.reset(2)
+    running = ReactiveGrasp(can_env)
+    plant, ctx, body = can_env.scene.plant, can_env.plant_context, can_env.scene.object_body
+    arm_gaps, phases = [], []
+    for step in range(90):
+        if step == 8:  # the object pushed 1.5 cm aside and turned while the hand descends
+            X = plant.GetFreeBodyPose(ctx, body)
+            plant.SetFreeBodyPose(ctx, body, RigidTransform(RotationMatrix.MakeZRotation(0.3) @ X.rotation(),
+                                                            X.translation() + [0.015, -0.01, 0.0]))
+        label = can_env.normalise(running(can_env))
+        fresh = ReactiveGrasp(can_env)
+        fresh.p_start = running.p_start
+        arm_gaps.append(np.max(np.abs(can_env.normalise(fresh(can_env)) - label)[: running.n_arm]))
+        phases.append(running.phase)
+        can_env.step(np.clip(label, -1, 1))
+    assert {"descend", "close", "lift"} <= set(phases)
+    assert np.mean(np.array(arm_gaps) > 0.02) < 0.05, np.round(arm_gaps, 3)
 
 
 def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):

@@ -87,6 +87,10 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
                         help="episodes per unseen object per iteration, labelled but never trained on: the log's "
                              "unseen success and loss (default 0: no probe)")
+    dagger.add_argument("--init", type=Path, default=None,
+                        help="policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert drives)")
+    dagger.add_argument("--prior", type=Path, default=None,
+                        help="an earlier DAgger run's folder: its states, labelled anew by this expert, are trained on too")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dagger)
     dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
@@ -224,10 +228,10 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
                           epochs=args.epochs, lr=args.lr, arm_weight=args.arm_weight,
                           workers=args.workers, backend=args.backend, seed=args.seed,
-                          probe_per_object=args.probe_per_object)
+                          probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=str(args.prior or ""))
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "arm-weight", "probe-per-object",
-                                                        "workers", "backend", "address", "threads", "seed"])
+                                                        "init", "prior", "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []

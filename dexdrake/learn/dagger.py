@@ -8,8 +8,11 @@ re-fit by behaviour cloning (warm-started) after each iteration. Because the lab
 from states rather than from a clock, the policy learns to move from wherever it is, which
 plain cloning of the timed script did not teach (it stalled at the start pose).
 
-Each iteration's data (raw plant positions too, so any feature set can be re-derived) and
-the policy after it are written to the output folder; a re-run skips finished iterations.
+Each iteration's data (raw plant positions too, so any feature set can be re-derived and any
+expert can label the states anew) and the policy after it are written to the output folder; a
+re-run skips finished iterations. A run can start from an earlier run: its states labelled anew
+by this run's expert (`prior`, see `relabelled`) are aggregated before iteration 0, and iteration
+0 is then driven by a given policy (`init`, fine-tuned from there) instead of the expert.
 With `probe_per_object` > 0 each iteration's driver also runs episodes on probe objects
 (the unseen split), labelled but never trained on: the log gets the driver's executed
 success there and the new policy's loss on those states, the generalisation signal.
@@ -60,6 +63,8 @@ class DaggerConfig:
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
     seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k (probes: + PROBE_SEEDS + k)
     probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
+    init: str = ""  # policy checkpoint that drives iteration 0 and is fine-tuned ("": the expert drives, a new network)
+    prior: str = ""  # an earlier run's folder whose data_XX.npz states are labelled anew and aggregated first
 
 
 @dataclass
@@ -129,18 +134,30 @@ class Aggregate:
         return DemoDataset(self.observations[:n], self.labels[:n], self.episode_starts[:n])
 
 
+def _samples_in(path: Path) -> int:
+    with np.load(path, allow_pickle=False) as d:
+        return len(d["episode_starts"])
+
+
 def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
-    """Samples a run can hold: those of its data files on disk, and a full horizon for every
-    episode of the iterations still to collect."""
-    total = 0
+    """Samples a run can hold: those of its prior and data files on disk, and a full horizon
+    for every episode of the iterations still to collect."""
+    total = sum(_samples_in(path) for path in prior_files(Path(config.prior))) if config.prior else 0
     for it in range(config.iterations):
         path = out_dir / f"data_{it:02d}.npz"
         if path.is_file():
-            with np.load(path, allow_pickle=False) as d:
-                total += len(d["episode_starts"])
+            total += _samples_in(path)
         else:
             total += n_objects * config.episodes_per_object * config.horizon
     return total
+
+
+def prior_files(prior_dir: Path) -> list[Path]:
+    """An earlier run's data files, in iteration order (refused when there are none)."""
+    files = sorted(prior_dir.glob("data_[0-9][0-9].npz"))
+    if not files:
+        raise DexdrakeError(f"{prior_dir} holds no DAgger data (data_XX.npz)")
+    return files
 
 
 MakeExpert = Callable[[Any], Callable[[Any], np.ndarray]]
@@ -174,6 +191,42 @@ def labelled_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, 
     starts[0] = True
     return DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(positions),
                       np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
+
+
+def relabel_job(make_expert: MakeExpert, env, policy: None, job: tuple[str, int, np.ndarray]) -> np.ndarray:
+    """The expert's labels (normalised, clipped) of one recorded episode's states (job = (object,
+    seed, plant positions per step)), replayed state by state: a fresh expert at the episode's
+    first state, the plant put at each recorded position, the hand's velocities the positions'
+    backward differences over the control period (the data keep positions only; an episode
+    starts at rest)."""
+    name, seed, positions = job
+    period = env.base_config.control_period
+    env.reset(int(seed), object_name=name)
+    plant, ctx, qi, vi = env.scene.plant, env.plant_context, env.scene.q_index, env.scene.v_index
+    expert, labels = None, np.empty((len(positions), env.action_dim), dtype=np.float32)
+    v = np.zeros(plant.num_velocities())
+    for i, q in enumerate(positions):
+        plant.SetPositions(ctx, q)
+        if i:
+            v[vi] = (q[qi] - positions[i - 1][qi]) / period
+        plant.SetVelocities(ctx, v)
+        expert = expert or make_expert(env)
+        labels[i] = np.clip(env.normalise(expert(env)), -1.0, 1.0)
+    return labels
+
+
+def relabelled(sampler: Sampler, data: DaggerData, make_expert: MakeExpert, desc: str) -> DaggerData:
+    """`data` with every state labelled anew by `make_expert`'s expert (`relabel_job`, episodes
+    on the sampler's workers): the states an earlier run's policies visited, taught by this
+    run's expert, which is DAgger's own rule (the expert labels whatever states were visited)."""
+    starts = np.flatnonzero(data.episode_starts)
+    ends = np.r_[starts[1:], len(data.labels)]
+    jobs = [(name, seed, data.positions[a:b]) for name, seed, a, b in zip(data.objects, data.seeds, starts, ends)]
+    labels = sampler.map(partial(relabel_job, make_expert), None, jobs, desc)
+    if len(labels) != len(jobs):
+        raise DexdrakeError(f"{desc}: {len(jobs) - len(labels)} episodes were lost with their workers; run again")
+    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts, data.positions,
+                      data.observations, np.concatenate(labels))
 
 
 def dagger_job(make_expert: MakeExpert, noise: float, env, policy: DexRepNetPolicy | None,
@@ -224,8 +277,9 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     `config.backend` (`address`: a Ray cluster to join), labelled by `make_expert`'s expert.
 
     Writes per iteration data_XX.npz and policy_XX.pt, and dagger_log.csv with the executed
-    success rate (iteration 0: the expert; later: the previous iteration's policy); with
-    `config.probe_per_object` also probe_XX.npz on `probe_objects` and the unseen columns.
+    success rate (iteration 0: the expert, or the `config.init` policy; later: the previous
+    iteration's policy); with `config.probe_per_object` also probe_XX.npz on `probe_objects`
+    and the unseen columns; with `config.prior`, prior_XX.npz (that run's data relabelled).
     """
     if config.iterations < 1 or not 1 <= config.episodes_per_object <= PROBE_SEEDS:
         raise DexdrakeError(f"need iterations >= 1 and 1 <= episodes_per_object <= {PROBE_SEEDS}: {config}")
@@ -248,12 +302,21 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                  resume=True, key="iteration", resume_from=finished)
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
-    policy: DexRepNetPolicy | None = None
+    policy = load_policy(Path(config.init))[0] if config.init else None
+    if policy is not None and (policy.config.hand, policy.config.feature_set) != (config.hand, config.feature_set):
+        raise DexdrakeError(f"{config.init} was trained for {policy.config.hand} with {policy.config.feature_set} "
+                            f"features; this run is {config.hand} with {config.feature_set}")
     hand = load_hand(config.hand)
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
+        for k, source in enumerate(prior_files(Path(config.prior)) if config.prior else []):
+            path = out_dir / f"prior_{k:02d}.npz"
+            if not path.is_file():
+                data = relabelled(sampler, DaggerData.load(source), make_expert, f"relabel {source.name}")
+                data.save(path, {"relabelled_from": str(source), "config": asdict(config)})
+            aggregate.add(DaggerData.load(path))
         for it in range(config.iterations):
             data_path, policy_path = out_dir / f"data_{it:02d}.npz", out_dir / f"policy_{it:02d}.pt"
             t0 = time.perf_counter()
@@ -262,7 +325,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             else:
                 seeds = [config.seed * 10**6 + it * 10**4 + k for k in range(config.episodes_per_object)]
                 jobs = [(name, s) for s in seeds for name in objects]
-                driver = "expert" if policy is None else "policy"
+                driver = _driver(config.init, it)
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
                                f"DAgger {it} ({driver})", make_expert)
                 data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
@@ -296,7 +359,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             unseen = {} if probe is None else {
                 "unseen_success": float(np.mean(probe.success)),
                 "unseen_loss": bc_loss(policy, DemoDataset(probe.observations, probe.labels, probe.episode_starts))}
-            log.append({"iteration": it, "driver": "expert" if it == 0 else "policy", "episodes": len(data.objects),
+            log.append({"iteration": it, "driver": _driver(config.init, it), "episodes": len(data.objects),
                         "success_rate": float(np.mean(data.success)), "samples_total": len(dataset),
                         "train_loss": result.train_loss[-1], "val_loss": result.val_loss[-1],
                         "hold_val_loss": hold, **unseen, "collect_s": round(collect_s, 1),
@@ -312,6 +375,11 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     final = out_dir / "dagger_policy.pt"
     save_policy(final, chosen, {**meta, "iteration": best, "selection": SELECTION})
     return final
+
+
+def _driver(init: str, it: int) -> str:
+    """Who drives iteration `it`: the expert or the `init` policy first, then each iterate."""
+    return ("init" if init else "expert") if it == 0 else "policy"
 
 
 def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, hand: HandDescription) -> float:

@@ -164,6 +164,8 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
         train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, replace(later, prior=str(tmp_path / "b")))
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--prior", str(tmp_path / "none")]) == 2
     assert "holds no DAgger data" in capsys.readouterr().err
+    with pytest.raises(DexdrakeError, match="holds adroit Hand2obj observations; this run is adroit DexRep"):
+        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", init=""))
     with pytest.raises(DexdrakeError, match="trained for adroit with Hand2obj features"):
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=""))
 

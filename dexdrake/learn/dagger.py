@@ -134,6 +134,11 @@ class Aggregate:
         return DemoDataset(self.observations[:n], self.labels[:n], self.episode_starts[:n])
 
 
+def _metadata(path: Path) -> dict[str, Any]:
+    with np.load(path, allow_pickle=False) as d:
+        return json.loads(str(d["metadata"]))
+
+
 def _samples_in(path: Path) -> int:
     with np.load(path, allow_pickle=False) as d:
         return len(d["episode_starts"])
@@ -142,7 +147,7 @@ def _samples_in(path: Path) -> int:
 def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
     """Samples a run can hold: those of its prior and data files on disk, and a full horizon
     for every episode of the iterations still to collect."""
-    total = sum(_samples_in(path) for path in prior_files(Path(config.prior))) if config.prior else 0
+    total = sum(_samples_in(path) for path in prior_files(Path(config.prior), config)) if config.prior else 0
     for it in range(config.iterations):
         path = out_dir / f"data_{it:02d}.npz"
         if path.is_file():
@@ -152,11 +157,17 @@ def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
     return total
 
 
-def prior_files(prior_dir: Path) -> list[Path]:
-    """An earlier run's data files, in iteration order (refused when there are none)."""
+def prior_files(prior_dir: Path, config: DaggerConfig) -> list[Path]:
+    """An earlier run's data files, in iteration order; refused when there are none or when
+    their observations are another hand's or feature set's than the run's `config`."""
     files = sorted(prior_dir.glob("data_[0-9][0-9].npz"))
     if not files:
         raise DexdrakeError(f"{prior_dir} holds no DAgger data (data_XX.npz)")
+    for path in files:
+        made = _metadata(path).get("config", {})
+        if (made.get("hand"), made.get("feature_set")) != (config.hand, config.feature_set):
+            raise DexdrakeError(f"{path} holds {made.get('hand')} {made.get('feature_set')} observations; this run is "
+                                f"{config.hand} {config.feature_set}")
     return files
 
 
@@ -256,8 +267,7 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
     first = out_dir / "data_00.npz"
     if not first.is_file():
         return
-    with np.load(first, allow_pickle=False) as d:
-        meta = json.loads(str(d["metadata"]))
+    meta = _metadata(first)
     old, now = meta.get("config", {}), asdict(config)
     diff = [f"{k} {old.get(k)!r} (now {now[k]!r})" for k in now
             if k not in RESUMABLE and old.get(k) != now[k]]
@@ -311,7 +321,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
-        for k, source in enumerate(prior_files(Path(config.prior)) if config.prior else []):
+        for k, source in enumerate(prior_files(Path(config.prior), config) if config.prior else []):
             path = out_dir / f"prior_{k:02d}.npz"
             if not path.is_file():
                 data = relabelled(sampler, DaggerData.load(source), make_expert, f"relabel {source.name}")

@@ -1,5 +1,5 @@
-"""The grasp plan shared by the scripted grasp and the state-driven expert, and the cost of
-an expert label (a few Jacobian steps, not an IK solve)."""
+"""The grasp plan shared by the scripted grasp and the state-driven expert, the expert's label
+as a function of the state, and the cost of its lift label (a few Jacobian steps, not an IK solve)."""
 
 import numpy as np
 import pytest

@@ -100,7 +100,7 @@ class ReactiveGrasp(ScriptedGrasp):
         super().__init__(env, script or expert_script(hand, env.scene.object_info.name))
         self.p_start = env.object_position()
         info = env.scene.object_info  # the lift height: the grasp height on the object at rest, plus the lift
-        at_rest = plan_grasp(self.script, info, RigidTransform([0.0, 0.0, info.rest_height]), self.R_grasp)
+        at_rest = plan_grasp(self.script, info, RigidTransform([0.0, 0.0, info.rest_height]), self.R_pregrasp)
         self.lift_height = at_rest.grasp[2] + self.script.lift
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2
         self._span = self.q_closed - self.q_open

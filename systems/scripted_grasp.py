@@ -143,6 +143,7 @@ class ScriptedGrasp:
         self.lo, self.hi = self.hand.joint_limits()
         self.q_open = self.hand.pregrasp_vector()
         self.q_closed = closed_pose(self.hand, self.script.closure, self.script.closed_pose)
+        self.R_pregrasp = self.ik.palm_pose(self.q_open[: self.n_arm])[1]  # the palm's rotation every grasp turns from
         self._plan(env)
 
     def _plan(self, env) -> None:
@@ -155,8 +156,7 @@ class ScriptedGrasp:
 
     def _grasp_plan(self, env) -> GraspPlan:
         """The grasp plan for the object where it is now (the palm's pre-grasp rotation as reference)."""
-        R_pregrasp = self.ik.palm_pose(self.q_open[: self.n_arm])[1]
-        return plan_grasp(self.script, env.scene.object_info, env.object_pose(), R_pregrasp)
+        return plan_grasp(self.script, env.scene.object_info, env.object_pose(), self.R_pregrasp)
 
     def __call__(self, env) -> np.ndarray:
         t, s = env.context.get_time(), self.script

@@ -323,10 +323,12 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
         print(f"DAgger: {sampler.describe()}", flush=True)
         for k, source in enumerate(prior_files(Path(config.prior), config) if config.prior else []):
             path = out_dir / f"prior_{k:02d}.npz"
-            if not path.is_file():
+            if path.is_file():
+                data = DaggerData.load(path)
+            else:
                 data = relabelled(sampler, DaggerData.load(source), make_expert, f"relabel {source.name}")
                 data.save(path, {"relabelled_from": str(source), "config": asdict(config)})
-            aggregate.add(DaggerData.load(path))
+            aggregate.add(data)
         for it in range(config.iterations):
             data_path, policy_path = out_dir / f"data_{it:02d}.npz", out_dir / f"policy_{it:02d}.pt"
             t0 = time.perf_counter()

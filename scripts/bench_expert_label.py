@@ -28,14 +28,15 @@ def main() -> None:
 
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scene import ObjectPlacement, SceneConfig
 
     class FullIKExpert(ReactiveGrasp):
         """The expert with an IK solve for every lift label."""
 
-        def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
+        def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray) -> np.ndarray:
             p, R = self.ik.palm_pose(q_arm)
-            return self.ik.solve(np.array([p[0], p[1], self.lift_height]), q_arm, R)
+            back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2]
+            return self.ik.solve(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), q_arm, R)
 
     cpu = {"jacobian": 0.0, "full IK": 0.0}
     phases, labels, worst, apart = Counter(), 0, (0.0, ""), Counter()

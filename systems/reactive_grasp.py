@@ -7,8 +7,8 @@ fingertip-to-surface distances, object height), so it can label any state a lear
 visits (DAgger) and re-tries when a grasp fails:
 
 - fingers closed on the object near the grasp point (thumb and another fingertip touching,
-  or settled well closed), or the object already lifted: lift straight up from where the
-  hand is, fingers squeezing;
+  or settled well closed), or the object already lifted: lift up from where the hand is,
+  back over the placement range if the object has left it, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
   object or the table): close the fingers;
 - fingers closed but not on the object (missed or dropped): open them;
@@ -41,6 +41,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.hands.description import HandDescription
 from dexdrake.paths import models_dir
+from dexdrake.systems.scene import ObjectPlacement
 from dexdrake.systems.scripted_grasp import (GraspPlan, GraspScript, ScriptedGrasp, plan_grasp, script_for,
                                               with_overrides)
 
@@ -153,7 +154,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self._follow(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
-            self.phase, arm, fingers = "lift", self._straight_up(q[: self.n_arm]), self.q_closed
+            self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj), self.q_closed
         elif np.linalg.norm(offset) < r.at_grasp or (
             aside < r.above_xy and above < r.blocked_height and (arm_stopped or closure > r.started)
         ):
@@ -170,12 +171,16 @@ class ReactiveGrasp(ScriptedGrasp):
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 
-    def _straight_up(self, q_arm: np.ndarray) -> np.ndarray:
-        """Arm set-points that lift the grasp centre vertically from where it is now to the
-        lift height, the palm keeping its rotation (the object's start position cannot be seen
-        once it is in the hand): a few IK steps from q_arm, a cheap function of the state."""
+    def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray) -> np.ndarray:
+        """Arm set-points that lift the grasp centre to the lift height, the palm keeping its
+        rotation, and carry the object back over the nearest possible start position if it
+        has left the placement range (the start itself cannot be seen once the object is in
+        the hand; the nearest one is never farther from it, so drift is undone, not only
+        stopped): a few IK steps from q_arm, a cheap function of the state."""
         p, R = self.ik.palm_pose(q_arm)
-        return self.ik.step(np.array([p[0], p[1], self.lift_height]), R, q_arm, self.rules.lift_steps)
+        back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2]
+        return self.ik.step(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), R, q_arm,
+                            self.rules.lift_steps)
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

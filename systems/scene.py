@@ -33,6 +33,7 @@ Ports of the diagram (policy joint order, see the hand description):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from pydrake.geometry import Box, GeometryId, ProximityProperties, Role, SceneGraph
@@ -90,13 +91,21 @@ class JointDrive:
 class ObjectPlacement:
     """The paper's randomisation: x in [-0.05, 0.05], y in [-0.05, 0], yaw in [-pi, pi]."""
 
+    X_RANGE: ClassVar[tuple[float, float]] = (-0.05, 0.05)
+    Y_RANGE: ClassVar[tuple[float, float]] = (-0.05, 0.0)
+
     x: float
     y: float
     yaw: float
 
-    @staticmethod
-    def sample(rng: np.random.Generator) -> "ObjectPlacement":
-        return ObjectPlacement(rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.0), rng.uniform(-np.pi, np.pi))
+    @classmethod
+    def sample(cls, rng: np.random.Generator) -> "ObjectPlacement":
+        return cls(rng.uniform(*cls.X_RANGE), rng.uniform(*cls.Y_RANGE), rng.uniform(-np.pi, np.pi))
+
+    @classmethod
+    def nearest_start(cls, xy: np.ndarray) -> np.ndarray:
+        """The start position (x, y) nearest `xy`: no farther from the true start than `xy` is."""
+        return np.array([np.clip(xy[0], *cls.X_RANGE), np.clip(xy[1], *cls.Y_RANGE)])
 
     def pose(self, info: ObjectInfo) -> RigidTransform:
         return RigidTransform(RollPitchYaw(0.0, 0.0, self.yaw), [self.x, self.y, info.rest_height])

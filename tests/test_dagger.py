@@ -11,8 +11,8 @@ import torch
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
-from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, labelled_episode, relabel_job, run_capacity,
-                                  train_dagger)
+from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, labelled_episode, prior_files, relabel_job,
+                                  run_capacity, train_dagger)
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
@@ -130,8 +130,8 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert len(read_csv(tmp_path / "d" / "dagger_log.csv")) == 2
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--iterations", "1",
                  "--per-object", "1", "--epochs", "1", "--workers", "1", "--feature-set", "Hand2obj",
-                 "--threads", "1"]) == 0
-    assert (tmp_path / "c" / "dagger_policy.pt").is_file()
+                 "--threads", "1", "--residual-arm"]) == 0
+    assert load_policy(tmp_path / "c" / "dagger_policy.pt")[0].config.residual_arm
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
 
@@ -158,6 +158,7 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
     q_arm = env.normalise(source.positions[:, env.scene.q_index])[:, :n_arm]
     assert np.abs(source.labels[:, :n_arm] - q_arm).max() > 0.25  # the first expert led by up to 0.3 ...
     assert np.abs(prior.labels[:, :n_arm] - q_arm).max() < 0.15 + 1e-4  # ... the second, which relabelled, by 0.15
+    assert [f.name for f in prior_files(tmp_path / "b", later)] == ["prior_00.npz", "data_00.npz"]  # its whole history
     (row,) = read_csv(tmp_path / "b" / "dagger_log.csv")
     assert row["driver"] == "init" and int(row["samples_total"]) == 200  # the prior's states, then its own
     with pytest.raises(DexdrakeError, match="prior"):  # resumed with another prior: refused
@@ -168,6 +169,8 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", init=""))
     with pytest.raises(DexdrakeError, match="trained for adroit with Hand2obj features"):
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=""))
+    with pytest.raises(DexdrakeError, match="has an absolute arm head; add --residual-arm"):
+        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, residual_arm=True, prior=""))
 
 
 def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one_torch_thread):

@@ -7,7 +7,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
-from dexdrake.systems.scene import SceneConfig
+from dexdrake.systems.scene import ObjectPlacement, SceneConfig
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, plan_grasp
 
 
@@ -39,10 +39,25 @@ def test_lift_label_is_a_few_jacobian_steps_that_match_the_full_ik(can_env):
     p, R = expert.ik.palm_pose(q_arm)
     target = np.array([p[0], p[1], expert.lift_height])
     full = expert.ik.solve(target, q_arm, R)
-    label = expert._straight_up(q_arm)
+    label = expert._lift(q_arm, np.array([0.02, -0.03, 0.1]))  # the object over the placement range
     np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target, atol=1e-3)  # straight up, to the lift height
     np.testing.assert_allclose(expert.ik.palm_pose(label)[1], R, atol=1e-2)  # the palm keeps its rotation
     np.testing.assert_allclose(label, full, atol=5e-3)
+    # an object carried 3 cm past the range's +x edge and 2 cm past its +y edge is carried back
+    label = expert._lift(q_arm, np.array([ObjectPlacement.X_RANGE[1] + 0.03, ObjectPlacement.Y_RANGE[1] + 0.02, 0.1]))
+    np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target - [0.03, 0.02, 0.0], atol=1e-3)
+    np.testing.assert_allclose(expert.ik.palm_pose(label)[1], R, atol=1e-2)
+
+
+def test_nearest_start_is_never_farther_from_the_start_than_the_object():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        start = ObjectPlacement.sample(rng)
+        xy = np.array([start.x, start.y]) + rng.normal(0, 0.08, 2)
+        near = ObjectPlacement.nearest_start(xy)
+        assert np.linalg.norm(near - [start.x, start.y]) <= np.linalg.norm(xy - [start.x, start.y]) + 1e-12
+        assert ObjectPlacement.X_RANGE[0] <= near[0] <= ObjectPlacement.X_RANGE[1]
+        assert ObjectPlacement.Y_RANGE[0] <= near[1] <= ObjectPlacement.Y_RANGE[1]
 
 
 def test_expert_label_is_a_function_of_the_state_not_of_the_episode_past(can_env):

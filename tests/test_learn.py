@@ -147,6 +147,32 @@ def test_checkpoint_round_trip_reproduces_outputs(tmp_path):
     assert all(not p.requires_grad for p in loaded.encoders.parameters())
 
 
+def test_residual_arm_head_leads_the_current_arm_position(tmp_path):
+    """With `residual_arm`, an MLP output of 0 holds the arm where it is (its normalised joint
+    positions, read from the hand block) and leaves the fingers at 0; the limits travel in
+    the checkpoint, and a policy whose first block is not the hand's is refused."""
+    from dexdrake.hands.description import load_hand
+
+    hand = load_hand("adroit")
+    n, lo, hi = len(hand.arm_joints), *hand.joint_limits()
+    config = PolicyConfig.from_blocks({"hand": 40, "occ": 7}, 30, hand="adroit", residual_arm=True)
+    policy = DexRepNetPolicy(config)
+    with torch.no_grad():
+        policy.mlp[-1].weight.zero_()
+        policy.mlp[-1].bias.zero_()
+    obs = torch.randn(5, 47)
+    obs[:, :30] = torch.as_tensor(lo + (hi - lo) * np.random.default_rng(0).random((5, 30)), dtype=torch.float32)
+    out = policy(obs).detach().numpy()
+    np.testing.assert_allclose(out[:, :n], (obs[:, :n].numpy() - (hi + lo)[:n] / 2) / ((hi - lo)[:n] / 2), atol=1e-5)
+    np.testing.assert_array_equal(out[:, n:], 0.0)
+    loaded, _ = load_policy(save_policy(tmp_path / "r.pt", policy))
+    assert loaded.config.residual_arm and torch.equal(loaded(obs), policy(obs))
+    with pytest.raises(DexdrakeError, match="hand block first"):
+        DexRepNetPolicy(PolicyConfig.from_blocks({"occ": 7, "hand": 40}, 30, hand="adroit", residual_arm=True))
+    with pytest.raises(DexdrakeError, match="joints"):
+        DexRepNetPolicy(PolicyConfig.from_blocks({"hand": 40}, 22, hand="adroit", residual_arm=True))
+
+
 def test_load_policy_rejects_garbage(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

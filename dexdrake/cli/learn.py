@@ -91,6 +91,8 @@ def add_parser(subparsers) -> None:
                         help="policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert drives)")
     dagger.add_argument("--prior", type=Path, default=None,
                         help="an earlier DAgger run's folder: its states, labelled anew by this expert, are trained on too")
+    dagger.add_argument("--residual-arm", action="store_true",
+                        help="a new network's arm actions are added to the arm's current position (it learns the lead)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dagger)
     dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
@@ -228,10 +230,11 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
                           epochs=args.epochs, lr=args.lr, arm_weight=args.arm_weight,
                           workers=args.workers, backend=args.backend, seed=args.seed,
-                          probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=str(args.prior or ""))
+                          probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=str(args.prior or ""),
+                          residual_arm=args.residual_arm)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "arm-weight", "probe-per-object",
-                                                        "init", "prior", "workers", "backend", "address", "threads", "seed"])
+                                                        "init", "prior", "residual-arm", "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []

@@ -65,6 +65,7 @@ class DaggerConfig:
     probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
     init: str = ""  # policy checkpoint that drives iteration 0 and is fine-tuned ("": the expert drives, a new network)
     prior: str = ""  # an earlier run's folder whose data_XX.npz states are labelled anew and aggregated first
+    residual_arm: bool = False  # a new network's arm actions lead the current arm position (PolicyConfig)
 
 
 @dataclass
@@ -158,9 +159,10 @@ def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
 
 
 def prior_files(prior_dir: Path, config: DaggerConfig) -> list[Path]:
-    """An earlier run's data files, in iteration order; refused when there are none or when
-    their observations are another hand's or feature set's than the run's `config`."""
-    files = sorted(prior_dir.glob("data_[0-9][0-9].npz"))
+    """An earlier run's states: its own prior files (relabelled states of the run before it),
+    then its data files, in iteration order; refused when there are none or when their
+    observations are another hand's or feature set's than the run's `config`."""
+    files = sorted(prior_dir.glob("prior_[0-9][0-9].npz")) + sorted(prior_dir.glob("data_[0-9][0-9].npz"))
     if not files:
         raise DexdrakeError(f"{prior_dir} holds no DAgger data (data_XX.npz)")
     for path in files:
@@ -269,8 +271,9 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
         return
     meta = _metadata(first)
     old, now = meta.get("config", {}), asdict(config)
-    diff = [f"{k} {old.get(k)!r} (now {now[k]!r})" for k in now
-            if k not in RESUMABLE and old.get(k) != now[k]]
+    default = asdict(DaggerConfig())  # a field newer than the run: its default then
+    diff = [f"{k} {old.get(k, default[k])!r} (now {now[k]!r})" for k in now
+            if k not in RESUMABLE and old.get(k, default[k]) != now[k]]
     old_objects, new_objects = sorted(set(meta.get("objects", []))), sorted(set(objects))
     if old_objects != new_objects:
         diff.append(f"objects {','.join(old_objects)} (now {','.join(new_objects)})")
@@ -316,6 +319,9 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     if policy is not None and (policy.config.hand, policy.config.feature_set) != (config.hand, config.feature_set):
         raise DexdrakeError(f"{config.init} was trained for {policy.config.hand} with {policy.config.feature_set} "
                             f"features; this run is {config.hand} with {config.feature_set}")
+    if policy is not None and policy.config.residual_arm != config.residual_arm:
+        raise DexdrakeError(f"{config.init} has {'a residual' if policy.config.residual_arm else 'an absolute'} arm "
+                            f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
     hand = load_hand(config.hand)
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
@@ -360,7 +366,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             if policy is None:
                 blocks = observation_blocks(hand, config.feature_set)
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, data.labels.shape[1],
-                                                                  feature_set=config.feature_set, hand=config.hand))
+                                                                  feature_set=config.feature_set, hand=config.hand,
+                                                                  residual_arm=config.residual_arm))
             dataset = aggregate.dataset()
             weights = (config.arm_weight,) * n_arm + (1.0,) * (data.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,

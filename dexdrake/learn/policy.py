@@ -5,7 +5,12 @@ local-geo 1408) passes its own single fully-connected layer to 128 features; we 
 encoder with a ReLU (`encoder_activation="relu"`, the default; "none" keeps it purely
 linear, which would compose with the first MLP layer into one low-rank linear map). The
 features are concatenated and fed to an MLP with hidden sizes [512, 128] and ReLU whose
-output is the action mean (no tanh; the env clips actions to [-1, 1]). For RL the policy is
+output is the action mean (no tanh; the env clips actions to [-1, 1]). With `residual_arm`
+the arm's actions are the MLP's output added to the arm joints' current positions (the hand
+block's first entries) normalised like the actions: the network learns how far ahead of the
+arm its set-point leads, not the set-point itself (a departure from the paper's absolute
+set-points: an absolute head must rebuild the current position from its input, and its
+error of a few hundredths of the range left the palm hovering centimetres above the grasp). For RL the policy is
 a diagonal Gaussian around that mean with a learned, state-independent log-std, kept in
 [min_log_std, max_log_std] by clamping the parameter itself after each update
 (`clamp_log_std_`), so its gradient never vanishes. Before RL the log-std is set from the
@@ -50,6 +55,7 @@ class PolicyConfig:
     init_log_std: float = 0.0
     min_log_std: float = -3.0
     max_log_std: float = 0.0  # std 1: the half-width of the normalised action range
+    residual_arm: bool = False  # arm actions = current arm position (normalised) + MLP output
 
     @classmethod
     def from_blocks(cls, blocks: Mapping[str, int], action_dim: int, **kwargs: Any) -> PolicyConfig:
@@ -104,6 +110,10 @@ class DexRepNetPolicy(nn.Module):
         self.register_buffer("obs_mean", torch.zeros(obs_dim))
         self.register_buffer("obs_std", torch.ones(obs_dim))
         self.register_buffer("encoders_frozen", torch.tensor(False))
+        if config.residual_arm:
+            lo, hi = arm_limits(config)
+            self.register_buffer("arm_mid", torch.as_tensor((hi + lo) / 2, dtype=torch.float32))
+            self.register_buffer("arm_half", torch.as_tensor((hi - lo) / 2, dtype=torch.float32))
 
     # ---------------------------------------------------------------- forward passes
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -115,7 +125,12 @@ class DexRepNetPolicy(nn.Module):
         feats = [self.encoders[name](part) for name, part in zip(self.block_names, parts)]
         if self.config.encoder_activation == "relu":
             feats = [torch.relu(f) for f in feats]
-        return self.mlp(torch.cat(feats, dim=-1))
+        mean = self.mlp(torch.cat(feats, dim=-1))
+        if not self.config.residual_arm:
+            return mean
+        n = self.arm_mid.shape[0]
+        arm = mean[..., :n] + (obs[..., :n] - self.arm_mid) / self.arm_half
+        return torch.cat([arm, mean[..., n:]], dim=-1)
 
     def clamped_log_std(self) -> torch.Tensor:
         """The log-std in use (equal to the parameter once `clamp_log_std_` has run)."""
@@ -190,6 +205,21 @@ class DexRepNetPolicy(nn.Module):
         self.load_state_dict(state_dict)
         if bool(self.encoders_frozen):
             self.freeze_encoders()
+
+
+def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) limits of the arm joints of `config.hand` (a prefix of its actions), for a
+    residual arm head, whose observation must begin with the hand block's joint positions."""
+    from dexdrake.hands.description import load_hand
+
+    if not config.blocks or config.blocks[0][0] != "hand":
+        raise DexdrakeError(f"a residual arm needs the hand block first; the blocks are {config.blocks}")
+    hand = load_hand(config.hand)
+    if len(hand.policy_joints) != config.action_dim:
+        raise DexdrakeError(f"hand {config.hand} has {len(hand.policy_joints)} joints, the policy {config.action_dim} actions")
+    lo, hi = hand.joint_limits()
+    n = len(hand.arm_joints)
+    return lo[:n], hi[:n]
 
 
 def policy_payload(policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> dict[str, Any]:

@@ -33,9 +33,9 @@ def main() -> None:
     class FullIKExpert(ReactiveGrasp):
         """The expert with an IK solve for every lift label."""
 
-        def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray) -> np.ndarray:
+        def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> np.ndarray:
             p, R = self.ik.palm_pose(q_arm)
-            back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2]
+            back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2] if lifted else np.zeros(2)
             return self.ik.solve(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), q_arm, R)
 
     cpu = {"jacobian": 0.0, "full IK": 0.0}

@@ -154,7 +154,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self._follow(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
-            self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj), self.q_closed
+            self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj, lifted), self.q_closed
         elif np.linalg.norm(offset) < r.at_grasp or (
             aside < r.above_xy and above < r.blocked_height and (arm_stopped or closure > r.started)
         ):
@@ -171,14 +171,14 @@ class ReactiveGrasp(ScriptedGrasp):
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 
-    def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray) -> np.ndarray:
+    def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> np.ndarray:
         """Arm set-points that lift the grasp centre to the lift height, the palm keeping its
-        rotation, and carry the object back over the nearest possible start position if it
-        has left the placement range (the start itself cannot be seen once the object is in
-        the hand; the nearest one is never farther from it, so drift is undone, not only
-        stopped): a few IK steps from q_arm, a cheap function of the state."""
+        rotation, and, once the object is off the table, carry it back over the nearest
+        possible start position if it has left the placement range (the start itself cannot
+        be seen once the object is in the hand; the nearest one is never farther from it, so
+        drift is undone, not only stopped): a few IK steps from q_arm, a function of the state."""
         p, R = self.ik.palm_pose(q_arm)
-        back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2]
+        back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2] if lifted else np.zeros(2)
         return self.ik.step(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), R, q_arm,
                             self.rules.lift_steps)
 

@@ -16,6 +16,7 @@ from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, labelled
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
+from dexdrake.systems.scene import ObjectPlacement
 
 OBJECT = "sphere_small"
 
@@ -38,8 +39,10 @@ def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
         success = env.step_positions(q)[3]["success"] or success
     assert success
     assert phases[-3:] == ["descend", "close", "lift"]  # from the start pose, inside the funnel
-    lifting = np.array(lifting)  # up from where the grasp closed (the palm held at its rotation drifts ~1 cm)
-    assert np.abs(lifting[:, :2] - lifting[0, :2]).max() < 0.02 and lifting[-1, 2] - lifting[0, 2] > 0.1
+    lifting = np.array(lifting)  # up from where the grasp closed, ...
+    assert lifting[-1, 2] - lifting[0, 2] > 0.1
+    xy = env.object_position()[:2]  # ... the sphere, pushed out of the placement range by the closing
+    assert np.linalg.norm(xy - ObjectPlacement.nearest_start(xy)) < 0.003  # fingers, carried back over it
 
 
 def test_expert_label_depends_on_state_not_time_and_leads_the_arm(env):

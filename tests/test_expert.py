@@ -39,14 +39,17 @@ def test_lift_label_is_a_few_jacobian_steps_that_match_the_full_ik(can_env):
     p, R = expert.ik.palm_pose(q_arm)
     target = np.array([p[0], p[1], expert.lift_height])
     full = expert.ik.solve(target, q_arm, R)
-    label = expert._lift(q_arm, np.array([0.02, -0.03, 0.1]))  # the object over the placement range
+    label = expert._lift(q_arm, np.array([0.02, -0.03, 0.1]), True)  # the object over the placement range
     np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target, atol=1e-3)  # straight up, to the lift height
     np.testing.assert_allclose(expert.ik.palm_pose(label)[1], R, atol=1e-2)  # the palm keeps its rotation
     np.testing.assert_allclose(label, full, atol=5e-3)
     # an object carried 3 cm past the range's +x edge and 2 cm past its +y edge is carried back
-    label = expert._lift(q_arm, np.array([ObjectPlacement.X_RANGE[1] + 0.03, ObjectPlacement.Y_RANGE[1] + 0.02, 0.1]))
+    outside = np.array([ObjectPlacement.X_RANGE[1] + 0.03, ObjectPlacement.Y_RANGE[1] + 0.02, 0.1])
+    label = expert._lift(q_arm, outside, True)
     np.testing.assert_allclose(expert.ik.palm_pose(label)[0], target - [0.03, 0.02, 0.0], atol=1e-3)
     np.testing.assert_allclose(expert.ik.palm_pose(label)[1], R, atol=1e-2)
+    # ... but only once it is off the table: until then straight up (a sideways pull would loosen the grasp)
+    np.testing.assert_allclose(expert.ik.palm_pose(expert._lift(q_arm, outside, False))[0], target, atol=1e-3)
 
 
 def test_nearest_start_is_never_farther_from_the_start_than_the_object():

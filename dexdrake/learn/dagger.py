@@ -164,7 +164,7 @@ def prior_files(prior_dir: Path, config: DaggerConfig) -> list[Path]:
     observations are another hand's or feature set's than the run's `config`."""
     files = sorted(prior_dir.glob("prior_[0-9][0-9].npz")) + sorted(prior_dir.glob("data_[0-9][0-9].npz"))
     if not files:
-        raise DexdrakeError(f"{prior_dir} holds no DAgger data (data_XX.npz)")
+        raise DexdrakeError(f"{prior_dir} holds no DAgger data (prior_XX.npz or data_XX.npz)")
     for path in files:
         made = _metadata(path).get("config", {})
         if (made.get("hand"), made.get("feature_set")) != (config.hand, config.feature_set):

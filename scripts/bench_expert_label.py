@@ -28,15 +28,14 @@ def main() -> None:
 
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
-    from dexdrake.systems.scene import ObjectPlacement, SceneConfig
+    from dexdrake.systems.scene import SceneConfig
 
     class FullIKExpert(ReactiveGrasp):
         """The expert with an IK solve for every lift label."""
 
         def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> np.ndarray:
-            p, R = self.ik.palm_pose(q_arm)
-            back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2] if lifted else np.zeros(2)
-            return self.ik.solve(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), q_arm, R)
+            target, R = self.lift_target(q_arm, p_obj, lifted)
+            return self.ik.solve(target, q_arm, R)
 
     cpu = {"jacobian": 0.0, "full IK": 0.0}
     phases, labels, worst, apart = Counter(), 0, (0.0, ""), Counter()

@@ -172,15 +172,19 @@ class ReactiveGrasp(ScriptedGrasp):
         return out
 
     def _lift(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> np.ndarray:
-        """Arm set-points that lift the grasp centre to the lift height, the palm keeping its
-        rotation, and, once the object is off the table, carry it back over the nearest
-        possible start position if it has left the placement range (the start itself cannot
-        be seen once the object is in the hand; the nearest one is never farther from it, so
-        drift is undone, not only stopped): a few IK steps from q_arm, a function of the state."""
+        """Arm set-points toward `lift_target`: a few IK steps from q_arm, a function of the state."""
+        target, R = self.lift_target(q_arm, p_obj, lifted)
+        return self.ik.step(target, R, q_arm, self.rules.lift_steps)
+
+    def lift_target(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Where the lift takes the grasp centre, and the palm's rotation: up to the lift height,
+        the palm keeping its rotation, and, once the object is off the table, back over the
+        nearest possible start position if the object has left the placement range (the start
+        itself cannot be seen once the object is in the hand; the nearest one is never farther
+        from it, so drift is undone, not only stopped)."""
         p, R = self.ik.palm_pose(q_arm)
         back = ObjectPlacement.nearest_start(p_obj[:2]) - p_obj[:2] if lifted else np.zeros(2)
-        return self.ik.step(np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), R, q_arm,
-                            self.rules.lift_steps)
+        return np.array([p[0] + back[0], p[1] + back[1], self.lift_height]), R
 
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""

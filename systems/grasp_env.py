@@ -86,7 +86,8 @@ class GraspEnv:
         self.steps = 0
         self.q_command = q0.copy()
         self.command_guard.reset_counts()
-        return self.observation()
+        self._observation = self.observation()
+        return self._observation
 
     def mirror(self, hand_state: np.ndarray, X_WO: RigidTransform) -> None:
         """Put the plant in a measured state, for controllers driven by measurements: the
@@ -120,14 +121,29 @@ class GraspEnv:
         holds non-finite commands and clips to the joint limits, counting both."""
         self.q_command = self.command_guard(q_command, self.q_command)
         self._command_port.FixValue(self.context, self.q_command)
-        self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
         self.steps += 1
+        try:
+            self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
+        except RuntimeError as err:
+            if not _diverged(str(err)):
+                raise
+            return self._end_diverged(str(err))
+        if not np.all(np.isfinite(self.scene.plant.GetPositions(self.plant_context))):
+            return self._end_diverged("non-finite plant positions")
         p_obj = self.object_position()
         terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
         success = self.tracker.update(p_obj)
         done = self.steps >= self.horizon
         info = {"success": success, "lift": float(p_obj[2] - self.p_start[2]), "terms": terms}
-        return self.observation(), terms.total, done, info
+        self._observation = self.observation()
+        return self._observation, terms.total, done, info
+
+    def _end_diverged(self, why: str) -> tuple[np.ndarray, float, bool, dict]:
+        """The step after the simulation diverged: the episode ends, failed, with the reason as
+        its fault (the state is unusable until the next reset; the last good observation is
+        returned)."""
+        fault = f"simulation diverged at step {self.steps} (seed {self.seed}): {why.splitlines()[0]}"
+        return self._observation, 0.0, True, {"success": False, "lift": float("nan"), "fault": fault}
 
     # -- state access -------------------------------------------------------------------
     def observation(self) -> np.ndarray:
@@ -192,3 +208,9 @@ class GraspEnv:
             return self.normalise(controller(self))
 
         return run_episode(self, act, seed, **({} if logger is None else logger.hooks(self)))
+
+
+def _diverged(message: str) -> bool:
+    """Whether a simulator error says the simulation diverged (non-finite state, or the
+    contact solver failed), which ends an episode, rather than a bug, which propagates."""
+    return "non-finite" in message or "NaN" in message or "failed to converge" in message

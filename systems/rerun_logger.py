@@ -186,8 +186,12 @@ class RerunLogger:
     # ------------------------------------------------------------------ sim, eval, demo
     def log_step(self, env, info: dict | None) -> None:
         """Logs `env`'s current state; `info` is the step's info dict (None at a reset,
-        which starts a new episode)."""
+        which starts a new episode; a step whose info has a fault ends the episode with it,
+        its state not logged, e.g. a diverged simulation's)."""
         self._set_time(env.context.get_time(), new_episode=info is None)
+        if info is not None and info.get("fault"):
+            self.log_fault(info["fault"])
+            return
         if info is None:
             self._start_episode(env.scene, env.plant_context, env.seed)
         self._log_state(env)

@@ -137,8 +137,9 @@ class GraspScene:
         return self.plant.GetBodyByName(self.object_info.name, self.object_instance)
 
     def set_initial_state(self, plant_context: Context, placement: ObjectPlacement, q_hand: np.ndarray) -> None:
-        """Hand at rest at `q_hand` (policy order), object at `placement`, all at rest."""
-        q = self.plant.GetPositions(plant_context).copy()
+        """Hand at rest at `q_hand` (policy order), object at `placement`, all at rest (from the
+        plant's default state, not the context's: that may hold a diverged simulation's NaNs)."""
+        q = self.plant.GetDefaultPositions()
         q[self.q_index] = q_hand
         self.plant.SetPositions(plant_context, q)
         self.plant.SetVelocities(plant_context, np.zeros(self.plant.num_velocities()))

@@ -32,6 +32,7 @@ class GraspScript:
     palm_depth: float = 0.045  # grasp centre this far below the object's top (m), except ...
     tall_palm_depth: float = 0.028  # ... on tall objects (top more than palm_depth + tall_margin
     tall_margin: float = 0.01  # above the centre), which are grasped around their upper part
+    min_height: float | None = None  # grasp centre at least this above the table (m; None: no floor)
     reach: float = -0.03  # grasp centre shift along the fingers' direction (m)
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
@@ -111,6 +112,8 @@ def plan_grasp(script: GraspScript, info: ObjectInfo, X_obj: RigidTransform, R_s
     top = p_obj[2] + info.extents[2] / 2
     tall = top - script.palm_depth > p_obj[2] + script.tall_margin
     height = top - (script.tall_palm_depth if tall else script.palm_depth)
+    if script.min_height is not None:
+        height = max(height, script.min_height)
     grasp = np.array([p_obj[0], p_obj[1], height]) + script.reach * fingers_dir
     up = np.array([0.0, 0.0, 1.0])
     return GraspPlan(R, grasp + (top - height + script.hover) * up, grasp, grasp + script.lift * up)

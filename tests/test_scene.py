@@ -157,6 +157,33 @@ def test_round_objects_are_grasped_at_the_start_yaw_whatever_their_own(sphere_en
     assert np.abs(_planned_grasp(bar, 0, 0.0) - _planned_grasp(bar, 0, 0.6)).max() > 0.1
 
 
+def test_a_diverged_simulation_ends_the_episode_as_a_failed_fault(tmp_path, sphere_env):
+    from pydrake.multibody.math import SpatialVelocity
+
+    from dexdrake.episode import run_episode
+    from dexdrake.systems.rerun_logger import RerunLogger
+    from rrd_content import text_logs
+
+    env = sphere_env
+    rrd = tmp_path / "diverged.rrd"
+    logger = RerunLogger(rrd, "sim")
+    hooks = logger.hooks(env)
+
+    def diverge() -> None:  # a non-finite object velocity: SceneGraph refuses the next pose
+        hooks["on_reset"]()
+        env.scene.plant.SetFreeBodySpatialVelocity(env.plant_context, env.scene.object_body,
+                                                   SpatialVelocity(np.zeros(3), np.array([np.nan, 0.0, 0.0])))
+
+    result = run_episode(env, lambda obs: np.zeros(env.action_dim), 0, on_reset=diverge, on_step=hooks["on_step"])
+    logger.close()
+    assert not result.success and result.steps == 1
+    assert result.fault.startswith("simulation diverged at step 1 (seed 0): SceneGraph encountered a non-finite")
+    assert text_logs(rrd, "/faults/log") == [("CRITICAL", result.fault)]
+    env.reset(0)  # the next episode runs normally
+    _, reward, done, info = env.step(np.zeros(env.action_dim))
+    assert np.isfinite(reward) and "fault" not in info and np.isfinite(env.object_position()).all()
+
+
 def test_rerun_recording_is_written(tmp_path, sphere_env):
     from dexdrake.systems.rerun_logger import RerunLogger
 

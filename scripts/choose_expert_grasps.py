@@ -2,8 +2,8 @@
 
     python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,101,102] [--workers 2]
 
-Each variant (overrides of the hand's GraspScript: the closed pose and how far the fingers
-close) runs the expert (ReactiveGrasp) on every training object for the given seeds; the
+Each variant (overrides of the hand's GraspScript: the closed pose, how far the fingers
+close, the lowest grasp-centre height) runs the expert (ReactiveGrasp) on every training object for the given seeds; the
 variant with the most successes wins (ties: the earlier variant, the hand's default first).
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
@@ -26,6 +26,10 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
     "power_80": {"closure": 0.8},
     "oppose_80": {"closed_pose": "oppose", "closure": 0.8},
     "oppose_70": {"closed_pose": "oppose", "closure": 0.7},
+    "power_floor_10": {"min_height": 0.01},  # flat objects: the grasp centre 1 cm above the table, ...
+    "power_floor_25": {"min_height": 0.025},  # ... or 2.5 cm (the default plans it below the table)
+    "oppose_80_floor_10": {"closed_pose": "oppose", "closure": 0.8, "min_height": 0.01},
+    "oppose_80_floor_25": {"closed_pose": "oppose", "closure": 0.8, "min_height": 0.025},
 }
 
 

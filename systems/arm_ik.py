@@ -41,21 +41,50 @@ class ArmIK:
     def solve(self, target: np.ndarray, q_seed: np.ndarray, R_target: np.ndarray | None = None,
               stay: float = 0.0) -> np.ndarray:
         """Arm positions that put the grasp centre at `target`, with the palm rotation near
-        `R_target` (when given) and, weighted by `stay` (m per rad), near q_seed."""
+        `R_target` (when given) and, weighted by `stay` (m per rad), near q_seed: bounded
+        least squares on `residual` with its analytic `residual_jacobian`."""
         seed = np.clip(q_seed, self.lo, self.hi)
-
-        def residual(q_arm):
-            p, R = self.palm_pose(q_arm)
-            parts = [p - target]
-            if R_target is not None:
-                parts.append(self.orientation_weight * (R - R_target)[:, 1:].ravel())
-            if stay:
-                parts.append(stay * (q_arm - seed))
-            return np.concatenate(parts)
-
         margin = 1e-3 * (self.hi - self.lo)  # start strictly inside the bounds: trf stalls on them
         start = np.clip(seed, self.lo + margin, self.hi - margin)
-        return least_squares(residual, start, bounds=(self.lo, self.hi), xtol=1e-8).x
+        args = (target, R_target, stay, seed)
+        return least_squares(self.residual, start, jac=self.residual_jacobian, bounds=(self.lo, self.hi),
+                             xtol=1e-8, args=args).x
+
+    def residual(self, q_arm: np.ndarray, target: np.ndarray, R_target: np.ndarray | None, stay: float,
+                 seed: np.ndarray) -> np.ndarray:
+        """`solve`'s residual: the grasp centre's offset from target; the weighted difference
+        of the palm rotation's last two columns from R_target's; stay * (q_arm - seed)."""
+        p, R = self.palm_pose(q_arm)
+        parts = [p - target]
+        if R_target is not None:
+            parts.append(self.orientation_weight * (R - R_target)[:, 1:].ravel())
+        if stay:
+            parts.append(stay * (q_arm - seed))
+        return np.concatenate(parts)
+
+    def residual_jacobian(self, q_arm: np.ndarray, target: np.ndarray, R_target: np.ndarray | None, stay: float,
+                          seed: np.ndarray) -> np.ndarray:
+        """d residual / d q_arm, analytic: a rotation column r turns as w_k x r, w_k joint k's
+        angular Jacobian column (about 1.5x cheaper solves than finite differences, the
+        same solutions: scripts/bench_arm_ik.py)."""
+        X = self._set_arm(q_arm)
+        Jw, Jv = self._jacobian()
+        rows = [Jv]
+        if R_target is not None:
+            R = X.rotation().matrix()
+            turn = np.stack([np.cross(Jw.T, R[:, j]) for j in (1, 2)], axis=-1)  # [k, i, j]
+            rows.append(self.orientation_weight * turn.transpose(1, 2, 0).reshape(6, self.n_arm))
+        if stay:
+            rows.append(stay * np.eye(self.n_arm))
+        return np.vstack(rows)
+
+    def _jacobian(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grasp centre's angular and translational Jacobians (3 x n_arm each, world frame)
+        at the private context's arm positions."""
+        J = self.plant.CalcJacobianSpatialVelocity(
+            self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
+        )[:, self.index]
+        return J[:3], J[3:]
 
     def step(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
         """`solve` near q_arm, cheaply: a fixed number of damped least-squares steps on the
@@ -68,9 +97,7 @@ class ArmIK:
             X = self._set_arm(q)
             rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
             error = w * np.r_[rotation.angle() * rotation.axis(), target - X.multiply(self.centre)]
-            J = w[:, None] * self.plant.CalcJacobianSpatialVelocity(
-                self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
-            )[:, self.index]
+            J = w[:, None] * np.vstack(self._jacobian())
             free, dq = np.ones(n, dtype=bool), np.zeros(n)
             while free.any():
                 Jf = J[:, free]

@@ -100,6 +100,19 @@ def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     np.testing.assert_allclose(grasp.ik.palm_pose(q)[0], shifted, atol=2e-3)
 
 
+def test_ik_jacobian_is_the_residual_derivative_and_solves_reach(can_env):
+    can_env.reset(0)
+    grasp = ScriptedGrasp(can_env)
+    ik, rng = grasp.ik, np.random.default_rng(0)
+    for _ in range(5):  # at random arm positions inside the limits, against central differences
+        q = rng.uniform(ik.lo, ik.hi) * 0.8 + 0.1 * (ik.lo + ik.hi)
+        args = (grasp.plan.grasp, grasp.R_grasp, 0.05, grasp.q_grasp)
+        h, eye = 1e-6, np.eye(ik.n_arm)
+        numeric = np.stack([(ik.residual(q + h * e, *args) - ik.residual(q - h * e, *args)) / (2 * h) for e in eye], 1)
+        np.testing.assert_allclose(ik.residual_jacobian(q, *args), numeric, atol=1e-6)
+    q = ik.solve(grasp.plan.grasp, grasp.q_above, grasp.R_grasp)
+    np.testing.assert_allclose(ik.palm_pose(q)[0], grasp.plan.grasp, atol=1e-4)
+
 def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_others():
     from dexdrake.errors import DexdrakeError
     from dexdrake.hands.description import load_hand

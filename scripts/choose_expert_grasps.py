@@ -3,8 +3,9 @@
     python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,101,102] [--workers 2]
 
 Each variant (overrides of the hand's GraspScript: the closed pose, how far the fingers
-close, the lowest grasp-centre height) runs the expert (ReactiveGrasp) on every training object for the given seeds; the
-variant with the most successes wins (ties: the earlier variant, the hand's default first).
+close, the lowest grasp-centre height) runs the expert (ReactiveGrasp) on every training
+object for the given seeds; the variant with the most successes wins (ties: the earlier
+variant, the hand's default first).
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
 reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not

@@ -10,8 +10,10 @@ visits (DAgger) and re-tries when a grasp fails:
   or settled well closed), or the object already lifted: lift up from where the hand is,
   back over the placement range if the object has left it, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
-  object or the table): close the fingers;
-- fingers closed but not on the object (missed or dropped): open them;
+  object or the table): close the fingers; fingers that have started closing keep closing
+  within a wider radius (`keep_xy`: the fingers' closure is the rule's memory, so a policy
+  whose hand wavers near the edge is not taught to open and close in turn);
+- fingers closed but not on the object (missed or dropped, beyond that radius): open them;
 - otherwise reach through a funnel: above the grasp point the target is the grasp point,
   and the farther off horizontally, the closer the target is to the approach way-point
   above it (continuous in the state, so a cloned policy can follow it).
@@ -55,6 +57,7 @@ class ReactiveRules:
     blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
     stopped_speed: float = 0.05  # arm joints slower than this (m/s or rad/s) have stopped
     above_xy: float = 0.015  # horizontally within this of the grasp point: descend (m) ...
+    keep_xy: float = 0.03  # fingers that have started closing keep closing within this (m)
     descend_cone: float = 0.0  # ... plus this much per metre above it (arms whose joint-space descent bows)
     funnel: float = 0.02  # beyond that tolerance the target rises to the approach way-point over this (m)
     touch: float = 0.008  # a fingertip this close to the surface touches it (m)
@@ -155,11 +158,11 @@ class ReactiveGrasp(ScriptedGrasp):
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj, lifted), self.q_closed
-        elif np.linalg.norm(offset) < r.at_grasp or (
-            aside < r.above_xy and above < r.blocked_height and (arm_stopped or closure > r.started)
+        elif np.linalg.norm(offset) < r.at_grasp or above < r.blocked_height and (
+            aside < r.above_xy and arm_stopped or aside < r.keep_xy and closure > r.started
         ):
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
-        elif closure > r.missed or (closure > r.closed and not aside < r.above_xy):
+        elif closure > r.missed or (closure > r.closed and not aside < r.keep_xy):
             self.phase, arm = "open", q[: self.n_arm]
         else:  # a funnel: the farther off horizontally, the closer the target to the approach way-point
             tolerance = r.above_xy + r.descend_cone * max(above, 0.0)

@@ -86,6 +86,27 @@ def test_expert_label_is_a_function_of_the_state_not_of_the_episode_past(can_env
     assert np.mean(np.array(arm_gaps) > 0.02) < 0.05, np.round(arm_gaps, 3)
 
 
+def test_fingers_that_started_closing_keep_closing_near_the_grasp_and_open_beyond(can_env):
+    can_env.reset(0)
+    expert = ReactiveGrasp(can_env)
+    r, plant, ctx = expert.rules, can_env.scene.plant, can_env.plant_context
+    assert r.above_xy < r.keep_xy
+    fingers = expert.q_open + 0.4 * (expert.q_closed - expert.q_open)  # started, past `closed`
+    X = plant.GetFreeBodyPose(ctx, can_env.scene.object_body)  # the can out of the fingers' way (not held)
+    plant.SetFreeBodyPose(ctx, can_env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0, 0.4, 0]))
+    phases = {}
+    for aside in (r.above_xy + 0.005, r.keep_xy - 0.005, r.keep_xy + 0.01):
+        target = expert.grasp_point + [aside, 0.0, 0.02]  # within the blocked height above the grasp point
+        q = plant.GetPositions(ctx)
+        q[can_env.scene.q_index] = np.r_[expert.ik.solve(target, expert.q_grasp, expert.R_grasp), fingers[expert.n_arm:]]
+        plant.SetPositions(ctx, q)
+        plant.SetVelocities(ctx, np.zeros(plant.num_velocities()))
+        label = expert(can_env)
+        phases[aside] = expert.phase
+        closing = expert.closure(label) == pytest.approx(1.0)
+        assert closing == (expert.phase == "close")
+    assert list(phases.values()) == ["close", "close", "open"], phases
+
 def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     # A grasp low on the table needs ARTy on its lower limit and the palm tilted: a step that
     # ignored the limit would turn the palm back and leave the grasp centre high.

@@ -72,8 +72,8 @@ class ArmIK:
         rows = [Jv]
         if R_target is not None:
             R = X.rotation().matrix()
-            turn = np.stack([np.cross(Jw.T, R[:, j]) for j in (1, 2)], axis=-1)  # [k, i, j]
-            rows.append(self.orientation_weight * turn.transpose(1, 2, 0).reshape(6, self.n_arm))
+            turn = np.stack([_skew(R[:, j]).T @ Jw for j in (1, 2)], axis=1)  # [i, j, k]: (w_k x r_j)_i
+            rows.append(self.orientation_weight * turn.reshape(6, self.n_arm))
         if stay:
             rows.append(stay * np.eye(self.n_arm))
         return np.vstack(rows)
@@ -109,3 +109,8 @@ class ArmIK:
                 free &= ~blocked
             q = np.clip(q + dq, lo, hi)
         return q
+
+
+def _skew(r: np.ndarray) -> np.ndarray:
+    """The matrix of r x . (so w x r = skew(r).T @ w)."""
+    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])

@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 from pydrake.math import RotationMatrix
 from pydrake.multibody.tree import JacobianWrtVariable
-from scipy.optimize import least_squares
 
 
 class ArmIK:
@@ -39,16 +38,39 @@ class ArmIK:
         return X.multiply(self.centre), X.rotation().matrix()
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray, R_target: np.ndarray | None = None,
-              stay: float = 0.0) -> np.ndarray:
+              stay: float = 0.0, max_iterations: int = 200) -> np.ndarray:
         """Arm positions that put the grasp centre at `target`, with the palm rotation near
         `R_target` (when given) and, weighted by `stay` (m per rad), near q_seed: bounded
-        least squares on `residual` with its analytic `residual_jacobian`."""
+        Levenberg-Marquardt on `residual` with its analytic `residual_jacobian`, from q_seed
+        (about 4x cheaper than scipy's least_squares with finite differences, the same
+        solutions to 1e-4 rad: scripts/bench_arm_ik.py)."""
         seed = np.clip(q_seed, self.lo, self.hi)
-        margin = 1e-3 * (self.hi - self.lo)  # start strictly inside the bounds: trf stalls on them
-        start = np.clip(seed, self.lo + margin, self.hi - margin)
+        margin = 1e-3 * (self.hi - self.lo)  # start strictly inside the bounds
+        q = np.clip(seed, self.lo + margin, self.hi - margin)
         args = (target, R_target, stay, seed)
-        return least_squares(self.residual, start, jac=self.residual_jacobian, bounds=(self.lo, self.hi),
-                             xtol=1e-8, args=args).x
+        r = self.residual(q, *args)
+        cost, damping = r @ r, 1e-4
+        for _ in range(max_iterations):
+            J = self.residual_jacobian(q, *args)
+            descent = -J.T @ r  # joints on a limit that descent pushes outward stay; the step is projected
+            free = ~(((q <= self.lo) & (descent < 0)) | ((q >= self.hi) & (descent > 0)))
+            Jf = J[:, free]
+            while True:  # damp more until the step lowers the cost
+                dq = np.zeros_like(q)
+                dq[free] = np.linalg.solve(Jf.T @ Jf + damping * np.eye(int(free.sum())), -Jf.T @ r)
+                q_new = np.clip(q + dq, self.lo, self.hi)
+                r_new = self.residual(q_new, *args)
+                if r_new @ r_new <= cost:
+                    damping = max(damping / 3, 1e-12)
+                    break
+                damping *= 4
+                if damping > 1e6:  # no step lowers the cost: a minimum
+                    return q
+            moved, gain = float(np.max(np.abs(q_new - q))), cost - r_new @ r_new
+            q, r, cost = q_new, r_new, r_new @ r_new
+            if moved < 1e-10 or gain <= 1e-16 * cost:
+                break
+        return q
 
     def residual(self, q_arm: np.ndarray, target: np.ndarray, R_target: np.ndarray | None, stay: float,
                  seed: np.ndarray) -> np.ndarray:
@@ -65,8 +87,7 @@ class ArmIK:
     def residual_jacobian(self, q_arm: np.ndarray, target: np.ndarray, R_target: np.ndarray | None, stay: float,
                           seed: np.ndarray) -> np.ndarray:
         """d residual / d q_arm, analytic: a rotation column r turns as w_k x r, w_k joint k's
-        angular Jacobian column (about 1.5x cheaper solves than finite differences, the
-        same solutions: scripts/bench_arm_ik.py)."""
+        angular Jacobian column."""
         X = self._set_arm(q_arm)
         Jw, Jv = self._jacobian()
         rows = [Jv]

@@ -38,7 +38,7 @@ class ArmIK:
         return X.multiply(self.centre), X.rotation().matrix()
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray, R_target: np.ndarray | None = None,
-              stay: float = 0.0, max_iterations: int = 200) -> np.ndarray:
+              stay: float = 0.0) -> np.ndarray:
         """Arm positions that put the grasp centre at `target`, with the palm rotation near
         `R_target` (when given) and, weighted by `stay` (m per rad), near q_seed: bounded
         Levenberg-Marquardt on `residual` with its analytic `residual_jacobian`, from q_seed
@@ -49,22 +49,22 @@ class ArmIK:
         q = np.clip(seed, self.lo + margin, self.hi - margin)
         args = (target, R_target, stay, seed)
         r = self.residual(q, *args)
-        cost, damping = r @ r, 1e-4
-        for _ in range(max_iterations):
+        cost, mu = r @ r, 1e-4  # mu: the Levenberg-Marquardt damping
+        for _ in range(200):  # (it converges in about ten)
             J = self.residual_jacobian(q, *args)
             descent = -J.T @ r  # joints on a limit that descent pushes outward stay; the step is projected
             free = ~(((q <= self.lo) & (descent < 0)) | ((q >= self.hi) & (descent > 0)))
             Jf = J[:, free]
             while True:  # damp more until the step lowers the cost
                 dq = np.zeros_like(q)
-                dq[free] = np.linalg.solve(Jf.T @ Jf + damping * np.eye(int(free.sum())), -Jf.T @ r)
+                dq[free] = np.linalg.solve(Jf.T @ Jf + mu * np.eye(int(free.sum())), -Jf.T @ r)
                 q_new = np.clip(q + dq, self.lo, self.hi)
                 r_new = self.residual(q_new, *args)
                 if r_new @ r_new <= cost:
-                    damping = max(damping / 3, 1e-12)
+                    mu = max(mu / 3, 1e-12)
                     break
-                damping *= 4
-                if damping > 1e6:  # no step lowers the cost: a minimum
+                mu *= 4
+                if mu > 1e6:  # no step lowers the cost: a minimum
                     return q
             moved, gain = float(np.max(np.abs(q_new - q))), cost - r_new @ r_new
             q, r, cost = q_new, r_new, r_new @ r_new

@@ -57,9 +57,9 @@ class ReactiveRules:
     blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
     stopped_speed: float = 0.05  # arm joints slower than this (m/s or rad/s) have stopped
     above_xy: float = 0.015  # horizontally within this of the grasp point: descend (m) ...
-    keep_xy: float = 0.03  # fingers that have started closing keep closing within this (m)
     descend_cone: float = 0.0  # ... plus this much per metre above it (arms whose joint-space descent bows)
     funnel: float = 0.02  # beyond that tolerance the target rises to the approach way-point over this (m)
+    keep_xy: float = 0.03  # fingers that have started closing keep closing horizontally within this (m)
     touch: float = 0.008  # a fingertip this close to the surface touches it (m)
     fingers_touching: int = 1  # the thumb and this many other fingertips touching hold the object
     closed_hold: float = 0.5  # ... as do settled fingers closed this far

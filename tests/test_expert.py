@@ -107,6 +107,7 @@ def test_fingers_that_started_closing_keep_closing_near_the_grasp_and_open_beyon
         assert closing == (expert.phase == "close")
     assert list(phases.values()) == ["close", "close", "open"], phases
 
+
 def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     # A grasp low on the table needs ARTy on its lower limit and the palm tilted: a step that
     # ignored the limit would turn the palm back and leave the grasp centre high.
@@ -133,6 +134,7 @@ def test_ik_jacobian_is_the_residual_derivative_and_solves_reach(can_env):
         np.testing.assert_allclose(ik.residual_jacobian(q, *args), numeric, atol=1e-6)
     q = ik.solve(grasp.plan.grasp, grasp.q_above, grasp.R_grasp)
     np.testing.assert_allclose(ik.palm_pose(q)[0], grasp.plan.grasp, atol=1e-4)
+
 
 def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_others():
     from dexdrake.errors import DexdrakeError

@@ -19,7 +19,10 @@ visits (DAgger) and re-tries when a grasp fails:
   above it (continuous in the state, so a cloned policy can follow it).
 
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
-toward the phase's way-point, so the label always says which way to move. The label is a
+toward the phase's way-point, so the label always says which way to move. A lift starts
+gently (`lift_start_lead`) until the object has risen: "close" (arm held at the grasp) and
+"lift" differ by the fingers' speed, which a policy does not observe, and a policy that blended
+a fast lift into its closing rose before its fingers had closed. The label is a
 function of the state, not of the episode's past, so a policy can clone it: the way-points
 are solved from one fixed arm seed (the pre-grasp pose) and re-planned whenever the grasp for
 the object's pose has moved or turned (`replan_shift`, `replan_turn`) before the fingers
@@ -55,7 +58,8 @@ class ReactiveRules:
     max_lead: float = 0.3  # largest arm set-point lead per joint (normalised action units)
     at_grasp: float = 0.015  # grasp centre within this of the grasp point: close (m)
     blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
-    stopped_speed: float = 0.05  # arm joints slower than this (m/s or rad/s) have stopped
+    stopped_speed: float = 0.15  # arm joints slower than this (m/s or rad/s) have stopped (a policy's
+    # arm blocked above the grasp jitters at about 0.17; 0.05 never let it close there)
     above_xy: float = 0.015  # horizontally within this of the grasp point: descend (m) ...
     descend_cone: float = 0.0  # ... plus this much per metre above it (arms whose joint-space descent bows)
     funnel: float = 0.02  # beyond that tolerance the target rises to the approach way-point over this (m)
@@ -64,7 +68,8 @@ class ReactiveRules:
     fingers_touching: int = 1  # the thumb and this many other fingertips touching hold the object
     closed_hold: float = 0.5  # ... as do settled fingers closed this far
     hold_reach: float = 0.05  # ... with the grasp centre within this of the grasp point (m)
-    lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units)
+    lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units) ...
+    lift_start_lead: float = 0.1  # ... and before the object has risen `lifted`
     started: float = 0.05  # closure fraction above which the fingers have started closing
     closed: float = 0.35  # closure fraction above which the fingers count as closed
     missed: float = 0.9  # fingers this closed without holding have missed
@@ -170,7 +175,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
         out = np.array(fingers, dtype=float)
-        lead = r.lift_lead if self.phase == "lift" else r.max_lead
+        lead = (r.lift_lead if lifted else r.lift_start_lead) if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 

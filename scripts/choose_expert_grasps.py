@@ -5,7 +5,8 @@
 Each variant (overrides of the hand's GraspScript: the closed pose, how far the fingers
 close, the lowest grasp-centre height) runs the expert (ReactiveGrasp) on every training
 object for the given seeds; the variant with the most successes wins (ties: the earlier
-variant, the hand's default first).
+variant, the hand's default first). A variant stops trying seeds once it can no longer beat
+the best so far (`best_variant`), which chooses exactly as trying every seed would.
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
 reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
@@ -18,6 +19,7 @@ import argparse
 import json
 import multiprocessing as mp
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 
 from tqdm import tqdm
@@ -34,7 +36,24 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
 }
 
 
-def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, dict[str, list[bool]]]:
+def best_variant(variants: list[str], seeds: list[int], succeeds: Callable[[str, int], bool]) -> tuple[str, dict[str, list[bool]]]:
+    """The variant with the most successes over `seeds` (ties: the earlier one), and each
+    variant's outcomes on the seeds it tried: a variant stops once even success on all its
+    remaining seeds could not beat the best so far, so it could not have been chosen."""
+    best, best_count, tried = variants[0], -1, {}
+    for variant in variants:
+        outcomes: list[bool] = []
+        for seed in seeds:
+            if sum(outcomes) + len(seeds) - len(outcomes) <= best_count:
+                break
+            outcomes.append(succeeds(variant, seed))
+        tried[variant] = outcomes
+        if len(outcomes) == len(seeds) and sum(outcomes) > best_count:
+            best, best_count = variant, sum(outcomes)
+    return best, tried
+
+
+def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, str, dict[str, list[bool]]]:
     hand, name, seeds, horizon = args
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
@@ -43,11 +62,12 @@ def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, dict[str,
 
     env = GraspEnv(SceneConfig(hand=hand, object=name), horizon=horizon)
     default = script_for(env.scene.hand)
-    results = {}
-    for variant, overrides in VARIANTS.items():
-        script = replace(default, **overrides)
-        results[variant] = [env.rollout(lambda e: ReactiveGrasp(e, script), seed).success for seed in seeds]
-    return name, results
+
+    def succeeds(variant: str, seed: int) -> bool:
+        script = replace(default, **VARIANTS[variant])
+        return env.rollout(lambda e: ReactiveGrasp(e, script), seed).success
+
+    return name, *best_variant(list(VARIANTS), seeds, succeeds)
 
 
 def main() -> None:
@@ -64,19 +84,18 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     names = [o.name for o in list_objects("train")]
     jobs = [(args.hand, n, seeds, args.horizon) for n in names]
-    trials: dict[str, dict[str, list[bool]]] = {}
-    with mp.get_context("spawn").Pool(args.workers) as pool:
-        for name, results in tqdm(pool.imap_unordered(_trial_object, jobs), total=len(jobs), desc="objects"):
-            trials[name] = results
     objects = {}
-    for name in names:
-        counts = {v: sum(ok) for v, ok in trials[name].items()}
-        best = max(VARIANTS, key=lambda v: (counts[v], -list(VARIANTS).index(v)))
-        objects[name] = {"variant": best, "successes": counts}
-        print(f"{name:18s} {best:10s} " + " ".join(f"{v}={c}/{len(seeds)}" for v, c in counts.items()))
-    totals = {v: sum(o["successes"][v] for o in objects.values()) for v in VARIANTS}
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        for name, best, tried in tqdm(pool.imap_unordered(_trial_object, jobs), total=len(jobs), desc="objects"):
+            objects[name] = {"variant": best, "successes": {v: sum(ok) for v, ok in tried.items()},
+                             "tries": {v: len(ok) for v, ok in tried.items()}}
+    objects = {name: objects[name] for name in names}
+    for name, o in objects.items():
+        print(f"{name:18s} {o['variant']:10s} " + " ".join(f"{v}={o['successes'][v]}/{o['tries'][v]}" for v in VARIANTS))
     chosen = sum(o["successes"][o["variant"]] for o in objects.values())
-    print(f"per variant: {totals}; chosen per object: {chosen}/{len(names) * len(seeds)}")
+    tries = sum(sum(o["tries"].values()) for o in objects.values())
+    print(f"chosen per object: {chosen}/{len(names) * len(seeds)}; {tries} of {len(names) * len(seeds) * len(VARIANTS)} "
+          "trials run (the rest could not change a choice)")
     table = {"hand": args.hand, "command": f"python {' '.join(sys.argv)}", "seeds": seeds,
              "horizon": args.horizon, "variants": VARIANTS, "objects": objects}
     out = expert_grasps_path(args.hand)

@@ -219,3 +219,25 @@ def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_v
         counts = entry["successes"]
         assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())
         reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)
+
+
+def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_trying_all():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "choose_expert_grasps.py"
+    spec = importlib.util.spec_from_file_location("choose_expert_grasps", path)
+    chooser = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(chooser)
+    rng = np.random.default_rng(0)
+    variants, seeds = ["a", "b", "c", "d"], [10, 11, 12, 13]
+    for _ in range(200):
+        table = {(v, s): bool(rng.random() < p) for v, p in zip(variants, rng.random(4)) for s in seeds}
+        calls = []
+        best, tried = chooser.best_variant(variants, seeds, lambda v, s: calls.append((v, s)) or table[v, s])
+        counts = {v: sum(table[v, s] for s in seeds) for v in variants}
+        assert best == max(variants, key=lambda v: (counts[v], -variants.index(v)))  # as if all were tried
+        assert all(tried[v] == [table[v, s] for s in seeds[: len(tried[v])]] for v in variants)
+        assert len(calls) == sum(map(len, tried.values()))
+    best, tried = chooser.best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
+    assert best == "a" and [len(tried[v]) for v in variants] == [4, 0, 0, 0]

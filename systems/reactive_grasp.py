@@ -70,7 +70,7 @@ class ReactiveRules:
     closed_hold: float = 0.5  # ... as do settled fingers closed this far
     hold_reach: float = 0.05  # ... with the grasp centre within this of the grasp point (m)
     lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units) ...
-    lift_start_lead: float = 0.2  # ... and before the object has risen `lifted`
+    lift_start_lead: float = 0.2  # ... at most this before the object has risen `lifted`
     started: float = 0.05  # closure fraction above which the fingers have started closing
     closed: float = 0.35  # closure fraction above which the fingers count as closed
     missed: float = 0.9  # fingers this closed without holding have missed
@@ -177,7 +177,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
         out = np.array(fingers, dtype=float)
-        lead = (r.lift_lead if lifted else r.lift_start_lead) if self.phase == "lift" else r.max_lead
+        lead = (r.lift_lead if lifted else min(r.lift_lead, r.lift_start_lead)) if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 

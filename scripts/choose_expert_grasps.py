@@ -33,6 +33,13 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
     "power_floor_25": {"min_height": 0.025},  # ... or 2.5 cm (the default plans it below the table)
     "oppose_80_floor_10": {"closed_pose": "oppose", "closure": 0.8, "min_height": 0.01},
     "oppose_80_floor_25": {"closed_pose": "oppose", "closure": 0.8, "min_height": 0.025},
+    # flat and hollow objects: the thumb pre-shaped to oppose before the descent, the grasp centre
+    # 1.5 cm below the top (a fingertip pinch; a rim pinch on a deep bowl) or 7 cm (a stem)
+    "pinch_15": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.015, "tall_palm_depth": 0.015},
+    "pinch_15_reach_40_80": {"closed_pose": "oppose", "open_pose": "oppose", "closure": 0.8, "palm_depth": 0.015,
+                             "tall_palm_depth": 0.015, "reach": -0.04},
+    "stem_70": {"closed_pose": "oppose", "open_pose": "oppose", "closure": 0.8, "palm_depth": 0.07,
+                "tall_palm_depth": 0.07, "reach": -0.04},
 }
 
 

@@ -37,6 +37,7 @@ class GraspScript:
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
     closed_pose: str = ""  # a named hand-description grasp pose for some joints ("": closing rule only)
+    open_pose: str = ""  # a named grasp pose the open hand already takes (e.g. the thumb pre-shaped to oppose)
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
     ik_damping: float = 1e-3  # damping of `ArmIK.step`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
@@ -56,20 +57,30 @@ def script_for(hand: HandDescription) -> GraspScript:
     return with_overrides(GraspScript, hand.grasp_script, hand, "grasp_script")
 
 
-def closed_pose(hand: HandDescription, closure: float = 1.0, pose: str = "") -> np.ndarray:
-    """Finger set-points of a power grasp: the pre-grasp pose moved toward each joint's
-    limit in the flexion direction (`hand.closing` signs), arm joints untouched; the joints
-    of the hand's grasp pose named `pose` (if any) take that pose's set-points instead."""
+def open_pose(hand: HandDescription, pose: str = "") -> np.ndarray:
+    """The pre-grasp pose, with the joints of the hand's grasp pose named `pose` (if any) at
+    that pose's set-points (clamped into the joint limits)."""
     if pose and pose not in hand.grasp_poses:
         raise DexdrakeError(f"hand {hand.name!r} has no grasp pose {pose!r}; known: {sorted(hand.grasp_poses)}")
     named = hand.grasp_poses.get(pose, {})
     lo, hi = hand.joint_limits()
     q = hand.pregrasp_vector()
     for i, joint in enumerate(hand.policy_joints):
-        sign = hand.closing.get(joint, 0.0)
         if joint in named:
             q[i] = np.clip(named[joint], lo[i], hi[i])
-        elif sign > 0:
+    return q
+
+
+def closed_pose(hand: HandDescription, closure: float = 1.0, pose: str = "") -> np.ndarray:
+    """Finger set-points of a power grasp: the pre-grasp pose moved toward each joint's
+    limit in the flexion direction (`hand.closing` signs), arm joints untouched; the joints
+    of the hand's grasp pose named `pose` (if any) take that pose's set-points instead."""
+    q = open_pose(hand, pose)
+    named = hand.grasp_poses.get(pose, {})
+    lo, hi = hand.joint_limits()
+    for i, joint in enumerate(hand.policy_joints):
+        sign = 0.0 if joint in named else hand.closing.get(joint, 0.0)
+        if sign > 0:
             q[i] += closure * (hi[i] - q[i])
         elif sign < 0:
             q[i] += closure * (lo[i] - q[i])
@@ -144,7 +155,7 @@ class ScriptedGrasp:
         self.ik = ArmIK(env.scene, self.script.orientation_weight, self.script.ik_damping)
         self.n_arm = len(self.hand.arm_joints)
         self.lo, self.hi = self.hand.joint_limits()
-        self.q_open = self.hand.pregrasp_vector()
+        self.q_open = open_pose(self.hand, self.script.open_pose)
         self.q_closed = closed_pose(self.hand, self.script.closure, self.script.closed_pose)
         self.R_pregrasp = self.ik.palm_pose(self.q_open[: self.n_arm])[1]  # the palm's rotation every grasp turns from
         self._plan(env)

@@ -176,6 +176,26 @@ def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_oth
         closed_pose(hand, 1.0, "pinch")
 
 
+def test_a_hand_pre_shaped_for_the_grasp_approaches_in_that_pose_and_closes_the_rest(can_env):
+    from dataclasses import replace
+
+    from dexdrake.systems.scripted_grasp import script_for
+
+    can_env.reset(0)
+    hand = can_env.scene.hand
+    expert = ReactiveGrasp(can_env, replace(script_for(hand), closed_pose="oppose", open_pose="oppose"))
+    named, pregrasp = hand.grasp_poses["oppose"], hand.pregrasp_vector()
+    for i, joint in enumerate(hand.policy_joints):
+        if joint in named:  # already in the grasp pose before the descent: no part of the closing
+            assert expert.q_open[i] == expert.q_closed[i] != pregrasp[i]
+        else:
+            assert expert.q_open[i] == pregrasp[i]
+    assert expert.closure(expert.q_open) == 0.0 and expert.closure(expert.q_closed) == pytest.approx(1.0)
+    label = expert(can_env)  # at the start the hand is told to take the pose while it approaches
+    assert expert.phase == "approach"
+    np.testing.assert_array_equal(label[expert.n_arm :], expert.q_open[expert.n_arm :])
+
+
 def test_grasp_pose_naming_an_unknown_joint_is_refused():
     from dexdrake.errors import DexdrakeError
     from dexdrake.hands.description import _grasp_poses

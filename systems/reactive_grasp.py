@@ -19,11 +19,7 @@ visits (DAgger) and re-tries when a grasp fails:
   above it (continuous in the state, so a cloned policy can follow it).
 
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
-toward the phase's way-point, so the label always says which way to move. "Close" and "lift"
-differ by the fingers' speed, which a policy does not observe, so their arm labels are kept
-near each other: closed fingers squeeze where the hand is, and a lift starts gently
-(`lift_start_lead`) until the object has risen (a policy that blended a fast lift into its
-closing rose before its fingers had closed). The label is a
+toward the phase's way-point, so the label always says which way to move. The label is a
 function of the state, not of the episode's past, so a policy can clone it: the way-points
 are solved from one fixed arm seed (the pre-grasp pose) and re-planned whenever the grasp for
 the object's pose has moved or turned (`replan_shift`, `replan_turn`) before the fingers
@@ -69,8 +65,7 @@ class ReactiveRules:
     fingers_touching: int = 1  # the thumb and this many other fingertips touching hold the object
     closed_hold: float = 0.5  # ... as do settled fingers closed this far
     hold_reach: float = 0.05  # ... with the grasp centre within this of the grasp point (m)
-    lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units) ...
-    lift_start_lead: float = 0.2  # ... at most this before the object has risen `lifted`
+    lift_lead: float = 0.3  # arm set-point lead while lifting (normalised action units)
     started: float = 0.05  # closure fraction above which the fingers have started closing
     closed: float = 0.35  # closure fraction above which the fingers count as closed
     missed: float = 0.9  # fingers this closed without holding have missed
@@ -167,8 +162,7 @@ class ReactiveGrasp(ScriptedGrasp):
         elif np.linalg.norm(offset) < r.at_grasp or above < r.blocked_height and (
             aside < r.above_xy and arm_stopped or aside < r.keep_xy and closure > r.started
         ):
-            self.phase, fingers = "close", self.q_closed
-            arm = q[: self.n_arm] if closure > r.closed else self.q_grasp  # closed: squeeze where the hand is
+            self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
         elif closure > r.missed or (closure > r.closed and not aside < r.keep_xy):
             self.phase, arm = "open", q[: self.n_arm]
         else:  # a funnel: the farther off horizontally, the closer the target to the approach way-point
@@ -177,7 +171,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
         out = np.array(fingers, dtype=float)
-        lead = (r.lift_lead if lifted else min(r.lift_lead, r.lift_start_lead)) if self.phase == "lift" else r.max_lead
+        lead = r.lift_lead if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 

@@ -108,24 +108,24 @@ def test_fingers_that_started_closing_keep_closing_near_the_grasp_and_open_beyon
     assert list(phases.values()) == ["close", "close", "open"], phases
 
 
-def test_lift_starts_gently_until_the_object_has_risen(can_env):
+def test_a_hand_blocked_above_the_grasp_closes_though_its_arm_jitters(can_env):
+    # A cloned policy's arm blocked 2 cm above the grasp point jitters at ~0.17 (m/s or rad/s):
+    # the label says close there, and descend while the arm still moves fast.
     can_env.reset(0)
     expert = ReactiveGrasp(can_env)
     r, plant, ctx = expert.rules, can_env.scene.plant, can_env.plant_context
-    assert r.lift_start_lead < r.lift_lead
     q = plant.GetPositions(ctx)
-    q[can_env.scene.q_index] = np.r_[expert.q_grasp[: expert.n_arm], expert.q_closed[expert.n_arm :]]
+    q[can_env.scene.q_index] = np.r_[expert.ik.solve(expert.grasp_point + [0.0, 0.0, 0.02], expert.q_grasp, expert.R_grasp),
+                                     expert.q_open[expert.n_arm :]]
     plant.SetPositions(ctx, q)
-    plant.SetVelocities(ctx, np.zeros(plant.num_velocities()))  # fingers closed and settled at the grasp
-    X = plant.GetFreeBodyPose(ctx, can_env.scene.object_body)
-    leads = {}
-    for rise in (0.0, 2 * r.lifted):
-        plant.SetFreeBodyPose(ctx, can_env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0, 0, rise]))
-        label = expert(can_env)
-        assert expert.phase == "lift"
-        leads[rise] = float(np.max(np.abs(can_env.normalise(label) - can_env.normalise(q[can_env.scene.q_index]))[: expert.n_arm]))
-    assert leads[0.0] == pytest.approx(r.lift_start_lead, abs=1e-6)
-    assert leads[2 * r.lifted] == pytest.approx(r.lift_lead, abs=1e-6)
+    phases = []
+    for speed in (0.1, 2 * r.stopped_speed):
+        v = np.zeros(plant.num_velocities())
+        v[can_env.scene.v_index[0]] = speed  # ARTx
+        plant.SetVelocities(ctx, v)
+        expert(can_env)
+        phases.append(expert.phase)
+    assert phases == ["close", "descend"]
 
 
 def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):

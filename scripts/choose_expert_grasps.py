@@ -2,8 +2,8 @@
 
     python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,101,102] [--workers 2]
 
-Each variant (overrides of the hand's GraspScript: the closed pose, how far the fingers
-close, the lowest grasp-centre height) runs the expert (ReactiveGrasp) on every training
+Each variant (overrides of the hand's GraspScript: the open and closed poses, how far the
+fingers close, the grasp centre's depth, reach and floor) runs the expert (ReactiveGrasp) on every training
 object for the given seeds; the variant with the most successes wins (ties: the earlier
 variant, the hand's default first). A variant stops trying seeds once it can no longer beat
 the best so far (`best_variant`), which chooses exactly as trying every seed would.

@@ -4,8 +4,6 @@ are independent of scripts/build_adroit_model.py."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -368,12 +366,8 @@ def test_pregrasp_thumb_opposes_fingers():
     assert np.linalg.norm(th - ff) < 0.12
 
 
-def test_committed_models_match_generator(monkeypatch):
-    spec = importlib.util.spec_from_file_location(
-        "build_adroit_model", REPO / "scripts" / "build_adroit_model.py")
-    gen = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, gen)  # dataclasses look their module up
-    spec.loader.exec_module(gen)
+def test_committed_models_match_generator(load_script):
+    gen = load_script("build_adroit_model")
     for name, fingers in gen.VARIANTS.items():
         assert gen.build_sdf(name, fingers) == (REPO / f"models/adroit/{name}.sdf").read_text()
         assert gen.build_hand_yaml(name, fingers) == \

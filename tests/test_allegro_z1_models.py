@@ -5,7 +5,6 @@ and the Allegro bus units, checked against tables transcribed here from the spec
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,14 +151,9 @@ def test_model_parses_with_expected_dofs_and_actuators(rel):
         assert gains.p > 0 and gains.d > 0
 
 
-def test_models_are_regenerated_identically(tmp_path):
+def test_models_are_regenerated_identically(tmp_path, load_script):
     """The committed model files are exactly what the generator writes."""
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "build_allegro_models.py"
-    spec = importlib.util.spec_from_file_location("build_allegro_models", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("build_allegro_models")
     for written in module.write_models(tmp_path):
         rel = written.relative_to(tmp_path)
         assert written.read_text() == (models_dir() / rel).read_text(), rel

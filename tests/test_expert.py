@@ -241,14 +241,8 @@ def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_v
         reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)
 
 
-def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_trying_all():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "choose_expert_grasps.py"
-    spec = importlib.util.spec_from_file_location("choose_expert_grasps", path)
-    chooser = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(chooser)
+def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_trying_all(load_script):
+    chooser = load_script("choose_expert_grasps")
     rng = np.random.default_rng(0)
     variants, seeds = ["a", "b", "c", "d"], [10, 11, 12, 13]
     for _ in range(200):

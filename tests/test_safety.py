@@ -130,20 +130,9 @@ def test_period_stats():
     assert still["rate_hz"] == math.inf and still["max_ms"] == 0.0
 
 
-def _fuzz_script():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "fuzz_hardware.py"
-    spec = importlib.util.spec_from_file_location("fuzz_hardware", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_fuzzed_can_frames_are_counted_and_faults_latched():
+def test_fuzzed_can_frames_are_counted_and_faults_latched(load_script):
     """A small run of scripts/fuzz_hardware.py (the volume run: 100k frames)."""
-    fuzz = _fuzz_script()
+    fuzz = load_script("fuzz_hardware")
     result = fuzz.fuzz_can(2000, seed=3)
     assert fuzz.passed(result), result
     assert result["bad"] > 500 and result["counted_bad"] == result["bad"]
@@ -152,8 +141,8 @@ def test_fuzzed_can_frames_are_counted_and_faults_latched():
         assert result["frame_errors"].get(kind, 0) > 0, result["frame_errors"]
 
 
-def test_fuzzed_udp_datagrams_are_counted_and_faults_latched():
-    fuzz = _fuzz_script()
+def test_fuzzed_udp_datagrams_are_counted_and_faults_latched(load_script):
+    fuzz = load_script("fuzz_hardware")
     result = fuzz.fuzz_udp(1000, seed=3)
     assert fuzz.passed(result), result
     assert result["client_bad"] > 100 and result["emulator_bad"] > 100

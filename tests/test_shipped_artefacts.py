@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import csv
 import hashlib
-import importlib.util
 import json
 import re
 import shlex
@@ -117,16 +116,13 @@ def test_readme_quotes_the_manifest(name):
                                               sum(m["episodes"] for m in per_object)), (label, row)
 
 
-def test_ablation_markdown_and_csv_hold_the_same_rows():
+def test_ablation_markdown_and_csv_hold_the_same_rows(load_script):
     md_rows = _table_rows((WEIGHTS / "eval_ablations.md").read_text())
     with open(WEIGHTS / "eval_ablations.csv", newline="") as f:
         reader = csv.reader(f)
         header = next(reader)
         csv_rows = list(reader)
-    spec = importlib.util.spec_from_file_location("ablations", ROOT / "scripts" / "ablations.py")
-    ablations = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ablations)
-    assert tuple(header) == ablations.COLUMNS
+    assert tuple(header) == load_script("ablations").COLUMNS
     assert csv_rows == md_rows
 
 
@@ -145,7 +141,7 @@ class _Parsed(Exception):
     pass
 
 
-def _parse_script(argv: list[str], monkeypatch) -> None:
+def _parse_script(argv: list[str], monkeypatch, load_script) -> None:
     """Parse `python scripts/x.py ARGS` with the script's own parser, stopping right after."""
     original = argparse.ArgumentParser.parse_args
 
@@ -153,16 +149,14 @@ def _parse_script(argv: list[str], monkeypatch) -> None:
         original(self, args, namespace)
         raise _Parsed
 
-    spec = importlib.util.spec_from_file_location(Path(argv[0]).stem, ROOT / argv[0])
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script(Path(argv[0]).stem)
     with monkeypatch.context() as patch, pytest.raises(_Parsed):
         patch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
         patch.setattr(sys, "argv", argv)
         module.main()
 
 
-def test_every_command_in_a_table_parses_as_written(monkeypatch):
+def test_every_command_in_a_table_parses_as_written(monkeypatch, load_script):
     commands = _commands()
     assert len(commands) >= 8
     for command in commands:
@@ -174,4 +168,4 @@ def test_every_command_in_a_table_parses_as_written(monkeypatch):
                 assert (ROOT / str(args.policy)).is_file(), command
         else:
             assert argv[0] == "python" and argv[1].startswith("scripts/"), command
-            _parse_script(argv[1:], monkeypatch)
+            _parse_script(argv[1:], monkeypatch, load_script)

@@ -22,6 +22,7 @@ from dexdrake.objects.library import (
     remove_user_object,
 )
 from dexdrake.objects.meshfile import content_hash, is_stable_rest, load_obj, obj_bytes
+from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 
 SHIPPED = shapes.recipe_names()  # test_counts_and_splits_match_recipes checks this is the shipped set
 
@@ -123,12 +124,27 @@ def test_shipped_sdfs_parse_with_mass_inertia_and_geometry(no_coacd):
         assert np.all(np.linalg.eigvalsh(inertia) > 0)
         ids = plant.GetCollisionGeometriesForBody(body)
         names = [inspector.GetName(g) for g in ids]
-        assert len(ids) == len(info.convex_pieces()) + 1
+        supports = sum(len(support_centres(p)) for p in info.convex_pieces())
+        assert supports >= 4 and sum("::support_" in n for n in names) == supports
+        assert len(ids) == len(info.convex_pieces()) + supports + 1
         assert sum(n.endswith(DISTANCE_GEOMETRY_NAME) for n in names) == 1
         props = inspector.GetProperties(ids[0], Role.kProximity)
         friction = props.GetProperty("material", "coulomb_friction")
         assert friction.static_friction() == 1.0 and friction.dynamic_friction() == 1.0
     assert info.sdf_path().read_text().count("drake:declare_convex") == len(info.convex_pieces())
+
+
+def test_support_spheres_sit_in_a_box_pieces_corners_and_none_fits_a_sliver(tmp_path):
+    box, sliver = tmp_path / "box.obj", tmp_path / "sliver.obj"
+    box.write_text(trimesh.creation.box((0.08, 0.06, 0.01)).export(file_type="obj"))
+    sliver.write_text(trimesh.creation.box((0.08, 0.06, SPHERE_RADIUS)).export(file_type="obj"))
+    centres = support_centres(box)
+    corners = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.005, 0.005)])
+    inset = corners - SPHERE_RADIUS * np.sign(corners)
+    assert len(centres) == 8
+    np.testing.assert_allclose(np.sort(centres, axis=0), np.sort(inset, axis=0), atol=1e-9)
+    assert centres[0][2] < 0  # sampling starts at the lowest vertex
+    assert support_centres(sliver).shape == (0, 3)
 
 
 def _scene(names):
@@ -151,7 +167,7 @@ def _scene(names):
     return builder.Build(), plant, scene_graph
 
 
-@pytest.mark.parametrize("name", ["mug", "sphere_small", "toothbrush", "banana"])
+@pytest.mark.parametrize("name", ["mug", "sphere_small", "toothbrush", "banana", "phone", "knife_chef", "box_cube"])
 def test_object_dropped_on_table_rests_at_rest_height(name, no_coacd):
     from pydrake.math import RigidTransform
     from pydrake.systems.analysis import Simulator

@@ -4,9 +4,10 @@ Every object has a watertight, outward-wound mesh in its OBJECT FRAME (origin = 
 mass, z up, identity = a stable resting pose), convex pieces for contact and a Drake SDF.
 Mass 0.5 kg and friction 1 follow the DexRepNet experiment settings.
 
-Contact vs distance: the SDF's collision elements are the convex pieces plus ONE extra
-element named DISTANCE_GEOMETRY_NAME holding the true (non-convex) mesh for SceneGraph
-signed-distance queries. Drake would use that mesh's convex hull for point contact, so every
+Contact vs distance: the SDF's collision elements are the convex pieces, small support
+spheres in their corners (objects/support.py: a resting face gets several contact points),
+plus ONE extra element named DISTANCE_GEOMETRY_NAME holding the true (non-convex) mesh for
+SceneGraph signed-distance queries. Drake would use that mesh's convex hull for point contact, so every
 scene must call `exclude_distance_geometry_from_contact(scene_graph)` once all models are
 added (before creating contexts).
 """
@@ -26,6 +27,7 @@ from dexdrake.objects import importer, store
 from dexdrake.objects.convex import cached_pieces, piece_files, pieces_key
 from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj, write_atomic
 from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
+from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 from dexdrake.paths import cache_dir
 
 SPLITS = ("train", "unseen", "user")
@@ -82,7 +84,10 @@ class ObjectInfo:
     def sdf_text(self, model_name: str | None = None) -> str:
         """The SDF text, with the model (and link) named `model_name` (default: the object name)."""
         inertia = inertia_about_com(load_obj(self.mesh_path), self.mass)
-        return object_sdf(model_name or self.name, self.mesh_path, self.convex_pieces(), self.mass, inertia, self.friction)
+        pieces = self.convex_pieces()
+        supports = np.concatenate([support_centres(p) for p in pieces])
+        return object_sdf(model_name or self.name, self.mesh_path, pieces, self.mass, inertia, self.friction,
+                          supports, SPHERE_RADIUS)
 
 
 @cache

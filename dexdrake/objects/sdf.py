@@ -38,8 +38,11 @@ def object_sdf(
     mass: float,
     inertia: np.ndarray,
     friction: float,
+    supports: np.ndarray,
+    support_radius: float,
 ) -> str:
-    """SDF text of a free rigid object whose link frame is the object frame (origin = COM).
+    """SDF text of a free rigid object whose link frame is the object frame (origin = COM),
+    with contact spheres of `support_radius` at the (k, 3) `supports` (objects/support.py).
 
     Paths are written absolute so the text can be parsed from anywhere (AddModelsFromString).
     """
@@ -48,6 +51,10 @@ def object_sdf(
         f'<collision name="convex_{k:02d}"><geometry><mesh><uri>{_uri(p)}</uri><drake:declare_convex/>'
         f"</mesh></geometry>{_proximity(friction)}</collision>\n      "
         for k, p in enumerate(pieces)
+    ) + "".join(
+        f'<collision name="support_{k:02d}"><pose>{c[0]:.6g} {c[1]:.6g} {c[2]:.6g} 0 0 0</pose>'
+        f"<geometry><sphere><radius>{support_radius:.6g}</radius></sphere></geometry>{_proximity(friction)}</collision>\n      "
+        for k, c in enumerate(supports)
     )
     return f"""<?xml version="1.0"?>
 <sdf version="1.9" xmlns:drake="http://drake.mit.edu">

@@ -7,9 +7,9 @@ Mass 0.5 kg and friction 1 follow the DexRepNet experiment settings.
 Contact vs distance: the SDF's collision elements are the convex pieces, small support
 spheres in their corners (objects/support.py: a resting face gets several contact points),
 plus ONE extra element named DISTANCE_GEOMETRY_NAME holding the true (non-convex) mesh for
-SceneGraph signed-distance queries. Drake would use that mesh's convex hull for point contact, so every
-scene must call `exclude_distance_geometry_from_contact(scene_graph)` once all models are
-added (before creating contexts).
+SceneGraph signed-distance queries. Drake would use that mesh's convex hull for point
+contact, so every scene must call `exclude_distance_geometry_from_contact(scene_graph)` once
+all models are added (before creating contexts).
 """
 
 from __future__ import annotations

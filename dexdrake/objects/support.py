@@ -24,11 +24,12 @@ SPHERES_PER_PIECE = 8  # a box's corners; a round or flat piece's extremes
 SPHERE_RADIUS = 5e-4  # m
 
 
-def support_centres(piece: Path, count: int = SPHERES_PER_PIECE, radius: float = SPHERE_RADIUS) -> np.ndarray:
-    """(k, 3) centres, k <= count, of spheres of `radius` at the piece's extreme vertices.
+def support_centres(piece: Path) -> np.ndarray:
+    """(k, 3) centres, k <= SPHERES_PER_PIECE, of spheres of SPHERE_RADIUS at the piece's
+    extreme vertices.
 
     Vertices are farthest-point sampled on the piece's hull from its lowest one; each centre
-    sits `radius` inside every hull face at its vertex (least squares where more than three
+    sits the radius inside every hull face at its vertex (least squares where more than three
     faces meet), so the sphere touches the vertex's faces; a sphere that would stick out of
     the piece by more than a tenth of its radius (a piece thinner than the sphere, a sliver)
     is left out.
@@ -38,14 +39,14 @@ def support_centres(piece: Path, count: int = SPHERES_PER_PIECE, radius: float =
     offsets = np.einsum("ij,ij->i", normals, vertices[faces[:, 0]])
     chosen = [int(np.argmin(vertices[:, 2]))]
     distance = np.linalg.norm(vertices - vertices[chosen[0]], axis=1)
-    while len(chosen) < min(count, len(vertices)):
+    while len(chosen) < min(SPHERES_PER_PIECE, len(vertices)):
         chosen.append(int(np.argmax(distance)))
         distance = np.minimum(distance, np.linalg.norm(vertices - vertices[chosen[-1]], axis=1))
     centres = []
     for i in chosen:
         n = normals[(faces == i).any(axis=1)]
-        offset = np.linalg.lstsq(n, -radius * np.ones(len(n)), rcond=None)[0]
+        offset = np.linalg.lstsq(n, -SPHERE_RADIUS * np.ones(len(n)), rcond=None)[0]
         centre = vertices[i] + offset
-        if (offsets - normals @ centre).min() >= 0.9 * radius:  # depth inside the piece
+        if (offsets - normals @ centre).min() >= 0.9 * SPHERE_RADIUS:  # depth inside the piece
             centres.append(centre)
     return np.array(centres).reshape(-1, 3)

@@ -96,6 +96,10 @@ def main() -> None:
     name = f"{args.hand}_dexrep_policy"
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     target = weights / f"{name}.pt"
+    from dexdrake.learn.policy import load_policy
+
+    init = (load_policy(policy)[1].get("dagger_config") or {}).get("init")  # relative paths are the repository's
+    init_sha256 = sha256(ROOT / init) if init and (ROOT / init).is_file() else None  # before shipping may overwrite it
     write_atomic(target, policy.read_bytes())
     metrics = {}
     for label in ("seen", "unseen"):
@@ -114,10 +118,12 @@ def main() -> None:
 
     from dexdrake.dexrep.pointnet import default_encoder_path
     from dexdrake.learn.curves import read_csv
-    from dexdrake.learn.policy import load_policy
 
     net, meta = load_policy(target)
     dagger_config = meta.get("dagger_config") or {}
+    iterations = read_csv(dagger / "dagger_log.csv")
+    samples = meta.get("samples") or next((int(r["samples_total"]) for r in iterations
+                                           if int(r["iteration"]) == meta.get("iteration")), None)
     if args.dagger:
         log.insert(0, {"command": meta.get("command"), "note": f"the last command that ran DAgger in {dagger} "
                        "(earlier iterations may have run under the arguments their data files record)"})
@@ -133,11 +139,12 @@ def main() -> None:
         "training": {
             "stages": "DAgger (behaviour cloning on expert-labelled states, aggregated over iterations); no DAPG",
             "dagger": dagger_config,
-            "iterations": read_csv(dagger / "dagger_log.csv"),
+            "init_sha256": init_sha256,  # the policy DAgger started from (its "init"), as it was when this ran
+            "iterations": iterations,
             "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },
         "dataset": {"source": DATA_SOURCE, "path": str(dagger), "objects": meta.get("objects", args.objects),
-                    "chosen_iteration": meta.get("iteration"), "samples": meta.get("samples"),
+                    "chosen_iteration": meta.get("iteration"), "samples": samples,
                     "seeds": f"iteration i, episode k: {dagger_config.get('seed', 0)} * 10**6 + i * 10**4 + k, "
                              "every training object"},
         "commands": log + [{"command": shlex.join(["python", *sys.argv])}],

@@ -98,7 +98,9 @@ def main() -> None:
     target = weights / f"{name}.pt"
     from dexdrake.learn.policy import load_policy
 
-    init = (load_policy(policy)[1].get("dagger_config") or {}).get("init")  # relative paths are the repository's
+    net, meta = load_policy(policy)
+    dagger_config = meta.get("dagger_config") or {}
+    init = dagger_config.get("init")  # relative paths are the repository's
     init_sha256 = sha256(ROOT / init) if init and (ROOT / init).is_file() else None  # before shipping may overwrite it
     write_atomic(target, policy.read_bytes())
     metrics = {}
@@ -119,8 +121,6 @@ def main() -> None:
     from dexdrake.dexrep.pointnet import default_encoder_path
     from dexdrake.learn.curves import read_csv
 
-    net, meta = load_policy(target)
-    dagger_config = meta.get("dagger_config") or {}
     iterations = read_csv(dagger / "dagger_log.csv")
     samples = meta.get("samples") or next((int(r["samples_total"]) for r in iterations
                                            if int(r["iteration"]) == meta.get("iteration")), None)

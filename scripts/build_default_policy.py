@@ -96,12 +96,11 @@ def main() -> None:
     name = f"{args.hand}_dexrep_policy"
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     target = weights / f"{name}.pt"
+    from dexdrake.learn.dagger import init_sha256
     from dexdrake.learn.policy import load_policy
 
     net, meta = load_policy(policy)
     dagger_config = meta.get("dagger_config") or {}
-    init = dagger_config.get("init")  # relative paths are the repository's
-    init_sha256 = sha256(ROOT / init) if init and (ROOT / init).is_file() else None  # before shipping may overwrite it
     write_atomic(target, policy.read_bytes())
     metrics = {}
     for label in ("seen", "unseen"):
@@ -139,7 +138,7 @@ def main() -> None:
         "training": {
             "stages": "DAgger (behaviour cloning on expert-labelled states, aggregated over iterations); no DAPG",
             "dagger": dagger_config,
-            "init_sha256": init_sha256,  # the policy DAgger started from (its "init"), as it was when this ran
+            "init_sha256": init_sha256(dagger),  # the policy DAgger started from (its "init"), recorded then
             "iterations": iterations,
             "paper": "BC 150 epochs, batch 64, lr 1e-5 on retargeted human demos; then 500 DAPG iterations",
         },

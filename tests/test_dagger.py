@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import replace
 
 import numpy as np
@@ -11,8 +12,8 @@ import torch
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
-from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, labelled_episode, prior_files, relabel_job,
-                                  run_capacity, train_dagger)
+from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, init_sha256, labelled_episode, prior_files,
+                                   relabel_job, run_capacity, train_dagger)
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
@@ -177,6 +178,9 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=""))
     with pytest.raises(DexdrakeError, match="has an absolute arm head; add --residual-arm"):
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, residual_arm=True, prior=""))
+    started_from = hashlib.sha256((tmp_path / "a" / "policy_00.pt").read_bytes()).hexdigest()
+    (tmp_path / "a" / "policy_00.pt").write_bytes(b"replaced after the run started")
+    assert init_sha256(tmp_path / "b") == started_from and init_sha256(tmp_path / "a") is None  # an expert start: none
 
 
 def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one_torch_thread):

@@ -21,6 +21,7 @@ The returned policy is the iterate that succeeded most often on its own training
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -138,6 +139,14 @@ class Aggregate:
 def _metadata(path: Path) -> dict[str, Any]:
     with np.load(path, allow_pickle=False) as d:
         return json.loads(str(d["metadata"]))
+
+
+def init_sha256(out_dir: Path) -> str | None:
+    """The sha256 of the policy a run started from (its `init`), as recorded when that policy
+    drove iteration 0 (the file may have changed since, e.g. replaced by this run's own
+    result); None without an init or for a run made before this was recorded."""
+    path = out_dir / "data_00.npz"
+    return _metadata(path).get("init_sha256") if path.is_file() else None
 
 
 def _samples_in(path: Path) -> int:
@@ -346,7 +355,9 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 driver = _driver(config.init, it)
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
                                f"DAgger {it} ({driver})", make_expert)
-                data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config)})
+                started = ({"init_sha256": hashlib.sha256(Path(config.init).read_bytes()).hexdigest()}
+                           if driver == "init" else {})
+                data.save(data_path, {"iteration": it, "driver": driver, "config": asdict(config), **started})
             probe = None
             if probes and it >= finished:
                 probe_path = out_dir / f"probe_{it:02d}.npz"

@@ -29,7 +29,9 @@ class DexRepSystem(LeafSystem):
         super().__init__()
         self._plant = plant
         self._plant_context = plant.CreateDefaultContext()
-        self._q_index = np.array([plant.GetJointByName(j, hand_instance).position_start() for j in hand.policy_joints])
+        joints = [plant.GetJointByName(j, hand_instance) for j in hand.policy_joints]
+        self._q_index = np.array([j.position_start() for j in joints])
+        self._v_index = np.array([j.velocity_start() for j in joints])
         self._n = hand.num_actuators
         self.extractor = FeatureExtractor(hand, plant, hand_instance, geometry, feature_set, path,
                                           distance_geometry_id)
@@ -39,9 +41,13 @@ class DexRepSystem(LeafSystem):
         self.DeclareVectorOutputPort("features", self.extractor.size, self._calc)
 
     def _calc(self, context, output: BasicVector) -> None:
+        state = self._hand.Eval(context)
         q = self._plant.GetPositions(self._plant_context)
-        q[self._q_index] = self._hand.Eval(context)[: self._n]
+        q[self._q_index] = state[: self._n]
         self._plant.SetPositions(self._plant_context, q)
+        v = self._plant.GetVelocities(self._plant_context)
+        v[self._v_index] = state[self._n :]
+        self._plant.SetVelocities(self._plant_context, v)
         X_WO = pose_from_vector(self._pose.Eval(context))
         query = self._query.Eval(context) if self.extractor.path == "scenegraph" else None
         output.SetFromVector(self.extractor(self._plant_context, X_WO, query))

@@ -183,6 +183,29 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
     assert init_sha256(tmp_path / "b") == started_from and init_sha256(tmp_path / "a") is None  # an expert start: none
 
 
+def test_an_init_policy_is_widened_to_a_feature_set_that_extends_its_own(tmp_path, capsys, one_torch_thread):
+    """A DexRep policy starts a DexRep+Vel run: widened, it drives iteration 0 exactly as it
+    would have (the same visited states), and the run's policies are DexRep+Vel."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.hands.description import load_hand
+    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, save_policy
+
+    blocks = observation_blocks(load_hand("adroit"), "DexRep")
+    torch.manual_seed(3)
+    old = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, 30, feature_set="DexRep", hand="adroit"))
+    init = save_policy(tmp_path / "init.pt", old)
+    config = DaggerConfig(feature_set="DexRep+Vel", iterations=1, episodes_per_object=1, epochs=1,
+                          backend="sequential", init=str(init))
+    final = train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config)
+    assert "widened to DexRep+Vel" in capsys.readouterr().out
+    assert load_policy(final)[0].config.feature_set == "DexRep+Vel"
+    data = DaggerData.load(tmp_path / "d" / "data_00.npz")
+    assert data.observations.shape[1] == sum(blocks.values()) + 30
+    before = labelled_episode(GraspEnvFactory("adroit", "DexRep", (OBJECT,), horizon=100)(), OBJECT, 0, old, 0.0,
+                              ReactiveGrasp)
+    np.testing.assert_allclose(data.positions, before.positions, atol=1e-6)  # float32 sums in another order
+
+
 def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one_torch_thread):
     config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, workers=1,
                           probe_per_object=1)

@@ -556,6 +556,34 @@ def test_dexrep_system_outputs_extractor_features(hand_scene, geometries):
     np.testing.assert_allclose(out, system.extractor(pctx, X_WO), atol=1e-9)
 
 
+def test_velocity_group_reads_the_policy_joints_velocities_in_both_paths(hand_scene, geometries):
+    """DexRep+Vel appends the policy joints' velocities (in policy order) to DexRep; the
+    DexRepSystem takes them from its measured hand state [q; v], as the extractor does from
+    the plant's state."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.systems.dexrep_system import DexRepSystem
+    from dexdrake.systems.station import pose_vector
+
+    s = hand_scene
+    plant, hand, n = s["plant"], s["hand"], s["hand"].num_actuators
+    assert list(observation_blocks(hand, "DexRep+Vel").items()) == [*observation_blocks(hand, "DexRep").items(),
+                                                                      ("hand_vel", n)]
+    ctx, pctx, X_WO = _posed_context(s, np.random.default_rng(11))
+    joints = [plant.GetJointByName(j, s["hand_instance"]) for j in hand.policy_joints]
+    v_hand = np.random.default_rng(12).normal(size=n)
+    v = plant.GetVelocities(pctx).copy()
+    v[[j.velocity_start() for j in joints]] = v_hand
+    plant.SetVelocities(pctx, v)
+    system = DexRepSystem(hand, plant, s["hand_instance"], geometries["torus"], "DexRep+Vel")
+    direct = system.extractor(pctx, X_WO)
+    np.testing.assert_array_equal(direct[-n:], v_hand)
+    sys_ctx = system.CreateDefaultContext()
+    q_hand = [plant.GetPositions(pctx)[j.position_start()] for j in joints]
+    system.GetInputPort("hand_state").FixValue(sys_ctx, np.r_[q_hand, v_hand])
+    system.GetInputPort("object_pose").FixValue(sys_ctx, pose_vector(X_WO))
+    np.testing.assert_allclose(system.GetOutputPort("features").Eval(sys_ctx), direct, atol=1e-9)
+
+
 def test_manifest_of_shipped_encoder():
     from dexdrake.dexrep.pointnet import default_encoder_path, load_encoder
 

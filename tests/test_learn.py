@@ -173,6 +173,29 @@ def test_residual_arm_head_leads_the_current_arm_position(tmp_path):
         DexRepNetPolicy(PolicyConfig.from_blocks({"hand": 40}, 22, hand="adroit", residual_arm=True))
 
 
+def test_widened_policy_acts_as_before_and_learns_from_its_new_inputs():
+    """A policy widened by an appended group acts exactly as before whatever the new inputs
+    hold; a gradient step on them reaches the new path; blocks that do not extend the old
+    ones, or another architecture, are refused."""
+    from dataclasses import replace
+
+    from dexdrake.learn.policy import widened
+
+    old = DexRepNetPolicy(PolicyConfig.from_blocks({"hand": 40, "occ": 7}, 30, hand="adroit", residual_arm=True))
+    old.set_obs_normalization(np.full(47, 0.5), np.full(47, 2.0))
+    new = widened(old, replace(old.config, blocks=old.config.blocks + (("vel", 5),), feature_set="vel"))
+    obs = torch.randn(6, 47)
+    wide = torch.cat([obs, 10 * torch.randn(6, 5)], dim=1)
+    torch.testing.assert_close(new(wide), old(obs), rtol=0, atol=1e-6)
+    loss = new(wide).square().sum()
+    loss.backward()
+    assert new.mlp[0].weight.grad[:, -new.config.encoder_dim:].abs().sum() > 0  # the new inputs get a gradient
+    with pytest.raises(DexdrakeError, match="cannot widen"):
+        widened(old, replace(old.config, blocks=(("hand", 40), ("vel", 5), ("occ", 7))))
+    with pytest.raises(DexdrakeError, match="cannot widen"):
+        widened(old, replace(old.config, blocks=old.config.blocks + (("vel", 5),), hidden_sizes=(64,)))
+
+
 def test_load_policy_rejects_garbage(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

@@ -9,6 +9,8 @@ group. The hand state is always the first group. Group contents (n hand points, 
   local_geo f_l (64n)
   surf      f_s (4n)
   occ_surf  [f_o, f_s] (1000 + 4n)
+  hand_vel  joint velocities (J): not in the paper; the grasp expert's labels depend on whether
+            the arm has stopped and the fingers have settled, which positions alone cannot show
 Adroit DexRep -> {"hand": 105, "occ_surf": 1088, "local_geo": 1408}.
 """
 
@@ -36,6 +38,7 @@ FEATURE_SETS: dict[str, tuple[str, ...]] = {
     "Occ+Surf+pGlo": ("hand", "occ_surf", "pglo"),
     "DexRep+pGlo": ("hand", "occ_surf", "local_geo", "pglo"),
     "DexRep": ("hand", "occ_surf", "local_geo"),
+    "DexRep+Vel": ("hand", "occ_surf", "local_geo", "hand_vel"),
 }
 FeaturePath = Literal["fast", "scenegraph"]  # see FeatureExtractor
 PATHS: tuple[str, ...] = get_args(FeaturePath)
@@ -58,6 +61,7 @@ def observation_blocks(hand: HandDescription, feature_set: str = "DexRep") -> di
         "local_geo": LOCAL_DIM * n,
         "surf": 4 * n,
         "occ_surf": voxels + 4 * n,
+        "hand_vel": len(hand.policy_joints),
     }
     return {g: sizes[g] for g in FEATURE_SETS[feature_set]}
 
@@ -109,6 +113,7 @@ class FeatureExtractor:
         self._occupancy = fast_occupancy(occ.size, occ.resolution, OCCUPANCY_LEVELS)
         joints = [plant.GetJointByName(j, hand_instance) for j in hand.policy_joints]
         self._q_index = np.array([j.position_start() for j in joints])
+        self._v_index = np.array([j.velocity_start() for j in joints])
 
     def _body_poses(self, plant_context) -> np.ndarray:
         """(B, 3, 4) world poses [R | p] of the bodies the features read."""
@@ -155,6 +160,8 @@ class FeatureExtractor:
                 q = self.plant.GetPositions(plant_context)[self._q_index]
                 X_WH = poses[self._wrist]
                 parts.append(F.hand_state_unchecked(q, p_W, X_WH[:, :3], X_WH[:, 3]))
+            elif g == "hand_vel":
+                parts.append(self.plant.GetVelocities(plant_context)[self._v_index])
             elif g == "hand2obj":
                 parts.append((p_W - X_WO[:3, 3]).ravel())
             elif g == "pglo":

@@ -25,7 +25,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -41,7 +41,7 @@ from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
-from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy, widened
 from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
 
 DATA_FORMAT = "dexdrake.dagger/1"
@@ -324,14 +324,16 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                  resume=True, key="iteration", resume_from=finished)
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
+    hand = load_hand(config.hand)
     policy = load_policy(Path(config.init))[0] if config.init else None
+    if policy is not None and policy.config.feature_set != config.feature_set and policy.config.hand == config.hand:
+        policy = widened_init(policy, hand, config)
     if policy is not None and (policy.config.hand, policy.config.feature_set) != (config.hand, config.feature_set):
         raise DexdrakeError(f"{config.init} was trained for {policy.config.hand} with {policy.config.feature_set} "
                             f"features; this run is {config.hand} with {config.feature_set}")
     if policy is not None and policy.config.residual_arm != config.residual_arm:
         raise DexdrakeError(f"{config.init} has {'a residual' if policy.config.residual_arm else 'an absolute'} arm "
                             f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
-    hand = load_hand(config.hand)
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
@@ -405,6 +407,19 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     final = out_dir / "dagger_policy.pt"
     save_policy(final, chosen, {**meta, "iteration": best, "selection": SELECTION})
     return final
+
+
+def widened_init(policy: DexRepNetPolicy, hand: HandDescription, config: DaggerConfig) -> DexRepNetPolicy:
+    """The init policy widened to the run's feature set when that set appends groups to the
+    policy's (e.g. DexRep -> DexRep+Vel), so it starts acting as before; else unchanged (and
+    refused by the caller)."""
+    blocks = tuple(observation_blocks(hand, config.feature_set).items())
+    old = policy.config.blocks
+    if blocks[: len(old)] != old or len(blocks) == len(old):
+        return policy
+    print(f"DAgger: the init policy ({policy.config.feature_set}) widened to {config.feature_set}: "
+          f"new groups {[name for name, _ in blocks[len(old):]]} enter through zero weights", flush=True)
+    return widened(policy, replace(policy.config, blocks=blocks, feature_set=config.feature_set))
 
 
 def _driver(init: str, it: int) -> str:

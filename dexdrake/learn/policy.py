@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -205,6 +205,30 @@ class DexRepNetPolicy(nn.Module):
         self.load_state_dict(state_dict)
         if bool(self.encoders_frozen):
             self.freeze_encoders()
+
+
+def widened(policy: DexRepNetPolicy, config: PolicyConfig) -> DexRepNetPolicy:
+    """`policy` with the observation groups that `config` appends to its own: their encoders
+    start random and the MLP's first layer reads them through zero weights, so the widened
+    policy acts exactly as `policy` until training makes use of the new inputs."""
+    old = policy.config
+    n = len(old.blocks)
+    if config.blocks[:n] != old.blocks or replace(config, blocks=old.blocks, feature_set=old.feature_set) != old:
+        raise DexdrakeError(f"cannot widen a policy with blocks {old.blocks} to {config.blocks}: the new "
+                            "blocks must extend the old ones, and the rest of the architecture must match")
+    new = DexRepNetPolicy(config)
+    state = new.state_dict()
+    for key, value in policy.state_dict().items():
+        target = state[key]
+        if key == "mlp.0.weight":
+            target.zero_()
+            target[:, : value.shape[1]] = value
+        elif key in ("obs_mean", "obs_std"):
+            target[: value.shape[0]] = value
+        else:
+            target.copy_(value)
+    new.load_weights(state)
+    return new
 
 
 def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:

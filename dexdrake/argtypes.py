@@ -55,6 +55,7 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True) -> Calla
 seed = int_at_least(0)
 count = int_at_least(1)
 positive = float_in(0.0)
+non_negative = float_in(0.0, low_open=False)
 
 
 def output_file(*suffixes: str) -> Callable[[str], Path]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -13,7 +14,7 @@ from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.dagger import (Aggregate, DaggerConfig, DaggerData, init_sha256, labelled_episode, prior_files,
-                                   relabel_job, run_capacity, train_dagger)
+                                   relabel_job, run_capacity, run_config, train_dagger)
 from dexdrake.learn.policy import load_policy
 from dexdrake.systems.env_factory import GraspEnvFactory
 from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
@@ -137,8 +138,12 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert len(read_csv(tmp_path / "d" / "dagger_log.csv")) == 2
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--iterations", "1",
                  "--per-object", "1", "--epochs", "1", "--workers", "1", "--feature-set", "Hand2obj",
-                 "--threads", "1", "--residual-arm"]) == 0
+                 "--threads", "1", "--residual-arm", "--weight-decay", "0.01", "--obs-noise", "0.1"]) == 0
     assert load_policy(tmp_path / "c" / "dagger_policy.pt")[0].config.residual_arm
+    made = run_config(tmp_path / "c")
+    assert (made.weight_decay, made.obs_noise, made.residual_arm, made.feature_set) == (0.01, 0.1, True, "Hand2obj")
+    with pytest.raises(DexdrakeError, match="holds no DAgger run"):
+        run_config(tmp_path)
     assert main(["train", "dagger", "--out", str(tmp_path / "e"), "--objects", "unseen"]) == 2
     assert "evaluation splits" in capsys.readouterr().err
 
@@ -223,6 +228,28 @@ def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one
     with torch.no_grad():
         err = (policy(torch.as_tensor(probe.observations)) - torch.as_tensor(probe.labels)) ** 2
     assert float(row["unseen_loss"]) == pytest.approx(float(err.sum(1).mean()), rel=1e-5)
+
+
+def test_bc_study_fits_scores_and_tables_each_variant_on_a_runs_states(tmp_path, monkeypatch, load_script,
+                                                                       one_torch_thread):
+    config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, workers=1,
+                          probe_per_object=1, residual_arm=True)
+    train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config, probe_objects=["apple"])
+    study = load_script("bc_study")
+    with pytest.raises(SystemExit, match="unknown variant setting 'wd'"):
+        study.parse_variant("wd")
+    assert study.parse_variant("wd=0.1+noise=0.2+absolute") == ({"weight_decay": 0.1, "obs_noise": 0.2}, True)
+    monkeypatch.setattr(sys, "argv", ["bc_study.py", "--run", str(tmp_path / "d"), "--out", str(tmp_path / "s"),
+                                      "--variants", "base,absolute+noise=0.1", "--epochs", "1", "--episodes", "1",
+                                      "--unseen-episodes", "1", "--workers", "1"])
+    study.main()
+    rows = read_csv(tmp_path / "s" / "bc_study.csv")
+    assert [r["variant"] for r in rows] == ["base", "absolute+noise=0.1"]
+    assert all(float(r["held_out_loss"]) > 0 and float(r["unseen_probe_loss"]) > 0 for r in rows)
+    assert all(0 <= float(r["seen_success_pct"]) <= 100 for r in rows)
+    assert load_policy(tmp_path / "s" / "policy_base.pt")[0].config.residual_arm
+    assert not load_policy(tmp_path / "s" / "policy_absolute+noise=0.1.pt")[0].config.residual_arm
+    assert "| absolute+noise=0.1 |" in (tmp_path / "s" / "bc_study.md").read_text()
 
 
 def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():

@@ -280,6 +280,22 @@ def test_bc_action_weights_trade_error_between_dimensions_and_are_validated(tmp_
             train_bc(toy_policy(), data, tmp_path / "bad", BCConfig(epochs=1, progress=False, action_weights=bad))
 
 
+def test_bc_weight_decay_shrinks_the_weights_and_input_noise_changes_the_fit_and_both_are_validated(tmp_path):
+    data = expert_dataset(1000)
+    norms, losses = {}, {}
+    for name, extra in (("plain", {}), ("decay", {"weight_decay": 50.0}), ("noise", {"obs_noise": 0.5})):
+        policy = toy_policy()
+        result = train_bc(policy, data, tmp_path / name, BCConfig(epochs=2, lr=2e-3, checkpoint_every=0, progress=False,
+                                                                   **extra))
+        norms[name] = float(sum(p.detach().norm() ** 2 for n, p in policy.named_parameters() if "weight" in n))
+        losses[name] = result.train_loss[-1]
+    assert norms["decay"] < 0.5 * norms["plain"]
+    assert losses["noise"] != losses["plain"] and losses["noise"] < 10 * losses["plain"] + 1.0
+    for bad in ({"weight_decay": -1.0}, {"obs_noise": -0.1}):
+        with pytest.raises(DexdrakeError, match="weight_decay and obs_noise must be >= 0"):
+            train_bc(toy_policy(), data, tmp_path / "bad", BCConfig(epochs=1, progress=False, **bad))
+
+
 def test_bc_defaults_are_the_papers():
     cfg = BCConfig()
     assert (cfg.epochs, cfg.batch_size, cfg.lr) == (150, 64, 1e-5)

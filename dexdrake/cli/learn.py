@@ -35,6 +35,13 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
                         "default: a local Ray instance); see configs/ray_cluster.md")
 
 
+def _add_regularisation_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--weight-decay", type=argtypes.non_negative, default=0.0,
+                        help="decoupled weight decay of the BC fits (AdamW; 0: Adam)")
+    parser.add_argument("--obs-noise", type=argtypes.non_negative, default=0.0,
+                        help="Gaussian noise on the BC fits' training inputs, in observation stds (0: none)")
+
+
 def add_parser(subparsers) -> None:
     train = subparsers.add_parser("train", help="train a DexRepNet policy (behaviour cloning, DAPG)")
     train_sub = train.add_subparsers(dest="train_command", required=True)
@@ -45,6 +52,7 @@ def add_parser(subparsers) -> None:
     bc.add_argument("--epochs", type=argtypes.count, default=150)
     bc.add_argument("--batch", type=argtypes.count, default=64)
     bc.add_argument("--lr", type=argtypes.positive, default=1e-5)
+    _add_regularisation_options(bc)
     bc.add_argument("--seed", type=argtypes.seed, default=0)
     bc.add_argument("--threads", type=argtypes.count, default=1, help="torch CPU threads")
     bc.set_defaults(func=cmd_train_bc)
@@ -82,6 +90,7 @@ def add_parser(subparsers) -> None:
                              "(normalised action units; the labels stay clean)")
     dagger.add_argument("--epochs", type=argtypes.count, default=20, help="BC epochs after each iteration")
     dagger.add_argument("--lr", type=argtypes.positive, default=1e-4)
+    _add_regularisation_options(dagger)
     dagger.add_argument("--arm-weight", type=argtypes.positive, default=1.0,
                         help="loss weight of the arm's action dimensions (the fingers' is 1)")
     dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
@@ -153,8 +162,10 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])
     policy = DexRepNetPolicy(config)
     policy.set_log_std_from_actions(data.actions)  # BC fits the mean only; RL explores at the demos' spread
-    bc_config = BCConfig(epochs=args.epochs, batch_size=args.batch, lr=args.lr, seed=args.seed)
-    command = command_line(["train", "bc"], args, ["data", "out", "epochs", "batch", "lr", "seed", "threads"])
+    bc_config = BCConfig(epochs=args.epochs, batch_size=args.batch, lr=args.lr, weight_decay=args.weight_decay,
+                         obs_noise=args.obs_noise, seed=args.seed)
+    command = command_line(["train", "bc"], args, ["data", "out", "epochs", "batch", "lr", "weight-decay", "obs-noise",
+                                                    "seed", "threads"])
     meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata)}
     print(f"BC: {len(data)} samples, {config.obs_dim}-d observations {dict(config.blocks)}, {config.action_dim} actions")
     result = train_bc(policy, data, args.out, bc_config, meta)
@@ -228,12 +239,14 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
-                          epochs=args.epochs, lr=args.lr, arm_weight=args.arm_weight,
+                          epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, obs_noise=args.obs_noise,
+                          arm_weight=args.arm_weight,
                           workers=args.workers, backend=args.backend, seed=args.seed,
                           probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=str(args.prior or ""),
                           residual_arm=args.residual_arm)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
-                                                        "horizon", "expert-noise", "epochs", "lr", "arm-weight", "probe-per-object",
+                                                        "horizon", "expert-noise", "epochs", "lr", "weight-decay", "obs-noise",
+                                                        "arm-weight", "probe-per-object",
                                                         "init", "prior", "residual-arm", "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 

@@ -28,6 +28,8 @@ class BCConfig:
     epochs: int = 150
     batch_size: int = 64
     lr: float = 1e-5
+    weight_decay: float = 0.0  # decoupled (AdamW); 0: plain Adam
+    obs_noise: float = 0.0  # std of Gaussian noise added to the training inputs, in observation stds
     val_fraction: float = 0.1  # split by episode when the dataset has episode_starts
     checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
     seed: int = 0  # shuffling and initialisation
@@ -145,6 +147,8 @@ def train_bc(
     """
     if config.epochs <= 0 or config.batch_size <= 0 or config.lr <= 0:
         raise DexdrakeError(f"epochs, batch_size and lr must be positive: {config}")
+    if not (config.weight_decay >= 0 and config.obs_noise >= 0):
+        raise DexdrakeError(f"weight_decay and obs_noise must be >= 0: {config}")
     d, a = policy.config.obs_dim, policy.config.action_dim
     if dataset.observations.shape[1] != d or dataset.actions.shape[1] != a:
         raise DexdrakeError(
@@ -166,7 +170,7 @@ def train_bc(
     rows_tr = torch.as_tensor(train_idx, device=device)
     rows_va = torch.as_tensor(val_idx, device=device)
     weights = _action_weights(config, a).to(device)
-    optimiser = torch.optim.Adam(policy.trainable_parameters(), lr=config.lr)
+    optimiser = torch.optim.AdamW(policy.trainable_parameters(), lr=config.lr, weight_decay=config.weight_decay)
     gen = torch.Generator().manual_seed(config.seed)
     meta = {"stage": "bc", "bc_config": asdict(config), **dict(metadata or {})}
     result = BCResult(log_csv=out_dir / "bc_log.csv", val_indices=val_idx)
@@ -178,7 +182,10 @@ def train_bc(
         total = 0.0
         for i in range(0, perm.shape[0], config.batch_size):
             idx = rows_tr[perm[i : i + config.batch_size]]
-            err = (policy(obs[idx]) - act[idx]) ** 2
+            x = obs[idx]
+            if config.obs_noise:
+                x = x + config.obs_noise * policy.obs_std * torch.randn(x.shape, generator=gen).to(device)
+            err = (policy(x) - act[idx]) ** 2
             optimiser.zero_grad(set_to_none=True)
             (err * weights).sum(-1).mean().backward()
             optimiser.step()

@@ -59,6 +59,8 @@ class DaggerConfig:
     epochs: int = 20  # BC epochs after each iteration
     arm_weight: float = 1.0  # loss weight of the arm's action dimensions against the fingers' 1
     lr: float = 1e-4
+    weight_decay: float = 0.0  # BCConfig.weight_decay of each fit
+    obs_noise: float = 0.0  # BCConfig.obs_noise of each fit
     batch_size: int = 64
     workers: int = 2
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
@@ -139,6 +141,16 @@ class Aggregate:
 def _metadata(path: Path) -> dict[str, Any]:
     with np.load(path, allow_pickle=False) as d:
         return json.loads(str(d["metadata"]))
+
+
+def run_config(out_dir: Path) -> DaggerConfig:
+    """The DaggerConfig a run's first data file was made with (fields newer than the run: their
+    defaults)."""
+    first = out_dir / "data_00.npz"
+    if not first.is_file():
+        raise DexdrakeError(f"{out_dir} holds no DAgger run (no data_00.npz)")
+    made = _metadata(first).get("config", {})
+    return DaggerConfig(**{k: made[k] for k in asdict(DaggerConfig()) if k in made})
 
 
 def init_sha256(out_dir: Path) -> str | None:
@@ -383,7 +395,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                                                                   residual_arm=config.residual_arm))
             dataset = aggregate.dataset()
             weights = (config.arm_weight,) * n_arm + (1.0,) * (data.labels.shape[1] - n_arm)
-            bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, seed=config.seed + it,
+            bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr,
+                          weight_decay=config.weight_decay, obs_noise=config.obs_noise, seed=config.seed + it,
                           split_seed=config.seed, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})

@@ -10,10 +10,10 @@ the arm's actions are the MLP's output added to the arm joints' current position
 block's first entries), normalised like the actions: the network learns how far its
 set-point leads the arm instead of rebuilding the arm's position from its input (a departure
 from the paper's absolute set-points; on the same 657k DAgger states it cut the held-out arm
-error by 13 %, scripts/ab_residual_arm.py). For RL the policy is a diagonal Gaussian around
-that mean with a learned, state-independent log-std, kept in [min_log_std, max_log_std] by
-clamping the parameter itself after each update (`clamp_log_std_`), so its gradient never
-vanishes. Before RL the log-std is set from the
+error by 13 %; `scripts/bc_study.py --variants base,absolute` compares them). For RL the
+policy is a diagonal Gaussian around that mean with a learned, state-independent log-std,
+kept in [min_log_std, max_log_std] by clamping the parameter itself after each update
+(`clamp_log_std_`), so its gradient never vanishes. Before RL the log-std is set from the
 spread of the demonstration actions (`set_log_std_from_actions`), as mjrl's behaviour cloning
 does for the DAPG hand tasks, instead of std 1 over the whole [-1, 1] action range.
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from dexdrake.objects import shapes, store
-from dexdrake.objects.convex import pieces_key
+from dexdrake.objects.convex import decompose, pieces_key
 from dexdrake.objects.meshfile import content_hash, is_stable_rest, obj_bytes
 
 REPO_OBJECTS = Path(__file__).resolve().parents[1] / "models" / "objects"
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.check:
             continue
         shutil.rmtree(folder, ignore_errors=True)
-        final = store.write_object_dir(folder, mesh, meta, with_pieces=True)
+        final = store.write_object_dir(folder, mesh, meta, pieces=decompose)
         built += 1
         tqdm.write(f"{name:18s} {final['faces']:5d} faces  {final['convex']['pieces']:2d} pieces")
     if not args.check:

@@ -102,9 +102,10 @@ class ReactiveGrasp(ScriptedGrasp):
     def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
         hand = env.scene.hand
         self.rules = rules or with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert")
-        super().__init__(env, script or expert_script(hand, env.scene.object_info.name))
+        info = env.scene.object_info  # a scaled copy is grasped as the object it copies
+        super().__init__(env, script or expert_script(hand, info.derived_from or info.name))
         self.p_start = env.object_position()
-        info = env.scene.object_info  # the lift height: the grasp height on the object at rest, plus the lift
+        # the lift height: the grasp height on the object at rest, plus the lift
         at_rest = plan_grasp(self.script, info, RigidTransform([0.0, 0.0, info.rest_height]), self.R_pregrasp)
         self.lift_height = at_rest.grasp[2] + self.script.lift
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2

@@ -474,3 +474,40 @@ def test_broken_user_object_is_skipped_with_a_warning(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "good" in captured.out and "1 objects" in captured.out
     assert main(["objects", "remove", "broken"]) == 0 and not broken.exists()
+
+
+# ------------------------------------------------------------------ scaled copies (augmentation)
+def test_scaled_copies_scale_mesh_and_pieces_and_are_a_training_split(no_coacd, capsys):
+    from dexdrake.cli import main
+    from dexdrake.objects import augment
+    from dexdrake.objects.library import resolve_objects
+
+    with pytest.raises(DexdrakeError, match="make them with `dexdrake objects augment`"):
+        resolve_objects("train+augmented")
+    names = augment.build_copies(2, ["cup_short", "box_bar"])
+    assert names == ["box_bar_s1", "box_bar_s2", "cup_short_s1", "cup_short_s2"]
+    base, copy = get_object("cup_short"), get_object("cup_short_s2")
+    scales = augment.copy_scales("cup_short", 2)
+    assert np.all((scales >= 0.8) & (scales <= 1.25)) and not np.allclose(scales, augment.copy_scales("cup_short", 1))
+    assert (copy.split, copy.category, copy.derived_from) == ("augmented", "cup", "cup_short")
+    np.testing.assert_allclose(copy.extents, np.asarray(base.extents) * scales, atol=2e-6)
+    assert copy.rest_height == pytest.approx(base.rest_height * scales[2], abs=2e-6)
+    mesh = load_obj(copy.mesh_path)
+    assert np.abs(mesh.center_mass).max() < 1e-5 and is_stable_rest(mesh)  # still an object frame
+    pieces = copy.convex_pieces()  # the scaled pieces, no CoACD (no_coacd)
+    assert len(pieces) == len(base.convex_pieces()) and all(_is_convex(load_obj(p)) for p in pieces)
+    assert sum(load_obj(p).volume for p in pieces) == pytest.approx(
+        np.prod(scales) * sum(load_obj(p).volume for p in base.convex_pieces()), rel=1e-4)
+    label, train = resolve_objects("train+augmented")
+    assert label == "selected" and train[-4:] == names and len(train) == len(list_objects("train")) + 4
+    with pytest.raises(UnknownNameError) as err:  # copies are not offered as evaluation names
+        get_object("no_such_thing")
+    assert "cup_short_s1" not in str(err.value)
+    with pytest.raises(DexdrakeError, match="only training objects"):
+        augment.build_copies(1, ["mug"])
+    kept = get_object("cup_short_s1").mesh_path.stat().st_mtime_ns
+    assert augment.build_copies(1, ["cup_short"]) == ["cup_short_s1"]  # fewer copies: the rest removed
+    assert [i.name for i in list_objects("augmented")] == ["cup_short_s1"] and not copy.mesh_path.exists()
+    assert get_object("cup_short_s1").mesh_path.stat().st_mtime_ns == kept  # up to date: not rewritten
+    assert main(["objects", "augment", "--copies", "1"]) == 0
+    assert f"{len(list_objects('train'))} scaled copies" in capsys.readouterr().out

@@ -35,6 +35,10 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
                         "default: a local Ray instance); see configs/ray_cluster.md")
 
 
+TRAINING_OBJECTS_HELP = ("'train', 'train+augmented' (with the scaled copies of `dexdrake objects augment`) or "
+                         "comma-separated object names")
+
+
 def _add_regularisation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weight-decay", type=argtypes.non_negative, default=0.0,
                         help="decoupled weight decay of the BC fits (AdamW; 0: Adam)")
@@ -69,7 +73,7 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
     dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
-    dapg.add_argument("--objects", default="train", help="'train' or comma-separated object names")
+    dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
     dapg.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per trajectory")
     dapg.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dapg)
@@ -81,7 +85,7 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--out", required=True, type=Path, help="output folder (per-iteration data and policies, dagger_log.csv)")
     dagger.add_argument("--hand", default="adroit")
     dagger.add_argument("--feature-set", default="DexRep")
-    dagger.add_argument("--objects", default="train", help="'train' or comma-separated object names")
+    dagger.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
     dagger.add_argument("--iterations", type=argtypes.count, default=6)
     dagger.add_argument("--per-object", type=argtypes.count, default=2, help="episodes per object per iteration")
     dagger.add_argument("--horizon", type=argtypes.count, default=100)

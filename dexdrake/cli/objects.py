@@ -14,12 +14,12 @@ from dexdrake import argtypes
 if TYPE_CHECKING:
     from dexdrake.objects.library import ObjectInfo
 
-SPLITS = ("train", "unseen", "user")  # as dexdrake.objects.library.SPLITS
+SPLITS = ("train", "unseen", "user", "augmented")  # as dexdrake.objects.library.SPLITS
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")  # as dexdrake.objects.importer.UP_AXES
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add `objects list` and `objects import` to a subparsers action."""
+    """Add `objects list`, `import`, `remove` and `augment` to a subparsers action."""
     parser = subparsers.add_parser("objects", help="list or import grasp objects")
     sub = parser.add_subparsers(dest="objects_command", required=True)
 
@@ -40,6 +40,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p_rm = sub.add_parser("remove", help="delete an imported (user) object")
     p_rm.add_argument("name", help="user object name")
     p_rm.set_defaults(func=cmd_remove)
+
+    p_aug = sub.add_parser("augment", help="scaled copies of the training objects, to train on (split 'augmented')")
+    p_aug.add_argument("--copies", type=argtypes.count, default=2, help="copies per training object (default 2)")
+    p_aug.set_defaults(func=cmd_augment)
     return parser
 
 
@@ -100,4 +104,15 @@ def cmd_remove(args: argparse.Namespace) -> int:
 
     remove_user_object(args.name)
     print(f"removed user object {args.name}")
+    return 0
+
+
+def cmd_augment(args: argparse.Namespace) -> int:
+    """Make the scaled copies (dexdrake.objects.augment); print where and how many."""
+    from dexdrake.objects import store
+    from dexdrake.objects.augment import SCALE_RANGE, build_copies
+
+    names = build_copies(args.copies)
+    print(f"{len(names)} scaled copies (per-axis factors in {SCALE_RANGE[0]}-{SCALE_RANGE[1]}) in "
+          f"{store.augmented_root()}; train on them with `--objects train+augmented`")
     return 0

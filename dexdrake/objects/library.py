@@ -30,7 +30,7 @@ from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 from dexdrake.paths import cache_dir
 
-SPLITS = ("train", "unseen", "user")
+SPLITS = ("train", "unseen", "user", "augmented")  # augmented: dexdrake.objects.augment
 
 __all__ = [
     "DISTANCE_GEOMETRY_NAME",
@@ -57,6 +57,7 @@ class ObjectInfo:
     mass: float = 0.5
     friction: float = 1.0
     content_hash: str = ""  # sha256 of mesh.obj: key for per-object caches
+    derived_from: str = ""  # the training object an augmented copy scales
 
     def convex_pieces(self) -> list[Path]:
         """OBJ files of convex pieces for contact (shipped ones, else CoACD cached on disk)."""
@@ -109,6 +110,7 @@ def _info(folder: Path) -> ObjectInfo:
         extents=tuple(meta["extents"]),
         rest_height=meta["rest_height"],
         content_hash=file_hash(mesh_path),
+        derived_from=meta.get("derived_from", ""),
     )
 
 
@@ -117,7 +119,7 @@ class BrokenObjectWarning(DexdrakeWarning):
 
 
 def _folders(split: str) -> list[Path]:
-    root = store.user_root() if split == "user" else store.shipped_root()
+    root = {"user": store.user_root(), "augmented": store.augmented_root()}.get(split, store.shipped_root())
     if not root.is_dir():
         return []
     return sorted(p for p in root.iterdir() if not p.name.startswith(".") and p.is_dir())
@@ -144,25 +146,31 @@ def list_objects(split: str | None = None) -> list[ObjectInfo]:
         raise UnknownNameError("object split", split, SPLITS)
     infos = [_info(f) for f in _folders("train") if (f / store.META_FILE).is_file()]
     infos += [i for i in map(_user_info, _folders("user")) if i is not None]
+    infos += [_info(f) for f in _folders("augmented") if (f / store.META_FILE).is_file()]
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
 SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
+EMPTY_SPLIT_HINT = {"augmented": "; make them with `dexdrake objects augment`"}
 
 
 def resolve_objects(spec: str) -> tuple[str, list[str]]:
-    """(label, object names) for 'seen' / 'train', 'unseen' or a comma-separated name list.
+    """(label, object names) for 'seen' / 'train', 'unseen', 'train+augmented' (the training
+    objects and their scaled copies) or a comma-separated name list.
 
     Names are checked against the object library (UnknownNameError lists the valid ones).
     """
     spec = spec.strip()
     if not spec:
         raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
-    if spec in SPLIT_ALIASES:
-        names = [o.name for o in list_objects(SPLIT_ALIASES[spec])]
-        if not names:
-            raise DexdrakeError(f"the object library has no {SPLIT_ALIASES[spec]!r} objects")
-        return ("seen" if SPLIT_ALIASES[spec] == "train" else "unseen"), names
+    if spec in SPLIT_ALIASES or spec == "train+augmented":
+        names = []
+        for split in [SPLIT_ALIASES[spec]] if spec in SPLIT_ALIASES else ["train", "augmented"]:
+            found = [o.name for o in list_objects(split)]
+            if not found:
+                raise DexdrakeError(f"the object library has no {split!r} objects{EMPTY_SPLIT_HINT.get(split, '')}")
+            names += found
+        return {"train": "seen", "unseen": "unseen"}.get(SPLIT_ALIASES.get(spec, ""), "selected"), names
     names = [n.strip() for n in spec.split(",") if n.strip()]
     if len(set(names)) != len(names):
         raise DexdrakeError(f"object list {spec!r} repeats a name")
@@ -180,7 +188,9 @@ def get_object(name: str) -> ObjectInfo:
             info = _user_info(store.user_root() / name)
             if info is not None:
                 return info
-    raise UnknownNameError("object", name, [i.name for i in list_objects()])
+        if (store.augmented_root() / name / store.META_FILE).is_file():
+            return _info(store.augmented_root() / name)
+    raise UnknownNameError("object", name, [i.name for i in list_objects() if i.split != "augmented"])
 
 
 def import_mesh(path: str | Path, name: str, category: str = "user", scale: float = 1.0, overwrite: bool = False,
@@ -200,7 +210,7 @@ def import_mesh(path: str | Path, name: str, category: str = "user", scale: floa
     if folder.exists() and not overwrite:
         raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass --overwrite to replace it")
     mesh, report = importer.prepare_mesh(Path(path), scale, up_axis)
-    store.write_object_dir(folder, mesh, {"name": name, "category": category, "split": "user", "import": report}, with_pieces=False)
+    store.write_object_dir(folder, mesh, {"name": name, "category": category, "split": "user", "import": report}, pieces=None)
     return _info(folder)
 
 

@@ -1,7 +1,8 @@
 """On-disk layout of object folders: mesh.obj + meta.json (+ convex/ for shipped objects).
 
 Shipped objects live in `models_dir()/objects/<name>/`, imported ones in the user's data
-folder, `data_dir()/objects/<name>/` (not the cache: clearing the cache keeps them). A folder is written completely in a temporary
+folder, `data_dir()/objects/<name>/` (not the cache: clearing the cache keeps them), scaled
+copies of the training objects (dexdrake.objects.augment) in `data_dir()/augmented/<name>/`. A folder is written completely in a temporary
 sibling and renamed into place, so a failed write leaves nothing behind.
 """
 
@@ -10,12 +11,13 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import trimesh
 
-from dexdrake.objects.convex import COACD_PARAMS, decompose, pieces_key, write_pieces
+from dexdrake.objects.convex import COACD_PARAMS, pieces_key, write_pieces
 from dexdrake.objects.meshfile import content_hash, load_obj, obj_bytes
 
 MESH_FILE, META_FILE, CONVEX_DIR = "mesh.obj", "meta.json", "convex"
@@ -35,6 +37,13 @@ def user_root() -> Path:
     return data_dir() / "objects"
 
 
+def augmented_root() -> Path:
+    """Folder of the scaled copies of the training objects."""
+    from dexdrake.paths import data_dir
+
+    return data_dir() / "augmented"
+
+
 def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:
     """Geometric facts recorded in meta.json for a mesh already in the object frame."""
     lo, hi = mesh.bounds
@@ -46,8 +55,10 @@ def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:
     }
 
 
-def write_object_dir(folder: Path, mesh: trimesh.Trimesh, meta: dict[str, Any], with_pieces: bool) -> dict:
-    """Write mesh.obj and meta.json (and convex/ pieces if `with_pieces`) into `folder`.
+def write_object_dir(folder: Path, mesh: trimesh.Trimesh, meta: dict[str, Any],
+                     pieces: Callable[[trimesh.Trimesh], list[trimesh.Trimesh]] | None) -> dict:
+    """Write mesh.obj and meta.json (and convex/ pieces, `pieces` of the written mesh, e.g.
+    convex.decompose, unless None) into `folder`.
 
     `meta` holds name, category, split and provenance; geometric facts and the content hash
     are added here from the written (quantised) mesh. Replaces an existing folder.
@@ -62,9 +73,10 @@ def write_object_dir(folder: Path, mesh: trimesh.Trimesh, meta: dict[str, Any], 
         written = load_obj(tmp / MESH_FILE)
         mesh_hash = content_hash(data)
         meta = {**meta, **describe(written), "content_hash": mesh_hash}
-        if with_pieces:
-            files = write_pieces(decompose(written), tmp / CONVEX_DIR)
-            meta["convex"] = {"key": pieces_key(mesh_hash), "coacd": COACD_PARAMS, "pieces": len(files)}
+        if pieces is not None:
+            files = write_pieces(pieces(written), tmp / CONVEX_DIR)
+            made = meta.get("convex", {"coacd": COACD_PARAMS})  # how the pieces were made
+            meta["convex"] = {**made, "key": pieces_key(mesh_hash), "pieces": len(files)}
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
         old = None
         if folder.exists():

@@ -5,8 +5,9 @@
 
 The states are those of a finished DAgger run (`dexdrake train dagger`: the expert's and the
 DexRep policy's visited states, every `--stride`-th step, with the expert's labels); their
-raw plant positions are re-featurised with each set, so every set sees exactly the same
-states and labels and gets the same BC budget (epochs, batch 64, lr, seed). Each set is
+raw plant states (positions and velocities) are re-featurised with each set, so every set
+sees exactly the same states and labels and gets the same BC budget (epochs, batch 64, lr,
+seed). Each set is
 scored twice on unseen objects:
 - open loop: the mean squared error (summed over joints, normalised action units) of its
   predictions against the expert's labels along the expert's own episodes on the unseen
@@ -39,7 +40,7 @@ def as_raw(data, hand: str):
     """DAgger data as the RawEpisodes that `featurise` re-featurises (labels as actions)."""
     from dexdrake.systems.scripted_data import RawEpisodes
 
-    return RawEpisodes(hand, data.objects, data.seeds, data.success, data.episode_starts, data.positions, data.labels)
+    return RawEpisodes(hand, data.objects, data.seeds, data.success, data.episode_starts, data.states, data.labels)
 
 
 def every_nth_step(data, stride: int):
@@ -48,12 +49,12 @@ def every_nth_step(data, stride: int):
 
     step = np.arange(len(data.labels)) - np.maximum.accumulate(np.where(data.episode_starts, np.arange(len(data.labels)), 0))
     keep = step % stride == 0
-    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts[keep], data.positions[keep],
+    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts[keep], data.states[keep],
                       data.observations[keep], data.labels[keep])
 
 
 def expert_episodes(hand: str, objects: list[str], seeds: list[int]):
-    """The expert's own episodes on `objects` (positions and labels)."""
+    """The expert's own episodes on `objects` (states and labels)."""
     from dexdrake.learn.dagger import DaggerData, labelled_episode
     from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.systems.reactive_grasp import ReactiveGrasp

@@ -2,10 +2,10 @@
 
 `record_object` runs `systems.scripted_grasp.ScriptedGrasp` (with a faster phase timing from
 `TIMINGS`, so the grasp succeeds within the paper's 100-step evaluation episodes) in
-`GraspEnv` and keeps every step's raw simulator positions (hand joints and object pose)
-with the normalised action applied. `featurise` turns raw states into the observations of
-any feature set by setting the plant positions and calling the env's feature extractor, so
-one recording serves every ablation.
+`GraspEnv` and keeps every step's raw plant state (positions and velocities of the hand
+joints and the object) with the normalised action applied. `featurise` turns raw states into
+the observations of any feature set by setting the plant state and calling the env's feature
+extractor, so one recording serves every ablation.
 
 With `noise > 0` the recording is DART-style: the env executes the expert's action plus
 temporally correlated noise (`dexdrake.eval.action_noise.OUActionNoise`) while the clean
@@ -25,7 +25,7 @@ import numpy as np
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.action_noise import DEFAULT_RHO, OUActionNoise
 
-RAW_FORMAT = "dexdrake.scripted_raw/1"
+RAW_FORMAT = "dexdrake.scripted_raw/2"  # /1 kept plant positions only
 DATASET_FORMAT = "dexdrake.scripted/1"
 
 
@@ -63,7 +63,7 @@ class RawEpisodes:
     seeds: np.ndarray  # int (E,)
     success: np.ndarray  # bool (E,)
     episode_starts: np.ndarray  # bool (N,)
-    positions: np.ndarray  # float64 (N, nq): full plant positions before each action
+    states: np.ndarray  # float64 (N, nq + nv): full plant positions and velocities before each action
     actions: np.ndarray  # float32 (N, A): normalised actions in [-1, 1]
 
     def episode_ids(self) -> np.ndarray:
@@ -74,7 +74,7 @@ class RawEpisodes:
         keep_ep = np.nonzero(self.success)[0]
         keep = np.isin(self.episode_ids(), keep_ep)
         return RawEpisodes(self.hand, [self.objects[i] for i in keep_ep], self.seeds[keep_ep], self.success[keep_ep],
-                           self.episode_starts[keep], self.positions[keep], self.actions[keep])
+                           self.episode_starts[keep], self.states[keep], self.actions[keep])
 
 
 def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
@@ -97,14 +97,14 @@ def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
         raise DexdrakeError(f"noise std must be >= 0, got {noise}")
     env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=None, horizon=horizon)
     script = GraspScript(**asdict(timing))
-    positions, actions, starts, success = [], [], [], []
+    states, actions, starts, success = [], [], [], []
     for seed in seeds:
         env.reset(int(seed))
         controller = ScriptedGrasp(env, script)
         perturb = OUActionNoise(env.action_dim, noise, noise_rho, seed=[int(noise_seed), int(seed)]) if noise > 0 else None
         ok = False
         for t in range(horizon):
-            positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
+            states.append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
             a = np.clip(env.normalise(controller(env)), -1.0, 1.0)
             actions.append(a.astype(np.float32))
             starts.append(t == 0)
@@ -115,7 +115,7 @@ def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
                 break
         success.append(ok)
     return RawEpisodes(hand, [name] * len(seeds), np.asarray(seeds, dtype=np.int64), np.asarray(success, bool),
-                       np.asarray(starts, bool), np.asarray(positions), np.asarray(actions, np.float32))
+                       np.asarray(starts, bool), np.asarray(states), np.asarray(actions, np.float32))
 
 
 def concat(parts: list[RawEpisodes]) -> RawEpisodes:
@@ -126,7 +126,7 @@ def concat(parts: list[RawEpisodes]) -> RawEpisodes:
         raise DexdrakeError(f"recordings of different hands: {sorted({p.hand for p in parts})}")
     return RawEpisodes(parts[0].hand, [o for p in parts for o in p.objects],
                        np.concatenate([p.seeds for p in parts]), np.concatenate([p.success for p in parts]),
-                       np.concatenate([p.episode_starts for p in parts]), np.concatenate([p.positions for p in parts]),
+                       np.concatenate([p.episode_starts for p in parts]), np.concatenate([p.states for p in parts]),
                        np.concatenate([p.actions for p in parts]))
 
 
@@ -136,7 +136,7 @@ def save_raw(path: str | Path, raw: RawEpisodes, metadata: dict[str, Any] | None
     meta = {"format": RAW_FORMAT, "hand": raw.hand, "objects": raw.objects, **(metadata or {})}
     with open(path, "wb") as f:
         np.savez_compressed(f, seeds=raw.seeds, success=raw.success, episode_starts=raw.episode_starts,
-                            positions=raw.positions, actions=raw.actions, metadata=np.array(json.dumps(meta)))
+                            states=raw.states, actions=raw.actions, metadata=np.array(json.dumps(meta)))
     return path
 
 
@@ -147,9 +147,10 @@ def load_raw(path: str | Path) -> tuple[RawEpisodes, dict[str, Any]]:
     with np.load(path, allow_pickle=False) as d:
         meta = json.loads(str(d["metadata"]))
         if meta.get("format") != RAW_FORMAT:
-            raise DexdrakeError(f"{path} is not a {RAW_FORMAT} file")
+            raise DexdrakeError(f"{path} is not a {RAW_FORMAT} file (recordings from before plant velocities were "
+                                "kept cannot be read: record again)")
         raw = RawEpisodes(meta["hand"], list(meta["objects"]), d["seeds"], d["success"].astype(bool),
-                          d["episode_starts"].astype(bool), d["positions"], d["actions"])
+                          d["episode_starts"].astype(bool), d["states"], d["actions"])
     return raw, meta
 
 
@@ -169,7 +170,7 @@ def featurise(raw: RawEpisodes, feature_set: str, progress: bool = False) -> tup
         if obs is None:
             obs = np.empty((len(raw.actions), sum(blocks.values())), dtype=np.float32)
         for i in np.nonzero(episode_object == name)[0]:
-            env.scene.plant.SetPositions(env.plant_context, raw.positions[i])
+            env.scene.plant.SetPositionsAndVelocities(env.plant_context, raw.states[i])
             obs[i] = env.observation()
     assert obs is not None
     return obs, blocks

@@ -249,11 +249,11 @@ def test_refeaturised_scripted_states_match_online_observations(tmp_path):
     from dexdrake.systems.scripted_data import featurise, load_raw, record_object, save_raw
 
     raw = record_object("adroit", OBJECT, [7], horizon=4)
-    assert raw.positions.shape[0] == 4 and raw.episode_starts.tolist() == [True, False, False, False]
+    assert raw.states.shape[0] == 4 and raw.episode_starts.tolist() == [True, False, False, False]
     assert np.all(np.abs(raw.actions) <= 1.0) and not raw.success[0]
     raw, _ = load_raw(save_raw(tmp_path / "raw.npz", raw, {"seeds": [7]}))
-    obs, blocks = featurise(raw, "Hand2obj")
-    env = GraspEnvFactory("adroit", "Hand2obj", (OBJECT,), horizon=4)()
+    obs, blocks = featurise(raw, "DexRep+Vel")  # the velocity group needs the recorded velocities
+    env = GraspEnvFactory("adroit", "DexRep+Vel", (OBJECT,), horizon=4)()
     online = [env.reset(7)]
     for a in raw.actions[:-1]:
         online.append(env.step(a)[0])
@@ -284,12 +284,12 @@ def test_noisy_recording_executes_noise_but_labels_clean_expert_actions():
     # The script is planned at reset, so its set-points do not depend on the noisy states:
     # the labels must be exactly the clean expert's while the visited states differ.
     np.testing.assert_array_equal(noisy.actions, clean.actions)
-    np.testing.assert_array_equal(noisy.positions[0], clean.positions[0])
-    assert np.abs(noisy.positions[1:] - clean.positions[1:]).max() > 1e-3
+    np.testing.assert_array_equal(noisy.states[0], clean.states[0])
+    assert np.abs(noisy.states[1:] - clean.states[1:]).max() > 1e-3
     same = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=1)
-    np.testing.assert_array_equal(same.positions, noisy.positions)
+    np.testing.assert_array_equal(same.states, noisy.states)
     other = record_object("adroit", OBJECT, [7], horizon=5, noise=0.1, noise_seed=2)
-    assert not np.array_equal(other.positions, noisy.positions)
+    assert not np.array_equal(other.states, noisy.states)
     with pytest.raises(Exception, match="noise"):
         record_object("adroit", OBJECT, [7], horizon=2, noise=-0.1)
 

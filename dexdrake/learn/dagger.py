@@ -8,8 +8,8 @@ re-fit by behaviour cloning (warm-started) after each iteration. Because the lab
 from states rather than from a clock, the policy learns to move from wherever it is, which
 plain cloning of the timed script did not teach (it stalled at the start pose).
 
-Each iteration's data (raw plant positions too, so any feature set can be re-derived and any
-expert can label the states anew) and the policy after it are written to the output folder; a
+Each iteration's data (the raw plant states [q; v] too, so any feature set can be re-derived and
+any expert can label the states anew) and the policy after it are written to the output folder; a
 re-run skips finished iterations. A run can start from an earlier run: its states labelled anew
 by this run's expert (`prior`, see `relabelled`) are aggregated before iteration 0, and iteration
 0 is then driven by a given policy (`init`, fine-tuned from there) instead of the expert.
@@ -44,7 +44,7 @@ from dexdrake.learn.env_protocol import MakeEnvFactory
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy, widened
 from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
 
-DATA_FORMAT = "dexdrake.dagger/1"
+DATA_FORMAT = "dexdrake.dagger/2"  # /1 kept plant positions only
 PROBE_SEEDS = 5000  # probe episode seeds start this far above the iteration's training seeds
 
 
@@ -79,7 +79,7 @@ class DaggerData:
     seeds: np.ndarray  # int (E,)
     success: np.ndarray  # bool (E,): the executed episode succeeded
     episode_starts: np.ndarray  # bool (N,)
-    positions: np.ndarray  # float64 (N, nq): plant positions before each action
+    states: np.ndarray  # float64 (N, nq + nv): plant positions and velocities before each action
     observations: np.ndarray  # float32 (N, D)
     labels: np.ndarray  # float32 (N, A): the expert's normalised action at that state
 
@@ -88,13 +88,13 @@ class DaggerData:
         if not parts:
             raise DexdrakeError("no DAgger data to join")
         return DaggerData([o for p in parts for o in p.objects], *(np.concatenate([getattr(p, k) for p in parts]) for k in
-                          ("seeds", "success", "episode_starts", "positions", "observations", "labels")))
+                          ("seeds", "success", "episode_starts", "states", "observations", "labels")))
 
     def save(self, path: Path, metadata: dict[str, Any]) -> None:
         meta = {"format": DATA_FORMAT, "objects": self.objects, **metadata}
         tmp = path.with_suffix(".tmp.npz")
         np.savez_compressed(tmp, seeds=self.seeds, success=self.success, episode_starts=self.episode_starts,
-                            positions=self.positions, observations=self.observations, labels=self.labels,
+                            states=self.states, observations=self.observations, labels=self.labels,
                             metadata=np.array(json.dumps(meta)))
         tmp.replace(path)
 
@@ -103,9 +103,10 @@ class DaggerData:
         with np.load(path, allow_pickle=False) as d:
             meta = json.loads(str(d["metadata"]))
             if meta.get("format") != DATA_FORMAT:
-                raise DexdrakeError(f"{path} is not a {DATA_FORMAT} file")
+                raise DexdrakeError(f"{path} is not a {DATA_FORMAT} file (DAgger data from before plant velocities "
+                                    "were recorded cannot be read: run DAgger again)")
             return DaggerData(list(meta["objects"]), d["seeds"], d["success"].astype(bool), d["episode_starts"].astype(bool),
-                              d["positions"], d["observations"], d["labels"])
+                              d["states"], d["observations"], d["labels"])
 
 
 class Aggregate:
@@ -207,13 +208,13 @@ def labelled_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, 
     from dexdrake.eval.action_noise import OUActionNoise
 
     perturb = OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
-    positions, observations, labels = [], [], []
+    states, observations, labels = [], [], []
     expert = None
 
     def act(obs: np.ndarray) -> np.ndarray:
         nonlocal expert
         expert = expert or make_expert(env)
-        positions.append(env.scene.plant.GetPositions(env.plant_context).copy())
+        states.append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
         observations.append(obs)
         label = np.clip(env.normalise(expert(env)), -1.0, 1.0)
         labels.append(label)
@@ -223,27 +224,20 @@ def labelled_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, 
     result = run_episode(env, act, seed, object_name=name)
     starts = np.zeros(len(labels), dtype=bool)
     starts[0] = True
-    return DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(positions),
+    return DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(states),
                       np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
 
 
 def relabel_job(make_expert: MakeExpert, env, policy: None, job: tuple[str, int, np.ndarray]) -> np.ndarray:
     """The expert's labels (normalised, clipped) of one recorded episode's states (job = (object,
-    seed, plant positions per step)), replayed state by state: a fresh expert at the episode's
-    first state, the plant put at each recorded position, the hand's velocities the positions'
-    backward differences over the control period (the data keep positions only; an episode
-    starts at rest)."""
-    name, seed, positions = job
-    period = env.base_config.control_period
+    seed, plant states [q; v] per step)), replayed state by state: a fresh expert at the
+    episode's first state, the plant put in each recorded state."""
+    name, seed, states = job
     env.reset(int(seed), object_name=name)
-    plant, ctx, qi, vi = env.scene.plant, env.plant_context, env.scene.q_index, env.scene.v_index
-    expert, labels = None, np.empty((len(positions), env.action_dim), dtype=np.float32)
-    v = np.zeros(plant.num_velocities())
-    for i, q in enumerate(positions):
-        plant.SetPositions(ctx, q)
-        if i:
-            v[vi] = (q[qi] - positions[i - 1][qi]) / period
-        plant.SetVelocities(ctx, v)
+    plant, ctx = env.scene.plant, env.plant_context
+    expert, labels = None, np.empty((len(states), env.action_dim), dtype=np.float32)
+    for i, x in enumerate(states):
+        plant.SetPositionsAndVelocities(ctx, x)
         expert = expert or make_expert(env)
         labels[i] = np.clip(env.normalise(expert(env)), -1.0, 1.0)
     return labels
@@ -255,11 +249,11 @@ def relabelled(sampler: Sampler, data: DaggerData, make_expert: MakeExpert, desc
     run's expert, which is DAgger's own rule (the expert labels whatever states were visited)."""
     starts = np.flatnonzero(data.episode_starts)
     ends = np.r_[starts[1:], len(data.labels)]
-    jobs = [(name, seed, data.positions[a:b]) for name, seed, a, b in zip(data.objects, data.seeds, starts, ends)]
+    jobs = [(name, seed, data.states[a:b]) for name, seed, a, b in zip(data.objects, data.seeds, starts, ends)]
     labels = sampler.map(partial(relabel_job, make_expert), None, jobs, desc)
     if len(labels) != len(jobs):
         raise DexdrakeError(f"{desc}: {len(jobs) - len(labels)} episodes were lost with their workers; run again")
-    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts, data.positions,
+    return DaggerData(data.objects, data.seeds, data.success, data.episode_starts, data.states,
                       data.observations, np.concatenate(labels))
 
 

@@ -1,6 +1,6 @@
 """Fitting choices compared on one DAgger run's states: fresh fits, one per variant, in one run.
 
-    python scripts/bc_study.py --run DAGGER_DIR --out DIR [--variants base,wd=0.1,noise=0.1,absolute]
+    python scripts/bc_study.py --run DAGGER_DIR --out DIR [--variants base,wd=1,noise=0.1,noise=0.3]
         [--iterations K] [--epochs 4] [--arm-weight 10] [--seed 3] [--episodes 2] [--unseen-episodes 4]
         [--eval-seed 900000000] [--workers 2]
 
@@ -50,7 +50,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", type=Path, required=True, help="a DAgger run's folder")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--variants", default="base,wd=0.1,noise=0.1")
+    parser.add_argument("--variants", default="base,wd=1,noise=0.1,noise=0.3")
     parser.add_argument("--iterations", type=int, default=0, help="data of the first K iterations (0: all)")
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--arm-weight", type=float, default=10.0)

@@ -36,7 +36,8 @@ def test_default_demo_grasps_with_the_shipped_dexrep_policy(tmp_path, capsys, mo
     line = _summary(out)
     # The shipped manifest's best unseen object on the first evaluation seed the manifest records
     # as a success there: the demo replays that evaluation episode, a grasp in 100 steps.
-    unseen = json.loads(_shipped("adroit").with_suffix(".json").read_text())["metrics"]["unseen"]
+    manifest = json.loads(_shipped("adroit").with_suffix(".json").read_text())
+    unseen = manifest["metrics"]["unseen"]
     best = max(o["success_pct"] for o in unseen["per_object"].values())
     name = line["object"]
     assert unseen["per_object"][name]["success_pct"] == best > 0
@@ -45,7 +46,7 @@ def test_default_demo_grasps_with_the_shipped_dexrep_policy(tmp_path, capsys, mo
     assert (line["seed"], line["success"], line["steps"]) == (str(seed), "True", "100")
     assert float(line["max_lift"].rstrip("m")) > 0.1
     policy, _ = load_policy(_shipped("adroit"))
-    assert policy.config.feature_set == "DexRep"
+    assert policy.config.feature_set == manifest["feature_set"] and policy.config.feature_set.startswith("DexRep")
     assert logged_rows(tmp_path / "demo.rrd")["/task/success"] == 100
 
 

@@ -87,7 +87,7 @@ def test_dagger_collection_on_ray_matches_processes(ray_sampler, process_sampler
         b = collect(process_sampler, driver, jobs, noise, "processes", ReactiveGrasp)
         assert a.objects == b.objects and a.seeds.tolist() == [s for _, s in jobs]
         assert np.array_equal(a.success, b.success) and np.array_equal(a.episode_starts, b.episode_starts)
-        for field in ("positions", "observations", "labels"):
+        for field in ("states", "observations", "labels"):
             np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-6, atol=1e-6, err_msg=field)
     assert len(a.labels) == FACTORY.horizon
 

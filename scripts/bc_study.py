@@ -1,12 +1,14 @@
-"""Fitting choices compared on one DAgger run's states: fresh fits, one per variant, in one run.
+"""Fitting choices compared on one DAgger run's states: one fit per variant, in one run.
 
     python scripts/bc_study.py --run DAGGER_DIR --out DIR [--variants base,wd=1,noise=0.1,noise=0.3]
         [--iterations K] [--epochs 4] [--arm-weight 10] [--seed 3] [--episodes 2] [--unseen-episodes 4]
-        [--eval-seed 900000000] [--workers 2]
+        [--eval-seed 900000000] [--workers 2] [--init CKPT]
 
 A variant is `base` or `+`-joined settings: `wd=X` (BCConfig.weight_decay), `noise=X`
-(BCConfig.obs_noise), `absolute` (an absolute arm head instead of the run's residual one).
-Every variant is a new network of the run's hand and feature set, fitted with the same seed,
+(BCConfig.obs_noise), `absolute` (an absolute arm head instead of the run's residual one),
+`keep` (BCConfig.keep_function: refitted statistics leave the starting policy's actions as
+they were). Every variant is a new network of the run's hand and feature set (with `--init`:
+a copy of that trained policy, as DAgger fine-tunes it), fitted with the same seed,
 episode split, epochs, lr and loss weights on the run's first K iterations (data_XX.npz),
 and scored by
 - its train loss and its loss on the held-out episodes of the training objects;
@@ -30,19 +32,23 @@ from pathlib import Path
 COLUMNS = ("variant", "train_loss", "held_out_loss", "unseen_probe_loss", "seen_success_pct", "unseen_success_pct",
            "fit_minutes")
 SETTINGS = {"wd": "weight_decay", "noise": "obs_noise"}
+FLAGS = {"keep": "keep_function"}
 
 
 def parse_variant(text: str) -> tuple[dict[str, float], bool]:
     """(BCConfig overrides, absolute arm head) of a variant's name."""
-    overrides, absolute = {}, False
+    overrides: dict[str, float | bool] = {}
+    absolute = False
     for part in text.split("+"):
         key, _, value = part.partition("=")
         if part == "absolute":
             absolute = True
+        elif part in FLAGS:
+            overrides[FLAGS[part]] = True
         elif key in SETTINGS and value:
             overrides[SETTINGS[key]] = float(value)
         elif part != "base":
-            raise SystemExit(f"bc_study: unknown variant setting {part!r} (base, wd=X, noise=X, absolute)")
+            raise SystemExit(f"bc_study: unknown variant setting {part!r} (base, wd=X, noise=X, absolute, keep)")
     return overrides, absolute
 
 
@@ -59,6 +65,7 @@ def main() -> None:
     parser.add_argument("--unseen-episodes", type=int, default=4, help="executed episodes per unseen object")
     parser.add_argument("--eval-seed", type=int, default=900_000_000)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--init", type=Path, help="start every variant from this trained policy (not `absolute`)")
     args = parser.parse_args()
     variants = {name: parse_variant(name) for name in args.variants.split(",")}
 
@@ -71,8 +78,8 @@ def main() -> None:
     from dexdrake.learn.curves import write_csv
     from dexdrake.learn.dagger import Aggregate, DaggerData, run_config
     from dexdrake.learn.demo_dataset import DemoDataset
-    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, save_policy
-    from dexdrake.objects.library import resolve_objects
+    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+    from dexdrake.objects.library import get_object, resolve_objects
     from dexdrake.objects.meshfile import write_atomic
     from dexdrake.eval.seeds import check_training_seeds
     from dexdrake.systems.env_factory import env_factory_for_policy
@@ -83,7 +90,7 @@ def main() -> None:
     aggregate = Aggregate(sum(len(p.labels) for p in parts))
     for part in parts:
         aggregate.add(part)
-    seen = sorted(set(parts[0].objects))
+    seen = sorted(n for n in set(parts[0].objects) if get_object(n).split == "train")  # not scaled copies
     del parts
     dataset = aggregate.dataset()
     probes = [DaggerData.load(f) for f in sorted(args.run.glob("probe_[0-9][0-9].npz"))[: len(files)]]
@@ -99,8 +106,11 @@ def main() -> None:
     rows = []
     for name, (overrides, absolute) in variants.items():
         torch.manual_seed(args.seed)
-        policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, dataset.actions.shape[1], feature_set=config.feature_set,
-                                                          hand=config.hand, residual_arm=config.residual_arm and not absolute))
+        if args.init and not absolute:
+            policy = load_policy(args.init)[0]
+        else:
+            policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, dataset.actions.shape[1], feature_set=config.feature_set,
+                                                              hand=config.hand, residual_arm=config.residual_arm and not absolute))
         start = time.perf_counter()
         bc = BCConfig(epochs=args.epochs, batch_size=config.batch_size, lr=config.lr, seed=args.seed, split_seed=args.seed,
                       checkpoint_every=0, action_weights=weights, **overrides)
@@ -118,7 +128,7 @@ def main() -> None:
         write_csv(args.out / "bc_study.csv", COLUMNS, rows)
         lines = [f"# Fitting choices on {len(dataset)} DAgger states ({config.hand}, {config.feature_set})", "",
                  f"- command: `{command}`",
-                 f"- data: {args.run}, {len(files)} iterations; fresh networks, {args.epochs} epochs, lr {config.lr}, "
+                 f"- data: {args.run}, {len(files)} iterations; {f'from {args.init}' if args.init else 'fresh networks'}, {args.epochs} epochs, lr {config.lr}, "
                  f"batch {config.batch_size}, arm weight {args.arm_weight}, seed {args.seed}; losses summed over action "
                  "dimensions (normalised units), unweighted",
                  f"- executed: {len(seen)} training objects x {args.episodes} and {len(unseen)} unseen x "

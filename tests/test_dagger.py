@@ -239,6 +239,7 @@ def test_bc_study_fits_scores_and_tables_each_variant_on_a_runs_states(tmp_path,
     with pytest.raises(SystemExit, match="unknown variant setting 'wd'"):
         study.parse_variant("wd")
     assert study.parse_variant("wd=0.1+noise=0.2+absolute") == ({"weight_decay": 0.1, "obs_noise": 0.2}, True)
+    assert study.parse_variant("keep") == ({"keep_function": True}, False)
     monkeypatch.setattr(sys, "argv", ["bc_study.py", "--run", str(tmp_path / "d"), "--out", str(tmp_path / "s"),
                                       "--variants", "base,absolute+noise=0.1", "--epochs", "1", "--episodes", "1",
                                       "--unseen-episodes", "1", "--workers", "1"])

@@ -296,6 +296,21 @@ def test_bc_weight_decay_shrinks_the_weights_and_input_noise_changes_the_fit_and
             train_bc(toy_policy(), data, tmp_path / "bad", BCConfig(epochs=1, progress=False, **bad))
 
 
+def test_refitted_statistics_keep_a_trained_policys_actions_when_asked(tmp_path):
+    data = expert_dataset(1000)
+    policy = toy_policy()
+    train_bc(policy, data, tmp_path, BCConfig(epochs=1, lr=2e-3, checkpoint_every=0, progress=False))
+    obs = torch.as_tensor(data.observations[:200])
+    rng = np.random.default_rng(0)
+    d = policy.config.obs_dim
+    with torch.no_grad():
+        before = policy(obs).numpy()
+        policy.set_obs_normalization(rng.normal(size=d), rng.uniform(0.02, 50.0, size=d), keep_function=True)
+        np.testing.assert_allclose(policy(obs).numpy(), before, rtol=1e-4, atol=1e-4)
+        policy.set_obs_normalization(rng.normal(size=d), rng.uniform(0.02, 50.0, size=d))
+        assert np.abs(policy(obs).numpy() - before).max() > 0.1  # a plain refit moves the actions
+
+
 def test_bc_defaults_are_the_papers():
     cfg = BCConfig()
     assert (cfg.epochs, cfg.batch_size, cfg.lr) == (150, 64, 1e-5)

@@ -34,7 +34,8 @@ class BCConfig:
     checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
     seed: int = 0  # shuffling and initialisation
     split_seed: int | None = None  # the train/validation split (None: `seed`)
-    fit_normalization: bool = True  # set the policy's observation stats from the train split
+    fit_normalization: bool = True  # set the policy's observation stats from the train split ...
+    keep_function: bool = False  # ... re-expressing its encoders so it acts as before (warm starts)
     action_weights: tuple[float, ...] = ()  # per-dimension weights of the fitted loss (empty: all 1);
     # the logged losses stay unweighted
     progress: bool = True  # tqdm bar
@@ -161,7 +162,7 @@ def train_bc(
     split_seed = config.seed if config.split_seed is None else config.split_seed
     train_idx, val_idx = split_train_val(dataset, config.val_fraction, split_seed)
     if config.fit_normalization:
-        policy.set_obs_normalization(*_mean_std(dataset.observations, train_idx))
+        policy.set_obs_normalization(*_mean_std(dataset.observations, train_idx), keep_function=config.keep_function)
     device = torch.device(config.device)
     policy.to(device).train()
     # Batches are gathered from the whole arrays by row (no copy of the training split).

@@ -382,6 +382,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 policy = load_policy(policy_path)[0]
                 continue
             t1 = time.perf_counter()
+            warm = policy is not None  # a trained policy: refitting its statistics must not change it
             if policy is None:
                 blocks = observation_blocks(hand, config.feature_set)
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, data.labels.shape[1],
@@ -391,7 +392,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             weights = (config.arm_weight,) * n_arm + (1.0,) * (data.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr,
                           weight_decay=config.weight_decay, obs_noise=config.obs_noise, seed=config.seed + it,
-                          split_seed=config.seed, checkpoint_every=0, action_weights=weights)
+                          split_seed=config.seed, keep_function=warm, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
             hold = hold_still_loss(dataset, result.val_indices, hand)

@@ -177,8 +177,14 @@ class DexRepNetPolicy(nn.Module):
         return action, logp
 
     # ---------------------------------------------------------------- normalisation
-    def set_obs_normalization(self, mean: np.ndarray, std: np.ndarray, min_std: float = 1e-3) -> None:
-        """Store observation statistics; std below `min_std` (constant features) becomes 1."""
+    def set_obs_normalization(self, mean: np.ndarray, std: np.ndarray, min_std: float = 1e-3,
+                              keep_function: bool = False) -> None:
+        """Store observation statistics; std below `min_std` (constant features) becomes 1.
+
+        With `keep_function` the encoders are re-expressed for the new statistics (each input
+        column's weights scaled by new/old std, the bias moved by the mean's shift), so a trained
+        policy acts exactly as before: refitting the statistics of a warm-started policy to data
+        of other objects otherwise moves its inputs by up to tens of their old stds at once."""
         mean = np.asarray(mean, dtype=np.float32)
         std = np.asarray(std, dtype=np.float32)
         d = self.obs_mean.shape[0]
@@ -187,6 +193,14 @@ class DexRepNetPolicy(nn.Module):
         if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
             raise DexdrakeError("normalisation stats contain non-finite values")
         std = np.where(std < min_std, 1.0, std).astype(np.float32)
+        if keep_function:
+            with torch.no_grad():
+                shift = (torch.from_numpy(mean) - self.obs_mean) / self.obs_std
+                ratio = torch.from_numpy(std) / self.obs_std
+                for name, cols in zip(self.block_names, torch.split(torch.arange(len(std)), self.block_sizes)):
+                    enc = self.encoders[name]
+                    enc.bias += enc.weight @ shift[cols]
+                    enc.weight *= ratio[cols]
         self.obs_mean.copy_(torch.from_numpy(mean))
         self.obs_std.copy_(torch.from_numpy(std))
 

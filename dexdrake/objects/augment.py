@@ -22,7 +22,6 @@ from dexdrake.objects import store
 from dexdrake.objects.meshfile import load_obj
 
 SCALE_RANGE = (0.8, 1.25)  # per-axis scale factors of a copy
-SPLIT = "augmented"
 
 
 def copy_name(name: str, k: int) -> str:
@@ -62,7 +61,7 @@ def build_copies(copies: int, names: list[str] | None = None) -> list[str]:
         if (folder / store.META_FILE).is_file() and store.read_meta(folder).get("derived_from_hash") == info.content_hash:
             continue
         pieces = [_scaled(load_obj(p), scales) for p in info.convex_pieces()]
-        meta = {"name": name, "category": info.category, "split": SPLIT, "derived_from": info.name,
+        meta = {"name": name, "category": info.category, "split": store.AUGMENTED_SPLIT, "derived_from": info.name,
                 "derived_from_hash": info.content_hash, "scales": [round(float(s), 6) for s in scales],
                 "convex": {"scaled_from": info.name}}
         store.write_object_dir(folder, _scaled(load_obj(info.mesh_path), scales), meta, pieces=lambda _: pieces)

@@ -30,7 +30,7 @@ from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 from dexdrake.paths import cache_dir
 
-SPLITS = ("train", "unseen", "user", "augmented")  # augmented: dexdrake.objects.augment
+SPLITS = ("train", "unseen", "user", store.AUGMENTED_SPLIT)
 
 __all__ = [
     "DISTANCE_GEOMETRY_NAME",
@@ -119,7 +119,7 @@ class BrokenObjectWarning(DexdrakeWarning):
 
 
 def _folders(split: str) -> list[Path]:
-    root = {"user": store.user_root(), "augmented": store.augmented_root()}.get(split, store.shipped_root())
+    root = {"user": store.user_root(), store.AUGMENTED_SPLIT: store.augmented_root()}.get(split, store.shipped_root())
     if not root.is_dir():
         return []
     return sorted(p for p in root.iterdir() if not p.name.startswith(".") and p.is_dir())
@@ -146,12 +146,12 @@ def list_objects(split: str | None = None) -> list[ObjectInfo]:
         raise UnknownNameError("object split", split, SPLITS)
     infos = [_info(f) for f in _folders("train") if (f / store.META_FILE).is_file()]
     infos += [i for i in map(_user_info, _folders("user")) if i is not None]
-    infos += [_info(f) for f in _folders("augmented") if (f / store.META_FILE).is_file()]
+    infos += [_info(f) for f in _folders(store.AUGMENTED_SPLIT) if (f / store.META_FILE).is_file()]
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
 SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
-EMPTY_SPLIT_HINT = {"augmented": "; make them with `dexdrake objects augment`"}
+EMPTY_SPLIT_HINT = {store.AUGMENTED_SPLIT: "; make them with `dexdrake objects augment`"}
 
 
 def resolve_objects(spec: str) -> tuple[str, list[str]]:
@@ -163,9 +163,9 @@ def resolve_objects(spec: str) -> tuple[str, list[str]]:
     spec = spec.strip()
     if not spec:
         raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
-    if spec in SPLIT_ALIASES or spec == "train+augmented":
+    if spec in SPLIT_ALIASES or spec == f"train+{store.AUGMENTED_SPLIT}":
         names = []
-        for split in [SPLIT_ALIASES[spec]] if spec in SPLIT_ALIASES else ["train", "augmented"]:
+        for split in [SPLIT_ALIASES[spec]] if spec in SPLIT_ALIASES else ["train", store.AUGMENTED_SPLIT]:
             found = [o.name for o in list_objects(split)]
             if not found:
                 raise DexdrakeError(f"the object library has no {split!r} objects{EMPTY_SPLIT_HINT.get(split, '')}")
@@ -190,7 +190,7 @@ def get_object(name: str) -> ObjectInfo:
                 return info
         if (store.augmented_root() / name / store.META_FILE).is_file():
             return _info(store.augmented_root() / name)
-    raise UnknownNameError("object", name, [i.name for i in list_objects() if i.split != "augmented"])
+    raise UnknownNameError("object", name, [i.name for i in list_objects() if i.split != store.AUGMENTED_SPLIT])
 
 
 def import_mesh(path: str | Path, name: str, category: str = "user", scale: float = 1.0, overwrite: bool = False,

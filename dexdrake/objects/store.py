@@ -21,6 +21,7 @@ from dexdrake.objects.convex import COACD_PARAMS, pieces_key, write_pieces
 from dexdrake.objects.meshfile import content_hash, load_obj, obj_bytes
 
 MESH_FILE, META_FILE, CONVEX_DIR = "mesh.obj", "meta.json", "convex"
+AUGMENTED_SPLIT = "augmented"  # the split of the scaled copies (dexdrake.objects.augment)
 
 
 def shipped_root() -> Path:
@@ -41,7 +42,7 @@ def augmented_root() -> Path:
     """Folder of the scaled copies of the training objects."""
     from dexdrake.paths import data_dir
 
-    return data_dir() / "augmented"
+    return data_dir() / AUGMENTED_SPLIT
 
 
 def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:

@@ -509,5 +509,9 @@ def test_scaled_copies_scale_mesh_and_pieces_and_are_a_training_split(no_coacd, 
     assert augment.build_copies(1, ["cup_short"]) == ["cup_short_s1"]  # fewer copies: the rest removed
     assert [i.name for i in list_objects("augmented")] == ["cup_short_s1"] and not copy.mesh_path.exists()
     assert get_object("cup_short_s1").mesh_path.stat().st_mtime_ns == kept  # up to date: not rewritten
+    meta_path = get_object("cup_short_s1").mesh_path.parent / store.META_FILE
+    meta_path.write_text(meta_path.read_text().replace('"scales": [', '"scales": [9, '))  # made at other scales
+    augment.build_copies(1, ["cup_short"])
+    assert store.read_meta(meta_path.parent)["scales"] == [round(float(s), 6) for s in augment.copy_scales("cup_short", 1)]
     assert main(["objects", "augment", "--copies", "1"]) == 0
     assert f"{len(list_objects('train'))} scaled copies" in capsys.readouterr().out

@@ -58,11 +58,13 @@ def build_copies(copies: int, names: list[str] | None = None) -> list[str]:
             shutil.rmtree(folder)
     for name, (info, k) in wanted.items():
         folder, scales = root / name, copy_scales(info.name, k)
-        if (folder / store.META_FILE).is_file() and store.read_meta(folder).get("derived_from_hash") == info.content_hash:
-            continue
-        pieces = [_scaled(load_obj(p), scales) for p in info.convex_pieces()]
         meta = {"name": name, "category": info.category, "split": store.AUGMENTED_SPLIT, "derived_from": info.name,
                 "derived_from_hash": info.content_hash, "scales": [round(float(s), 6) for s in scales],
                 "convex": {"scaled_from": info.name}}
+        if (folder / store.META_FILE).is_file():
+            old = store.read_meta(folder)
+            if all(old.get(key) == meta[key] for key in ("derived_from_hash", "scales")):
+                continue  # the same original at the same scales
+        pieces = [_scaled(load_obj(p), scales) for p in info.convex_pieces()]
         store.write_object_dir(folder, _scaled(load_obj(info.mesh_path), scales), meta, pieces=lambda _: pieces)
     return sorted(wanted)

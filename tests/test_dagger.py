@@ -162,7 +162,7 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
     np.testing.assert_array_equal(again, data.labels)  # the same expert in the same states: the same labels
     config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, backend="sequential")
     train_dagger([OBJECT], tmp_path / "a", GraspEnvFactory, ReactiveGrasp, config)
-    later = replace(config, init=str(tmp_path / "a" / "policy_00.pt"), prior=str(tmp_path / "a"), seed=1)
+    later = replace(config, init=str(tmp_path / "a" / "policy_00.pt"), prior=(str(tmp_path / "a"),), seed=1)
     train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, later)
     source, prior = DaggerData.load(tmp_path / "a" / "data_00.npz"), DaggerData.load(tmp_path / "b" / "prior_00.npz")
     assert np.array_equal(prior.observations, source.observations) and np.array_equal(prior.states, source.states)
@@ -170,19 +170,22 @@ def test_relabel_replays_recorded_states_and_a_run_continues_from_an_earlier_one
     q_arm = env.normalise(source.states[:, env.scene.q_index])[:, :n_arm]
     assert np.abs(source.labels[:, :n_arm] - q_arm).max() > 0.25  # the first expert led by up to 0.3 ...
     assert np.abs(prior.labels[:, :n_arm] - q_arm).max() < 0.15 + 1e-4  # ... the second, which relabelled, by 0.15
-    assert [f.name for f in prior_files(tmp_path / "b", later)] == ["prior_00.npz", "data_00.npz"]  # its whole history
+    assert [f.name for f in prior_files(replace(later, prior=(str(tmp_path / "b"),)))] == ["prior_00.npz",
+                                                                                       "data_00.npz"]  # its whole history
+    both = prior_files(replace(later, prior=(str(tmp_path / "a"), str(tmp_path / "b"))))  # several runs, in order
+    assert [f"{f.parent.name}/{f.name}" for f in both] == ["a/data_00.npz", "b/prior_00.npz", "b/data_00.npz"]
     (row,) = read_csv(tmp_path / "b" / "dagger_log.csv")
     assert row["driver"] == "init" and int(row["samples_total"]) == 200  # the prior's states, then its own
     with pytest.raises(DexdrakeError, match="prior"):  # resumed with another prior: refused
-        train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, replace(later, prior=str(tmp_path / "b")))
+        train_dagger([OBJECT], tmp_path / "b", GraspEnvFactory, HalfLeadExpert, replace(later, prior=(str(tmp_path / "b"),)))
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--prior", str(tmp_path / "none")]) == 2
     assert "holds no DAgger data" in capsys.readouterr().err
     with pytest.raises(DexdrakeError, match="holds adroit Hand2obj observations; this run is adroit DexRep"):
         train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", init=""))
     with pytest.raises(DexdrakeError, match="trained for adroit with Hand2obj features"):
-        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=""))
+        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, feature_set="DexRep", prior=()))
     with pytest.raises(DexdrakeError, match="has an absolute arm head; add --residual-arm"):
-        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, residual_arm=True, prior=""))
+        train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, replace(later, residual_arm=True, prior=()))
     started_from = hashlib.sha256((tmp_path / "a" / "policy_00.pt").read_bytes()).hexdigest()
     (tmp_path / "a" / "policy_00.pt").write_bytes(b"replaced after the run started")
     assert init_sha256(tmp_path / "b") == started_from and init_sha256(tmp_path / "a") is None  # an expert start: none

@@ -23,6 +23,8 @@ def command_line(words: list[str], args: argparse.Namespace, options: list[str])
         value = getattr(args, opt.replace("-", "_"))
         if isinstance(value, bool):
             parts += [f"--{opt}"] if value else []
+        elif isinstance(value, list):
+            parts += [f"--{opt}", *map(str, value)] if value else []
         elif value is not None:
             parts += [f"--{opt}", str(value)]
     return shlex.join(parts)
@@ -102,8 +104,8 @@ def add_parser(subparsers) -> None:
                              "unseen success and loss (default 0: no probe)")
     dagger.add_argument("--init", type=Path, default=None,
                         help="policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert drives)")
-    dagger.add_argument("--prior", type=Path, default=None,
-                        help="an earlier DAgger run's folder: its states, labelled anew by this expert, are trained on too")
+    dagger.add_argument("--prior", type=Path, nargs="+", default=[], metavar="DIR",
+                        help="earlier DAgger runs' folders: their states, labelled anew by this expert, are trained on too")
     dagger.add_argument("--residual-arm", action="store_true",
                         help="a new network's arm actions are added to the arm's current position (it learns the lead)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
@@ -246,7 +248,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                           epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, obs_noise=args.obs_noise,
                           arm_weight=args.arm_weight,
                           workers=args.workers, backend=args.backend, seed=args.seed,
-                          probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=str(args.prior or ""),
+                          probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=tuple(map(str, args.prior)),
                           residual_arm=args.residual_arm)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "weight-decay", "obs-noise",

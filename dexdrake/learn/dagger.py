@@ -67,7 +67,7 @@ class DaggerConfig:
     seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k (probes: + PROBE_SEEDS + k)
     probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
     init: str = ""  # policy checkpoint that drives iteration 0 and is fine-tuned ("": the expert drives, a new network)
-    prior: str = ""  # an earlier run's folder whose data_XX.npz states are labelled anew and aggregated first
+    prior: tuple[str, ...] = ()  # earlier runs' folders whose states are labelled anew and aggregated first
     residual_arm: bool = False  # a new network's arm actions lead the current arm position (PolicyConfig)
 
 
@@ -170,7 +170,7 @@ def _samples_in(path: Path) -> int:
 def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
     """Samples a run can hold: those of its prior and data files on disk, and a full horizon
     for every episode of the iterations still to collect."""
-    total = sum(_samples_in(path) for path in prior_files(Path(config.prior), config)) if config.prior else 0
+    total = sum(_samples_in(path) for path in prior_files(config))
     for it in range(config.iterations):
         path = out_dir / f"data_{it:02d}.npz"
         if path.is_file():
@@ -180,13 +180,16 @@ def run_capacity(out_dir: Path, config: DaggerConfig, n_objects: int) -> int:
     return total
 
 
-def prior_files(prior_dir: Path, config: DaggerConfig) -> list[Path]:
-    """An earlier run's states: its own prior files (relabelled states of the run before it),
-    then its data files, in iteration order; refused when there are none or when their
-    observations are another hand's or feature set's than the run's `config`."""
-    files = sorted(prior_dir.glob("prior_[0-9][0-9].npz")) + sorted(prior_dir.glob("data_[0-9][0-9].npz"))
-    if not files:
-        raise DexdrakeError(f"{prior_dir} holds no DAgger data (prior_XX.npz or data_XX.npz)")
+def prior_files(config: DaggerConfig) -> list[Path]:
+    """The states of `config.prior`'s runs, run by run: each one's own prior files (relabelled
+    states of the runs before it), then its data files, in iteration order; refused when a run
+    has none or when their observations are another hand's or feature set's than `config`'s."""
+    files = []
+    for prior_dir in map(Path, config.prior):
+        found = sorted(prior_dir.glob("prior_[0-9][0-9].npz")) + sorted(prior_dir.glob("data_[0-9][0-9].npz"))
+        if not found:
+            raise DexdrakeError(f"{prior_dir} holds no DAgger data (prior_XX.npz or data_XX.npz)")
+        files += found
     for path in files:
         made = _metadata(path).get("config", {})
         if (made.get("hand"), made.get("feature_set")) != (config.hand, config.feature_set):
@@ -285,8 +288,10 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
     if not first.is_file():
         return
     meta = _metadata(first)
-    old, now = meta.get("config", {}), asdict(config)
-    default = asdict(DaggerConfig())  # a field newer than the run: its default then
+    old, now = meta.get("config", {}), json.loads(json.dumps(asdict(config)))  # as the file holds it
+    if isinstance(old.get("prior"), str):  # a run from before several priors: one folder or none
+        old["prior"] = [old["prior"]] if old["prior"] else []
+    default = json.loads(json.dumps(asdict(DaggerConfig())))  # a field newer than the run: its default then
     diff = [f"{k} {old.get(k, default[k])!r} (now {now[k]!r})" for k in now
             if k not in RESUMABLE and old.get(k, default[k]) != now[k]]
     old_objects, new_objects = sorted(set(meta.get("objects", []))), sorted(set(objects))
@@ -344,7 +349,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
-        for k, source in enumerate(prior_files(Path(config.prior), config) if config.prior else []):
+        for k, source in enumerate(prior_files(config)):
             path = out_dir / f"prior_{k:02d}.npz"
             if path.is_file():
                 data = DaggerData.load(path)

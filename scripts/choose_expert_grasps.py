@@ -40,6 +40,11 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
                              "tall_palm_depth": 0.015, "reach": -0.04},
     "stem_70": {"closed_pose": "oppose", "open_pose": "oppose", "closure": 0.8, "palm_depth": 0.07,
                 "tall_palm_depth": 0.07, "reach": -0.04},
+    # wide dishes: the same pinch on the rim, 6 cm out along the fingers, 1.5 or 0.8 cm below the top
+    "rim_60": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.015, "tall_palm_depth": 0.015,
+               "reach": 0.06},
+    "rim_60_low": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.008, "tall_palm_depth": 0.008,
+                   "reach": 0.06},
 }
 
 

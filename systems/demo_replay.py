@@ -67,11 +67,9 @@ class ReplayConfig:
 
 
 # -- pure helpers ------------------------------------------------------------------------
-def episode_placement(seed: int, num_objects: int = 1) -> ObjectPlacement:
-    """The placement `GraspEnv.reset(seed)` samples (same generator calls, same order)."""
-    rng = np.random.default_rng(seed)
-    rng.integers(num_objects)
-    return ObjectPlacement.sample(rng)
+def episode_placement(seed: int) -> ObjectPlacement:
+    """The placement `GraspEnv.reset(seed)` samples (its generator's first draws)."""
+    return ObjectPlacement.sample(np.random.default_rng(seed))
 
 
 def place_demo(demo: HumanDemo, placement: ObjectPlacement, rest_height: float) -> HumanDemo:
@@ -226,7 +224,7 @@ class DemoReplayer:
             raise DexdrakeError("demo has no object_name; replay needs a library object")
         info = get_object(demo.object_name)
         env = self.env(info.name)
-        placement = episode_placement(seed, len(env.objects))
+        placement = episode_placement(seed)
         placed = place_demo(demo, placement, info.rest_height)
         q = self.retargeter.retarget_sequence(placed, self._mesh(info), progress=False)
         q_demo = resample_trajectory(q, placed.time, env.base_config.control_period)

@@ -72,6 +72,7 @@ class GraspEnv:
         """Start an episode: object `object_name` (default: drawn from `seed` among the env's
         objects) placed with the seed's randomisation, the hand at `q_hand` (default pre-grasp)."""
         rng = np.random.default_rng(seed)
+        placement = ObjectPlacement.sample(rng)  # first: a seed places alike whatever the objects
         drawn = self.objects[rng.integers(len(self.objects))]
         if object_name is not None and object_name not in self.objects:
             raise DexdrakeError(f"object {object_name!r} is not one of this env's objects {self.objects}")
@@ -79,7 +80,7 @@ class GraspEnv:
         self.seed = seed
         self.context.SetTime(0.0)
         q0 = self.scene.hand.pregrasp_vector() if q_hand is None else np.asarray(q_hand, float)
-        self.scene.set_initial_state(self.plant_context, ObjectPlacement.sample(rng), q0)
+        self.scene.set_initial_state(self.plant_context, placement, q0)
         self.simulator.Initialize()
         self.p_start = self.object_position()
         self.tracker = SuccessTracker(self.p_start, self.task)

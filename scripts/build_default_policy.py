@@ -13,7 +13,9 @@ eval_seen.md / eval_unseen.md with their .csv (eval_<hand>_seen.md ... for other
 No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
 on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
 folder (e.g. a long run resumed over several sessions) instead of running DAgger; the
-manifest then records the commands that run's policy and log name.
+manifest then records the commands that run's policy and log name. `--shipped` re-evaluates
+the shipped policy with the current code (e.g. after a fix that changes the evaluation's
+episodes) and rewrites its tables and metrics, keeping the manifest's training record.
 """
 
 from __future__ import annotations
@@ -70,38 +72,39 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
-    parser.add_argument("--dagger", type=Path, help="an existing DAgger output folder to evaluate and ship")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--dagger", type=Path, help="an existing DAgger output folder to evaluate and ship")
+    mode.add_argument("--shipped", action="store_true",
+                      help="re-evaluate the shipped policy, keeping its manifest's training record")
     args = parser.parse_args()
 
     dexdrake = str(Path(sys.executable).with_name("dexdrake"))
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     dagger = args.dagger or work / "dagger"
+    weights = ROOT / "models" / "weights"
+    name = f"{args.hand}_dexrep_policy"
+    target = weights / f"{name}.pt"
     log: list[dict] = []
     start = time.perf_counter()
     if args.dagger and not (dagger / "dagger_policy.pt").is_file():
         sys.exit(f"build_default_policy: error: {dagger} has no dagger_policy.pt")
-    if not args.dagger:
+    if args.shipped and not (target.is_file() and target.with_suffix(".json").is_file()):
+        sys.exit(f"build_default_policy: error: no shipped {target} with its manifest")
+    if not (args.dagger or args.shipped):
         run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
              "--iterations", str(args.iterations), "--per-object",
              str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
              "--seed", "0"], dagger / "dagger_policy.pt", log)
-    policy = dagger / "dagger_policy.pt"
+    policy = target.relative_to(ROOT) if args.shipped else dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
     for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
         run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
              "--workers", str(args.workers), "--out", str(work / "eval")], work / "eval" / f"eval_{label}.json", log)
 
-    weights = ROOT / "models" / "weights"
-    name = f"{args.hand}_dexrep_policy"
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
-    target = weights / f"{name}.pt"
-    from dexdrake.learn.dagger import init_sha256
-    from dexdrake.learn.policy import load_policy
-
-    net, meta = load_policy(policy)
-    dagger_config = meta.get("dagger_config") or {}
-    write_atomic(target, policy.read_bytes())
+    if not args.shipped:
+        write_atomic(target, policy.read_bytes())
     metrics = {}
     for label in ("seen", "unseen"):
         report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
@@ -111,15 +114,34 @@ def main() -> None:
         metrics[label]["successful_seeds"] = {name: [e["seed"] for e in report["episodes"] if e["object"] == name and e["success"]]
                                               for name in report["per_object"]}
         text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
-        text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
+        if not args.shipped:
+            text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
         write_atomic(weights / f"{tables}_{label}.md", text.encode())
         write_csv_beside(weights / f"{tables}_{label}.md")
 
+    if args.shipped:
+        manifest = json.loads(target.with_suffix(".json").read_text())
+        kept = [c for c in manifest["commands"] if not c["command"].startswith(("dexdrake eval", "python scripts/build_default_policy.py"))]
+        manifest.update(commands=kept + log + [{"command": shlex.join(["python", *sys.argv])}], metrics=metrics)
+    else:
+        manifest = new_manifest(args, dagger, target, log, metrics, start)
+    write_atomic(weights / f"{name}.json", (json.dumps(manifest, indent=1) + "\n").encode())
+    print(f"wrote {target} ({target.stat().st_size / 1e6:.2f} MB), its manifest and eval tables; "
+          f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
+
+
+def new_manifest(args: argparse.Namespace, dagger: Path, target: Path, log: list[dict], metrics: dict,
+                 start: float) -> dict:
+    """The manifest of a policy newly shipped from the DAgger folder `dagger`."""
     import torch
 
     from dexdrake.dexrep.pointnet import default_encoder_path
     from dexdrake.learn.curves import read_csv
+    from dexdrake.learn.dagger import init_sha256
+    from dexdrake.learn.policy import load_policy
 
+    net, meta = load_policy(target)
+    dagger_config = meta.get("dagger_config") or {}
     iterations = read_csv(dagger / "dagger_log.csv")
     samples = meta.get("samples") or next((int(r["samples_total"]) for r in iterations
                                            if int(r["iteration"]) == meta.get("iteration")), None)
@@ -127,8 +149,8 @@ def main() -> None:
         log.insert(0, {"command": meta.get("command"), "note": f"the last command that ran DAgger in {dagger} "
                        "(earlier iterations may have run under the arguments their data files record)"})
     encoder = default_encoder_path()
-    manifest = {
-        "policy": f"models/weights/{name}.pt",
+    return {
+        "policy": f"models/weights/{target.name}",
         "sha256": sha256(target),
         "hand": net.config.hand,
         "feature_set": net.config.feature_set,
@@ -152,9 +174,6 @@ def main() -> None:
                     "pipeline_wall_s_this_run": round(time.perf_counter() - start, 1), "torch": torch.__version__},
         "metrics": metrics,
     }
-    write_atomic(weights / f"{name}.json", (json.dumps(manifest, indent=1) + "\n").encode())
-    print(f"wrote {target} ({target.stat().st_size / 1e6:.2f} MB), its manifest and eval tables; "
-          f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
 
 
 if __name__ == "__main__":

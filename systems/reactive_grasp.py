@@ -52,7 +52,8 @@ from dexdrake.systems.scripted_grasp import (GraspPlan, GraspScript, ScriptedGra
 class ReactiveRules:
     """Thresholds of the phase rules and the arm's set-point lead."""
 
-    max_lead: float = 0.3  # largest arm set-point lead per joint (normalised action units)
+    max_lead: float = 0.5  # largest arm set-point lead per joint (normalised action units; 0.3 reached
+    # the grasp later: see models/weights/expert_grasp_table.md)
     at_grasp: float = 0.015  # grasp centre within this of the grasp point: close (m)
     blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
     stopped_speed: float = 0.15  # arm joints slower than this (m/s or rad/s) have stopped (a policy's

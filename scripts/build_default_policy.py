@@ -2,7 +2,7 @@
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
-        [--hand adroit] [--objects train] [--dagger DIR]
+        [--hand adroit] [--objects train] [--dagger DIR | --shipped]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration). The result:

@@ -40,9 +40,9 @@ def test_expert_grasps_and_lifts_within_the_evaluation_episode(env):
             lifting.append(expert.ik.palm_pose(env.hand_state()[: expert.n_arm])[0])
         success = env.step_positions(q)[3]["success"] or success
     assert success
-    # From the start pose, inside the funnel: descend, close, lift, and never back to the descent
+    # From the start pose: over the object, descend, close, lift, and never back to the descent
     # (the fingers' speed can still flip a lift that has not risen 1 cm back to closing for a step).
-    assert phases[:3] == ["descend", "close", "lift"] and set(phases[3:]) <= {"close", "lift"}
+    assert phases[:4] == ["approach", "descend", "close", "lift"] and set(phases[4:]) <= {"close", "lift"}
     assert phases[-1] == "lift"
     lifting = np.array(lifting)  # up from where the grasp closed, ...
     assert lifting[-1, 2] - lifting[0, 2] > 0.1

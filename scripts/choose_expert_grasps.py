@@ -40,6 +40,10 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
                              "tall_palm_depth": 0.015, "reach": -0.04},
     "stem_70": {"closed_pose": "oppose", "open_pose": "oppose", "closure": 0.8, "palm_depth": 0.07,
                 "tall_palm_depth": 0.07, "reach": -0.04},
+    # wide and tall objects: the palm down on the top (the grasp centre 5 cm below it), or a
+    # deeper grasp around the body with the fingers closing 80 %
+    "palm_50": {"palm_depth": 0.05, "tall_palm_depth": 0.05},
+    "palm_65_80": {"palm_depth": 0.065, "tall_palm_depth": 0.065, "closure": 0.8},
     # wide dishes: the same pinch on the rim, 6 cm out along the fingers, 1.5 or 0.8 cm below the top
     "rim_60": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.015, "tall_palm_depth": 0.015,
                "reach": 0.06},
@@ -83,10 +87,12 @@ def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, str, dict
 
 
 def main() -> None:
+    from dexdrake.eval.evaluate import EVAL_HORIZON
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--seeds", default="100,101,102", help="comma-separated placement seeds of the trials")
-    parser.add_argument("--horizon", type=int, default=150)
+    parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
 

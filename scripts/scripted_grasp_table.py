@@ -49,6 +49,8 @@ def _run_object(args: tuple[str, str, str, int, int]) -> tuple[str, list[bool], 
 
 
 def main() -> None:
+    from dexdrake.eval.evaluate import EVAL_HORIZON
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--split", default="train")
@@ -56,7 +58,7 @@ def main() -> None:
     parser.add_argument("--controller", choices=("scripted", "expert"), default="scripted",
                         help="the timed ScriptedGrasp or the state-driven ReactiveGrasp (the DAgger expert)")
     parser.add_argument("--seeds", type=int, default=20)
-    parser.add_argument("--horizon", type=int, default=150)
+    parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()

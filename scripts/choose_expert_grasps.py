@@ -1,6 +1,6 @@
 """Choose the state-driven expert's grasp variant per training object by simulated trials.
 
-    python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,101,102] [--workers 2]
+    python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,...,111] [--workers 2] [--horizon 100]
 
 Each variant (overrides of the hand's GraspScript: the open and closed poses, how far the
 fingers close, the grasp centre's depth, reach and floor) runs the expert (ReactiveGrasp) on every training
@@ -10,7 +10,8 @@ the best so far (`best_variant`), which chooses exactly as trying every seed wou
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
 reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
-measured on the seeds the choice was fitted to.
+measured on the seeds the choice was fitted to. Twelve seeds: with six, most variants could
+not be told apart (the choice made 68.9 % on its own seeds and 63.2 % on the table's).
 """
 
 from __future__ import annotations
@@ -91,7 +92,8 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
-    parser.add_argument("--seeds", default="100,101,102", help="comma-separated placement seeds of the trials")
+    parser.add_argument("--seeds", default=",".join(map(str, range(100, 112))),
+                        help="comma-separated placement seeds of the trials")
     parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()

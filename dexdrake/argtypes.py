@@ -54,6 +54,11 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True) -> Calla
 
 seed = int_at_least(0)
 count = int_at_least(1)
+
+
+def seed_list(text: str) -> list[int]:
+    """Comma-separated seeds (integers >= 0), at least one: '100,101,102'."""
+    return [seed(item) for item in text.split(",")]
 positive = float_in(0.0)
 non_negative = float_in(0.0, low_open=False)
 

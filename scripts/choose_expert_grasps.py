@@ -88,11 +88,12 @@ def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, str, dict
 
 
 def main() -> None:
+    from dexdrake import argtypes
     from dexdrake.eval.evaluate import EVAL_HORIZON
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
-    parser.add_argument("--seeds", default=",".join(map(str, range(100, 112))),
+    parser.add_argument("--seeds", type=argtypes.seed_list, default=list(range(100, 112)),
                         help="comma-separated placement seeds of the trials")
     parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
@@ -101,7 +102,7 @@ def main() -> None:
     from dexdrake.objects.library import list_objects
     from dexdrake.systems.reactive_grasp import expert_grasps_path
 
-    seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = args.seeds
     names = [o.name for o in list_objects("train")]
     jobs = [(args.hand, n, seeds, args.horizon) for n in names]
     objects = {}

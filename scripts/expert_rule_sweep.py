@@ -37,33 +37,36 @@ def parse_spec(spec: str) -> dict[str, float]:
 
 
 def _trial_object(args: tuple[str, str, list[int], int, dict]) -> tuple[str, int]:
-    hand, name, seeds, horizon, overrides = args
+    hand_name, name, seeds, horizon, overrides = args
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
     from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import with_overrides
 
-    env = GraspEnv(SceneConfig(hand=hand, object=name), horizon=horizon)
+    env = GraspEnv(SceneConfig(hand=hand_name, object=name), horizon=horizon)
     hand = env.scene.hand
     rules = replace(with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert"), **overrides)
     return name, sum(env.rollout(lambda e: ReactiveGrasp(e, rules=rules), s).success for s in seeds)
 
 
 def main() -> None:
+    from dexdrake import argtypes
     from dexdrake.eval.evaluate import EVAL_HORIZON
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("specs", nargs="+", metavar="SPEC")
     parser.add_argument("--hand", default="adroit")
-    parser.add_argument("--seeds", default="100,101,102,103", help="comma-separated placement seeds")
-    parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seeds", type=argtypes.seed_list, default=[100, 101, 102, 103],
+                        help="comma-separated placement seeds")
+    parser.add_argument("--horizon", type=argtypes.count, default=EVAL_HORIZON,
+                        help="control steps (default: the evaluation's)")
+    parser.add_argument("--workers", type=argtypes.count, default=2)
     args = parser.parse_args()
     try:
         specs = {spec: parse_spec(spec) for spec in args.specs}
-        seeds = [int(s) for s in args.seeds.split(",")]
     except ValueError as e:
         parser.error(str(e))
+    seeds = args.seeds
 
     from dexdrake.objects.library import list_objects
 

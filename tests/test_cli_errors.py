@@ -66,9 +66,13 @@ def test_number_types_name_the_problem():
                                  (argtypes.count, "0", "at least 1"),
                                  (argtypes.count, "x", "an integer"),
                                  (argtypes.positive, "0", r"\(0, inf\]"),
-                                 (argtypes.label, "a/b", "no slashes")):
+                                 (argtypes.label, "a/b", "no slashes"),
+                                 (argtypes.seed_list, "100,x", "an integer"),
+                                 (argtypes.seed_list, "100,-1", "at least 0"),
+                                 (argtypes.seed_list, "", "an integer")):
         with pytest.raises(argparse.ArgumentTypeError, match=message):
             parse(text)
+    assert argtypes.seed_list("100,101,7") == [100, 101, 7]
 
 
 @pytest.fixture

@@ -103,7 +103,7 @@ class ReactiveGrasp(ScriptedGrasp):
     def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
         hand = env.scene.hand
         self.rules = rules or with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert")
-        info = env.scene.object_info  # a scaled copy is grasped as the object it copies
+        info = env.scene.object_info  # an augmented object is grasped as the one it derives from
         super().__init__(env, script or expert_script(hand, info.derived_from or info.name))
         self.p_start = env.object_position()
         # the lift height: the grasp height on the object at rest, plus the lift

@@ -209,7 +209,7 @@ def test_grasp_pose_naming_an_unknown_joint_is_refused():
 def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monkeypatch):
     import json
 
-    from dexdrake.objects.augment import build_copies
+    from dexdrake.objects.augment import build_augmented
 
     from dexdrake.systems import reactive_grasp
 
@@ -225,7 +225,7 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         hand = can_env.scene.hand
         assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
         monkeypatch.setenv("DEXDRAKE_DATA", str(tmp_path / "data"))
-        (copy,) = build_copies(1, ["can_soda"])  # a scaled copy is grasped as the object it copies
+        (copy,) = build_augmented(1, 0, ["can_soda"])  # a scaled copy is grasped as the object it copies
         copy_env = GraspEnv(SceneConfig(object=copy), horizon=5)
         copy_env.reset(0)
         assert (ReactiveGrasp(copy_env).script.closed_pose, ReactiveGrasp(copy_env).script.closure) == ("oppose", 0.7)

@@ -484,7 +484,7 @@ def test_scaled_copies_scale_mesh_and_pieces_and_are_a_training_split(no_coacd, 
 
     with pytest.raises(DexdrakeError, match="make them with `dexdrake objects augment`"):
         resolve_objects("train+augmented")
-    names = augment.build_copies(2, ["cup_short", "box_bar"])
+    names = augment.build_augmented(2, 0, ["cup_short", "box_bar"])
     assert names == ["box_bar_s1", "box_bar_s2", "cup_short_s1", "cup_short_s2"]
     base, copy = get_object("cup_short"), get_object("cup_short_s2")
     scales = augment.copy_scales("cup_short", 2)
@@ -504,14 +504,45 @@ def test_scaled_copies_scale_mesh_and_pieces_and_are_a_training_split(no_coacd, 
         get_object("no_such_thing")
     assert "cup_short_s1" not in str(err.value)
     with pytest.raises(DexdrakeError, match="only training objects"):
-        augment.build_copies(1, ["mug"])
+        augment.build_augmented(1, 0, ["mug"])
     kept = get_object("cup_short_s1").mesh_path.stat().st_mtime_ns
-    assert augment.build_copies(1, ["cup_short"]) == ["cup_short_s1"]  # fewer copies: the rest removed
+    assert augment.build_augmented(1, 0, ["cup_short"]) == ["cup_short_s1"]  # fewer copies: the rest removed
     assert [i.name for i in list_objects("augmented")] == ["cup_short_s1"] and not copy.mesh_path.exists()
     assert get_object("cup_short_s1").mesh_path.stat().st_mtime_ns == kept  # up to date: not rewritten
     meta_path = get_object("cup_short_s1").mesh_path.parent / store.META_FILE
     meta_path.write_text(meta_path.read_text().replace('"scales": [', '"scales": [9, '))  # made at other scales
-    augment.build_copies(1, ["cup_short"])
+    augment.build_augmented(1, 0, ["cup_short"])
     assert store.read_meta(meta_path.parent)["scales"] == [round(float(s), 6) for s in augment.copy_scales("cup_short", 1)]
     assert main(["objects", "augment", "--copies", "1"]) == 0
     assert f"{len(list_objects('train'))} scaled copies" in capsys.readouterr().out
+
+
+def test_procedural_shapes_are_stable_convex_part_solids_grasped_as_their_nearest_training_object(no_coacd, capsys):
+    from dexdrake.cli import main
+    from dexdrake.dexrep.geometry import check_mesh
+    from dexdrake.objects import augment
+    from dexdrake.objects.procedural import procedural_shape
+
+    names = augment.build_augmented(1, 3, ["cup_short"])
+    assert names == ["cup_short_s1", "shape_001", "shape_002", "shape_003"]
+    train = list_objects("train")
+    for name in names[1:]:
+        info = get_object(name)
+        assert (info.split, info.category) == ("augmented", "procedural")
+        assert info.derived_from == augment.nearest_training_object(info.extents, train)
+        mesh = load_obj(info.mesh_path)
+        check_mesh(mesh, name)  # as written: watertight, no face degenerate at the file's rounding
+        assert np.abs(mesh.center_mass).max() < 1e-5 and is_stable_rest(mesh) and max(info.extents) <= 0.2
+        pieces = [load_obj(p) for p in info.convex_pieces()]  # its parts, no CoACD (no_coacd)
+        assert pieces and all(_is_convex(p) for p in pieces)
+        assert sum(p.volume for p in pieces) >= mesh.volume * (1 - 1e-3)  # the parts cover the solid
+    mesh, parts = procedural_shape(2)
+    again, _ = procedural_shape(2)
+    np.testing.assert_array_equal(mesh.vertices, again.vertices)  # a name fixes a shape
+    assert not np.allclose(mesh.extents, procedural_shape(3)[0].extents)
+    assert {len(procedural_shape(k)[1]) for k in range(1, 21)} == {1, 2, 3}  # single and compound shapes
+    assert augment.nearest_training_object(get_object("sphere_medium").extents, train) == "sphere_medium"
+    assert augment.build_augmented(1, 1, ["cup_short"]) == ["cup_short_s1", "shape_001"]  # fewer: the rest removed
+    assert [i.name for i in list_objects("augmented")] == ["cup_short_s1", "shape_001"]
+    assert main(["objects", "augment", "--copies", "1", "--shapes", "2"]) == 0
+    assert "2 procedural shapes" in capsys.readouterr().out and len(list_objects("augmented")) == len(train) + 2

@@ -37,7 +37,7 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
                         "default: a local Ray instance); see configs/ray_cluster.md")
 
 
-TRAINING_OBJECTS_HELP = ("'train', 'train+augmented' (with the scaled copies of `dexdrake objects augment`) or "
+TRAINING_OBJECTS_HELP = ("'train', 'train+augmented' (with the scaled copies and shapes of `dexdrake objects augment`) or "
                          "comma-separated object names")
 
 

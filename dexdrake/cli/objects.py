@@ -41,8 +41,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p_rm.add_argument("name", help="user object name")
     p_rm.set_defaults(func=cmd_remove)
 
-    p_aug = sub.add_parser("augment", help="scaled copies of the training objects, to train on (split 'augmented')")
+    p_aug = sub.add_parser("augment", help="scaled copies of the training objects and procedural shapes, to train on "
+                           "(split 'augmented')")
     p_aug.add_argument("--copies", type=argtypes.count, default=2, help="copies per training object (default 2)")
+    p_aug.add_argument("--shapes", type=argtypes.non_negative_count, default=0,
+                       help="procedural shapes (superquadrics and compounds of them; default 0)")
     p_aug.set_defaults(func=cmd_augment)
     return parser
 
@@ -108,11 +111,11 @@ def cmd_remove(args: argparse.Namespace) -> int:
 
 
 def cmd_augment(args: argparse.Namespace) -> int:
-    """Make the scaled copies (dexdrake.objects.augment); print where and how many."""
+    """Make the augmented split (dexdrake.objects.augment); print where and how many."""
     from dexdrake.objects import store
-    from dexdrake.objects.augment import SCALE_RANGE, build_copies
+    from dexdrake.objects.augment import SCALE_RANGE, build_augmented
 
-    names = build_copies(args.copies)
-    print(f"{len(names)} scaled copies (per-axis factors in {SCALE_RANGE[0]}-{SCALE_RANGE[1]}) in "
-          f"{store.augmented_root()}; train on them with `--objects train+augmented`")
+    names = build_augmented(args.copies, args.shapes)
+    print(f"{len(names) - args.shapes} scaled copies (per-axis factors in {SCALE_RANGE[0]}-{SCALE_RANGE[1]}) and "
+          f"{args.shapes} procedural shapes in {store.augmented_root()}; train on them with `--objects train+augmented`")
     return 0

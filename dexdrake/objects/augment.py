@@ -1,4 +1,4 @@
-"""Scaled copies of the training objects: more shapes to train on, at no meshing cost.
+"""The augmented split: scaled copies of the training objects and procedural shapes, to train on.
 
 Copy k of training object NAME is the object NAME_sK: NAME's mesh and convex pieces scaled
 by (sx, sy, sz) about its centre of mass, each factor log-uniform in SCALE_RANGE and drawn
@@ -7,12 +7,19 @@ pieces stay convex (no CoACD run), the centre of mass stays at the origin and a 
 resting pose stays stable. Copies are split "augmented" (training only, never evaluated) and
 keep the category of the object they copy, named in their meta.json as `derived_from` (the
 grasp expert uses that object's grasp variant).
+
+Procedural shape k (dexdrake.objects.procedural) is the object shape_K (K three digits),
+category "procedural", its parts its contact pieces; its `derived_from` is the training
+object nearest to it in footprint and height, whose grasp variant the expert uses.
 """
 
 from __future__ import annotations
 
 import hashlib
 import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
@@ -20,6 +27,10 @@ import trimesh
 from dexdrake.errors import DexdrakeError
 from dexdrake.objects import store
 from dexdrake.objects.meshfile import load_obj
+from dexdrake.objects.procedural import GENERATOR, procedural_shape
+
+if TYPE_CHECKING:
+    from dexdrake.objects.library import ObjectInfo
 
 SCALE_RANGE = (0.8, 1.25)  # per-axis scale factors of a copy
 
@@ -39,32 +50,63 @@ def _scaled(mesh: trimesh.Trimesh, scales: np.ndarray) -> trimesh.Trimesh:
     return trimesh.Trimesh(np.asarray(mesh.vertices) * scales, np.asarray(mesh.faces), process=False)
 
 
-def build_copies(copies: int, names: list[str] | None = None) -> list[str]:
-    """Make copies 1..`copies` of the training objects `names` (default: all) in
-    store.augmented_root(), replacing the copies there (existing up-to-date ones are kept);
-    returns the copies' names."""
+def shape_name(k: int) -> str:
+    return f"shape_{k:03d}"
+
+
+def _size_key(extents: Sequence[float]) -> np.ndarray:
+    """Log of the footprint's sides (longer first) and the height: what `nearest_training_object` compares."""
+    e = np.asarray(extents, dtype=float)
+    return np.log(np.r_[np.sort(e[:2])[::-1], e[2]])
+
+
+def nearest_training_object(extents: Sequence[float], infos: Sequence[ObjectInfo]) -> str:
+    """The name of the object in `infos` nearest to `extents` by `_size_key`."""
+    return min(infos, key=lambda i: float(np.linalg.norm(_size_key(i.extents) - _size_key(extents)))).name
+
+
+def build_augmented(copies: int, shapes: int = 0, names: list[str] | None = None) -> list[str]:
+    """Make copies 1..`copies` of the training objects `names` (default: all) and procedural
+    shapes 1..`shapes` in store.augmented_root(), replacing what is there (existing up-to-date
+    objects are kept); returns the objects' names."""
     from dexdrake.objects.library import get_object, list_objects
 
-    if copies < 1:
-        raise DexdrakeError(f"copies must be >= 1, got {copies}")
-    infos = list_objects("train") if names is None else [get_object(n) for n in names]
+    if copies < 1 or shapes < 0:
+        raise DexdrakeError(f"need copies >= 1 and shapes >= 0, got {copies} and {shapes}")
+    train = list_objects("train")
+    infos = train if names is None else [get_object(n) for n in names]
     not_train = [i.name for i in infos if i.split != "train"]
     if not_train:
         raise DexdrakeError(f"only training objects are copied; {not_train} are not")
     root = store.augmented_root()
     wanted = {copy_name(i.name, k): (i, k) for i in infos for k in range(1, copies + 1)}
+    wanted_shapes = {shape_name(k): k for k in range(1, shapes + 1)}
     for folder in (p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
-        if folder.name not in wanted:
+        if folder.name not in wanted and folder.name not in wanted_shapes:
             shutil.rmtree(folder)
     for name, (info, k) in wanted.items():
         folder, scales = root / name, copy_scales(info.name, k)
         meta = {"name": name, "category": info.category, "split": store.AUGMENTED_SPLIT, "derived_from": info.name,
                 "derived_from_hash": info.content_hash, "scales": [round(float(s), 6) for s in scales],
                 "convex": {"scaled_from": info.name}}
-        if (folder / store.META_FILE).is_file():
-            old = store.read_meta(folder)
-            if all(old.get(key) == meta[key] for key in ("derived_from_hash", "scales")):
-                continue  # the same original at the same scales
+        if _up_to_date(folder, meta, ("derived_from_hash", "scales")):
+            continue  # the same original at the same scales
         pieces = [_scaled(load_obj(p), scales) for p in info.convex_pieces()]
         store.write_object_dir(folder, _scaled(load_obj(info.mesh_path), scales), meta, pieces=lambda _: pieces)
-    return sorted(wanted)
+    for name, k in wanted_shapes.items():
+        mesh, parts = procedural_shape(k)
+        meta = {"name": name, "category": "procedural", "split": store.AUGMENTED_SPLIT,
+                "derived_from": nearest_training_object(mesh.extents, train), "generator": GENERATOR,
+                "convex": {"procedural": "parts"}}
+        if _up_to_date(root / name, meta, ("generator", "derived_from")):
+            continue
+        store.write_object_dir(root / name, mesh, meta, pieces=lambda _: parts)
+    return sorted(wanted) + sorted(wanted_shapes)
+
+
+def _up_to_date(folder: Path, meta: dict, keys: tuple[str, ...]) -> bool:
+    """`folder` holds an object whose meta.json agrees with `meta` on `keys`."""
+    if not (folder / store.META_FILE).is_file():
+        return False
+    old = store.read_meta(folder)
+    return all(old.get(key) == meta[key] for key in keys)

@@ -57,7 +57,7 @@ class ObjectInfo:
     mass: float = 0.5
     friction: float = 1.0
     content_hash: str = ""  # sha256 of mesh.obj: key for per-object caches
-    derived_from: str = ""  # the training object an augmented copy scales
+    derived_from: str = ""  # the training object an augmented object is grasped as (a copy: the one it scales)
 
     def convex_pieces(self) -> list[Path]:
         """OBJ files of convex pieces for contact (shipped ones, else CoACD cached on disk)."""
@@ -156,7 +156,7 @@ EMPTY_SPLIT_HINT = {store.AUGMENTED_SPLIT: "; make them with `dexdrake objects a
 
 def resolve_objects(spec: str) -> tuple[str, list[str]]:
     """(label, object names) for 'seen' / 'train', 'unseen', 'train+augmented' (the training
-    objects and their scaled copies) or a comma-separated name list.
+    objects, their scaled copies and the procedural shapes) or a comma-separated name list.
 
     Names are checked against the object library (UnknownNameError lists the valid ones).
     """

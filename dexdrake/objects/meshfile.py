@@ -63,8 +63,9 @@ def inertia_about_com(mesh: trimesh.Trimesh, mass: float) -> np.ndarray:
     return np.asarray(solid.moment_inertia, dtype=float)
 
 
-def is_stable_rest(mesh: trimesh.Trimesh, tol: float = 0.002) -> bool:
-    """True if the centre of mass lies over the support polygon when resting on z = min z.
+def is_stable_rest(mesh: trimesh.Trimesh, tol: float = 0.002, margin: float = 0.0) -> bool:
+    """True if the centre of mass lies over the support polygon (at least `margin` inside it)
+    when resting on z = min z.
 
     The support polygon is the convex hull (in xy) of the vertices within `tol` of the
     lowest point, so this accepts flat bases as well as round bottoms.
@@ -75,4 +76,4 @@ def is_stable_rest(mesh: trimesh.Trimesh, tol: float = 0.002) -> bool:
     if len(support) < 3 or np.linalg.matrix_rank(support - support[0], tol=1e-6) < 2:
         return False
     hull = ConvexHull(support)
-    return bool(np.all(hull.equations[:, :2] @ com + hull.equations[:, 2] <= 1e-9))
+    return bool(np.all(hull.equations[:, :2] @ com + hull.equations[:, 2] <= 1e-9 - margin))

@@ -78,8 +78,8 @@ def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict
     slug = feature_set.replace("+", "_").replace("-", "_").lower()
     folder = args.out / slug
     t0 = time.perf_counter()
-    obs, blocks = featurise(train, feature_set, progress=True)
-    held_obs, _ = featurise(held_out, feature_set, progress=True)
+    obs, blocks = featurise(train, feature_set, progress=True, workers=args.workers)
+    held_obs, _ = featurise(held_out, feature_set, progress=True, workers=args.workers)
     config = PolicyConfig.from_blocks(blocks, train.actions.shape[1], feature_set=feature_set, hand=train.hand)
     policy = DexRepNetPolicy(config)
     bc = train_bc(policy, DemoDataset(obs, train.actions, train.episode_starts), folder,

@@ -154,24 +154,40 @@ def load_raw(path: str | Path) -> tuple[RawEpisodes, dict[str, Any]]:
     return raw, meta
 
 
-def featurise(raw: RawEpisodes, feature_set: str, progress: bool = False) -> tuple[np.ndarray, dict[str, int]]:
-    """Observations (N, D) of `feature_set` for every recorded state, and the block sizes."""
-    from tqdm.auto import tqdm
-
+def _featurise_object(job: tuple[str, str, str, np.ndarray]) -> tuple[str, np.ndarray, dict[str, int]]:
+    """Observations of `feature_set` for the raw `states` of object `name` (one env)."""
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.scene import SceneConfig
 
+    hand, feature_set, name, states = job
+    env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=feature_set, horizon=1)
+    blocks = dict(env.observation_blocks)
+    obs = np.empty((len(states), sum(blocks.values())), dtype=np.float32)
+    for i, state in enumerate(states):
+        env.scene.plant.SetPositionsAndVelocities(env.plant_context, state)
+        obs[i] = env.observation()
+    return name, obs, blocks
+
+
+def featurise(raw: RawEpisodes, feature_set: str, progress: bool = False,
+              workers: int = 1) -> tuple[np.ndarray, dict[str, int]]:
+    """Observations (N, D) of `feature_set` for every recorded state, and the block sizes;
+    objects are featurised on `workers` processes (1: in this one)."""
+    import multiprocessing as mp
+    from contextlib import nullcontext
+
+    from tqdm.auto import tqdm
+
     episode_object = np.asarray(raw.objects)[raw.episode_ids()]
+    jobs = [(raw.hand, feature_set, name, raw.states[episode_object == name]) for name in sorted(set(raw.objects))]
     obs: np.ndarray | None = None
     blocks: dict[str, int] = {}
-    for name in tqdm(sorted(set(raw.objects)), desc=f"featurise {feature_set}", disable=not progress):
-        env = GraspEnv(SceneConfig(hand=raw.hand, object=name), feature_set=feature_set, horizon=1)
-        blocks = dict(env.observation_blocks)
-        if obs is None:
-            obs = np.empty((len(raw.actions), sum(blocks.values())), dtype=np.float32)
-        for i in np.nonzero(episode_object == name)[0]:
-            env.scene.plant.SetPositionsAndVelocities(env.plant_context, raw.states[i])
-            obs[i] = env.observation()
+    with mp.get_context("spawn").Pool(workers) if workers > 1 else nullcontext() as pool:
+        results = pool.imap_unordered(_featurise_object, jobs) if pool else map(_featurise_object, jobs)
+        for name, part, blocks in tqdm(results, total=len(jobs), desc=f"featurise {feature_set}", disable=not progress):
+            if obs is None:
+                obs = np.empty((len(raw.actions), part.shape[1]), dtype=np.float32)
+            obs[episode_object == name] = part
     assert obs is not None
     return obs, blocks
 

@@ -259,6 +259,7 @@ def test_refeaturised_scripted_states_match_online_observations(tmp_path):
         online.append(env.step(a)[0])
     assert blocks == env.observation_blocks
     np.testing.assert_allclose(obs, np.asarray(online, dtype=np.float32), atol=1e-5)
+    np.testing.assert_array_equal(featurise(raw, "DexRep+Vel", workers=2)[0], obs)  # worker processes: the same
 
 
 def test_ou_action_noise_is_stationary_correlated_and_seeded():

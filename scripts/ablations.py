@@ -15,12 +15,14 @@ scored twice on unseen objects:
 - closed loop: success over `--episodes` evaluation episodes per object (100 steps).
 `--objects paper` evaluates the 10 unseen GRAB objects of the paper's ablation; `unseen`
 all 13 unseen library objects. Writes ablations.md/.csv beside the paper's numbers, naming
-the command; partial tables survive an interrupted run.
+the command; each finished set is kept in `--out`/ablations.json, so the same command run
+again goes on with the sets still missing (a run with other settings into that folder is refused).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -32,6 +34,7 @@ from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
 from dexdrake.learn.curves import write_csv
 from dexdrake.objects.meshfile import write_atomic
 
+SETTINGS = ("dagger", "stride", "epochs", "lr", "episodes", "objects", "seed", "eval_seed")  # what a row depends on
 COLUMNS = ("feature_set", "obs_dim", "train_mse", "unseen_open_loop_mse", "ours_paper_objects_pct", "ours_all_pct",
            "paper_pct", "mean_max_lift_m", "minutes")
 
@@ -129,6 +132,25 @@ def write_table(rows: list[dict[str, object]], args, objects: list[str], n_train
     print("\n".join(lines))
 
 
+def finished_rows(args) -> dict[str, dict[str, object]]:
+    """The rows an earlier run of these settings finished in `args.out` ({} if none); exits with
+    one line if that folder holds a run of other settings."""
+    path = args.out / "ablations.json"
+    if not path.is_file():
+        return {}
+    done = json.loads(path.read_text())
+    now = settings(args)
+    if done["settings"] != now:
+        diff = "; ".join(f"{k} {done['settings'].get(k)!r} (now {now[k]!r})" for k in now if done["settings"].get(k) != now[k])
+        raise SystemExit(f"{args.out} holds an ablation with other settings: {diff}; use another --out or delete it")
+    return done["rows"]
+
+
+def settings(args) -> dict[str, object]:
+    """The arguments a table row depends on, as ablations.json records them."""
+    return {k: str(getattr(args, k)) if k == "dagger" else getattr(args, k) for k in SETTINGS}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dagger", type=Path, required=True, help="a `dexdrake train dagger` output folder")
@@ -157,6 +179,7 @@ def main() -> None:
     unknown = [s for s in sets if s not in FEATURE_SETS]
     if unknown:
         raise SystemExit(f"unknown feature sets {unknown}; valid: {list(FEATURE_SETS)}")
+    done = finished_rows(args)
     files = sorted(args.dagger.glob("data_*.npz"))
     if not files:
         raise SystemExit(f"no DAgger data (data_*.npz) in {args.dagger}")
@@ -164,10 +187,11 @@ def main() -> None:
     hand = load_policy(args.dagger / "dagger_policy.pt")[0].config.hand
     train = as_raw(every_nth_step(DaggerData.concat([DaggerData.load(f) for f in files]), args.stride), hand)
     held_out = as_raw(expert_episodes(hand, objects, [0, 1]), hand)
-    rows = []
     for fs in sets:
-        rows.append(run_set(fs, train, held_out, args, objects))
-        write_table(rows, args, objects, len(train.actions), len(held_out.actions))
+        if fs not in done:
+            done[fs] = run_set(fs, train, held_out, args, objects)
+            write_atomic(args.out / "ablations.json", json.dumps({"settings": settings(args), "rows": done}, indent=1).encode())
+        write_table([done[f] for f in sets if f in done], args, objects, len(train.actions), len(held_out.actions))
 
 
 if __name__ == "__main__":

@@ -296,3 +296,21 @@ def test_hand_descriptions_override_the_grasp_geometry_and_expert_rules():
         descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1, stopped_speed=0.05)
     with pytest.raises(DexdrakeError, match=r"grasp_script has unknown fields \['palm_dept'\]"):
         script_for(replace(allegro, grasp_script={"palm_dept": 0.02}))
+
+
+def test_ablation_goes_on_with_the_sets_a_run_of_its_settings_left_and_refuses_other_settings(tmp_path, load_script):
+    import argparse
+    import json
+
+    ablations = load_script("ablations")
+    args = argparse.Namespace(dagger=tmp_path / "run", out=tmp_path / "abl", stride=10, epochs=20, lr=1e-4, episodes=2,
+                              objects="paper", seed=0, eval_seed=7, workers=2, sets="all")
+    assert ablations.finished_rows(args) == {}  # nothing run yet
+    args.out.mkdir()
+    row = {"feature_set": "DexRep", "ours_all_pct": "12.0"}
+    (args.out / "ablations.json").write_text(json.dumps({"settings": ablations.settings(args), "rows": {"DexRep": row}}))
+    args.workers, args.sets = 1, "DexRep,Surf"  # neither changes a row
+    assert ablations.finished_rows(args) == {"DexRep": row}
+    args.epochs = 40
+    with pytest.raises(SystemExit, match=r"other settings: epochs 20 \(now 40\); use another --out"):
+        ablations.finished_rows(args)

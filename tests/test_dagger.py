@@ -115,6 +115,7 @@ def test_aggregate_joins_iterations_without_copying_earlier_ones(tmp_path):
     assert np.array_equal(joined.observations, expected.observations) and np.array_equal(joined.actions, expected.labels)
     assert np.array_equal(joined.episode_starts, expected.episode_starts) and len(joined) == 8
     assert np.shares_memory(joined.observations, agg.observations)  # a view, not a copy
+    assert joined.observations.dtype == np.float16  # half the memory of float32
     with pytest.raises(DexdrakeError, match="exceeds the 10 allocated"):
         agg.add(part(3, 3.0))
     config = DaggerConfig(iterations=3, episodes_per_object=2, horizon=7)

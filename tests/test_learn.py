@@ -249,6 +249,19 @@ def test_bc_drives_mse_down(tmp_path):
     assert np.allclose(best.obs_mean.numpy(), policy.obs_mean.numpy())
 
 
+def test_bc_on_float16_observations_fits_exactly_as_on_their_float32_values(tmp_path):
+    data = expert_dataset(400)
+    half = DemoDataset(data.observations.astype(np.float16), data.actions, data.episode_starts)
+    exact = DemoDataset(half.observations.astype(np.float32), data.actions, data.episode_starts)
+    fits = []
+    for name, dataset in (("half", half), ("exact", exact)):
+        policy = toy_policy()
+        result = train_bc(policy, dataset, tmp_path / name, BCConfig(epochs=2, lr=2e-3, checkpoint_every=0, progress=False))
+        fits.append((result.train_loss + result.val_loss, policy.state_dict()))
+    assert fits[0][0] == pytest.approx(fits[1][0], rel=1e-6)
+    assert all(torch.allclose(fits[0][1][k], fits[1][1][k], atol=1e-6) for k in fits[0][1])
+
+
 def test_bc_normalises_by_the_training_split_and_never_trains_on_held_out_rows(tmp_path):
     data = expert_dataset(1000)
     data.observations[:, 2] += 1000.0  # a large offset: the chunked two-pass variance must stay exact

@@ -115,7 +115,7 @@ def _eval_loss(policy: DexRepNetPolicy, obs: torch.Tensor, act: torch.Tensor, ro
     total = 0.0
     for i in range(0, rows.shape[0], batch):
         r = rows[i : i + batch]
-        total += float(_bc_loss(policy, obs[r], act[r])) * r.shape[0]
+        total += float(_bc_loss(policy, obs[r].float(), act[r])) * r.shape[0]
     return total / rows.shape[0]
 
 
@@ -183,7 +183,7 @@ def train_bc(
         total = 0.0
         for i in range(0, perm.shape[0], config.batch_size):
             idx = rows_tr[perm[i : i + config.batch_size]]
-            x = obs[idx]
+            x = obs[idx].float()  # a batch of float16 observations (DAgger's aggregate) in float32
             if config.obs_noise:
                 x = x + config.obs_noise * policy.obs_std * torch.randn(x.shape, generator=gen).to(device)
             err = (policy(x) - act[idx]) ** 2

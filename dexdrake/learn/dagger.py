@@ -112,7 +112,10 @@ class DaggerData:
 class Aggregate:
     """Every iteration's observations and labels in arrays allocated once for the whole run, so
     aggregating an iteration copies only its own samples (concatenating all of them anew each
-    iteration held several copies of the data and ran out of 24 GB at ~360k states)."""
+    iteration held several copies of the data and ran out of 24 GB at ~360k states). The
+    observations are held as float16, half the memory of float32 (954k states of 2631 values
+    filled 10 of the machine's 24 GB): on 53k states of a run the rounding is at most 0.09 and
+    at the 99th percentile 0.002 of a feature's standard deviation."""
 
     def __init__(self, capacity: int):
         self.capacity, self.n = capacity, 0
@@ -125,7 +128,7 @@ class Aggregate:
         if self.n + k > self.capacity:
             raise DexdrakeError(f"DAgger data of {self.n + k} samples exceeds the {self.capacity} allocated")
         if self.observations is None:
-            self.observations = np.empty((self.capacity, data.observations.shape[1]), dtype=np.float32)
+            self.observations = np.empty((self.capacity, data.observations.shape[1]), dtype=np.float16)
             self.labels = np.empty((self.capacity, data.labels.shape[1]), dtype=np.float32)
         self.observations[self.n : self.n + k] = data.observations
         self.labels[self.n : self.n + k] = data.labels

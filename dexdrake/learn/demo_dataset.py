@@ -25,7 +25,7 @@ from dexdrake.objects.meshfile import write_atomic
 
 @dataclass(frozen=True)
 class DemoDataset:
-    observations: np.ndarray  # float32 (N, D)
+    observations: np.ndarray  # float32 (N, D); float16 where memory matters (DAgger's aggregate)
     actions: np.ndarray  # float32 (N, A)
     episode_starts: np.ndarray | None = None  # bool (N,)
     metadata: dict[str, Any] = field(default_factory=dict)

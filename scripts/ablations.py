@@ -102,7 +102,7 @@ def run_set(feature_set: str, train, held_out, args, objects: list[str]) -> dict
         "unseen_open_loop_mse": f"{open_loop:.3f}",
         "ours_paper_objects_pct": f"{sum(per[n]['success_pct'] for n in paper_objs) / max(1, len(paper_objs)):.1f}",
         "ours_all_pct": f"{report.average_pct():.1f}",
-        "paper_pct": f"{PAPER_ABLATIONS[feature_set]:.1f}",
+        "paper_pct": f"{PAPER_ABLATIONS[feature_set]:.1f}" if feature_set in PAPER_ABLATIONS else "",  # not in the paper
         "mean_max_lift_m": f"{sum(e.max_lift for e in report.episodes) / len(report.episodes):.3f}",
         "minutes": f"{(time.perf_counter() - t0) / 60:.1f}",
     }

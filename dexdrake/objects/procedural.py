@@ -24,6 +24,7 @@ PARTS_P = (0.3, 0.45, 0.25)  # probabilities of 1, 2 and 3 parts
 BASE_AXES = ((0.015, 0.09), (0.015, 0.05), (0.012, 0.07))  # semi-axes a, b, c of the base (m)
 PART_AXES = (0.008, 0.035)  # semi-axes of an attached part (m)
 EXPONENTS = (0.1, 1.6)  # superquadric shape exponents: ~0.1 box-like, 1 round, 1.6 diamond-like
+BASE_E1_MAX = 0.6  # the base's vertical exponent at most this: a flat-ish bottom to rest on
 MAX_EXTENT = 0.2  # no side longer (m): a hand-sized object
 FOOTPRINT_MARGIN = 0.004  # the centre of mass at least this far inside the footprint (m)
 
@@ -58,12 +59,14 @@ class Superquadric:
 
 
 def shape_seed(k: int) -> int:
+    """The random seed of shape `k` (a hash of k, so shapes do not depend on one another)."""
     return int.from_bytes(hashlib.sha256(f"procedural:{k}".encode()).digest()[:8], "little")
 
 
 def _draw_parts(rng: np.random.Generator) -> list[Superquadric]:
+    """A base resting on z = 0 and up to two parts attached to it (PARTS_P)."""
     a, b, c = (rng.uniform(*r) for r in BASE_AXES)
-    e1 = rng.uniform(EXPONENTS[0], 0.6)  # a flat-ish bottom to rest on
+    e1 = rng.uniform(EXPONENTS[0], BASE_E1_MAX)
     parts = [Superquadric((a, b, c), e1, rng.uniform(*EXPONENTS), (0.0, 0.0, c), rng.uniform(0, np.pi))]
     n_parts = 1 + rng.choice(len(PARTS_P), p=PARTS_P)
     for _ in range(n_parts - 1):

@@ -61,7 +61,8 @@ TARGETS: dict[str, Target] = {
     # disk cache once built)
     "dexdrake/dexrep/occupancy.py": Target(DEXREP, setup_s=30.0),
     "dexdrake/dexrep/features.py": Target(DEXREP, setup_s=30.0),
-    "dexdrake/dexrep/geometry.py": Target(DEXREP, ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*", "x_check_mesh*"], setup_s=30.0),
+    "dexdrake/dexrep/geometry.py": Target(DEXREP, ["xǁSdfGridǁ*", "xǁObjectGeometryǁ*"], setup_s=30.0),
+    "dexdrake/objects/meshfile.py": Target(["tests/test_dexrep.py::test_bad_meshes_are_refused"], ["x_check_mesh*"]),
     "dexdrake/retarget/kinematics.py": Target(["tests/test_retarget.py::" + t for t in (
         "test_casadi_fk_matches_drake", "test_extract_tree_refuses_floating_base", "test_retarget_recovers_own_fk",
         "test_fk_holds_joints_outside_the_order_at_their_defaults", "test_fk_refuses_welds_unknown_joints_and_bodies")]),

@@ -17,7 +17,8 @@ from rrd_content import logged_rows
 
 from dexdrake.dexrep import features as F
 from dexdrake.dexrep.occupancy import FastOccupancy, occupancy_in_frame, occupied_voxels, voxel_centres
-from dexdrake.dexrep.geometry import SdfGrid, check_mesh, load_object_geometry
+from dexdrake.dexrep.geometry import SdfGrid, load_object_geometry
+from dexdrake.objects.meshfile import check_mesh
 from dexdrake.dexrep.pointnet import PointNetAutoEncoder, PointNetEncoder, chamfer_distance, encode_cloud
 from dexdrake.errors import DexdrakeError
 

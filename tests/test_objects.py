@@ -21,7 +21,7 @@ from dexdrake.objects.library import (
     list_objects,
     remove_user_object,
 )
-from dexdrake.objects.meshfile import content_hash, is_stable_rest, load_obj, obj_bytes
+from dexdrake.objects.meshfile import check_mesh, content_hash, is_stable_rest, load_obj, obj_bytes
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 
 SHIPPED = shapes.recipe_names()  # test_counts_and_splits_match_recipes checks this is the shipped set
@@ -519,7 +519,6 @@ def test_scaled_copies_scale_mesh_and_pieces_and_are_a_training_split(no_coacd, 
 
 def test_procedural_shapes_are_stable_convex_part_solids_grasped_as_their_nearest_training_object(no_coacd, capsys):
     from dexdrake.cli import main
-    from dexdrake.dexrep.geometry import check_mesh
     from dexdrake.objects import augment
     from dexdrake.objects.procedural import procedural_shape
 

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from dexdrake.dexrep.pointnet import NUM_POINTS, PointNetEncoder, encode_cloud, load_encoder
 from dexdrake.errors import DexdrakeError
+from dexdrake.objects.meshfile import check_mesh
 from dexdrake.paths import cache_dir
 
 SDF_PAD = 0.03  # grid margin (m); > the 2 cm voxel half-diagonal, so outside = empty
@@ -195,24 +196,6 @@ def load_checked_mesh(mesh_path: Path) -> trimesh.Trimesh:
         raise DexdrakeError(f"cannot read mesh {mesh_path}: {e}") from e
     check_mesh(mesh, str(mesh_path))
     return mesh
-
-
-def check_mesh(mesh: trimesh.Trimesh, label: str = "mesh") -> None:
-    """Raises DexdrakeError unless `mesh` is non-degenerate, watertight and outward-wound."""
-    if len(mesh.faces) < 4:
-        raise DexdrakeError(f"{label}: has {len(mesh.faces)} faces; a closed surface needs at least 4")
-    areas = mesh.area_faces
-    tiny = int(np.sum(areas <= 1e-12 * max(areas.max(), 1e-30)))
-    if tiny:
-        raise DexdrakeError(f"{label}: {tiny} degenerate (zero-area) faces; repair the mesh first")
-    if not mesh.is_watertight:
-        raise DexdrakeError(f"{label}: not watertight (open boundary or non-manifold edges); "
-                            "signed distances would be wrong")
-    if not mesh.is_winding_consistent:
-        raise DexdrakeError(f"{label}: inconsistent face winding; signed distances would be wrong")
-    if mesh.volume <= 0.0:
-        raise DexdrakeError(f"{label}: faces wound inward (volume {mesh.volume:.3g} m^3 <= 0); "
-                            "flip the faces so normals point outward")
 
 
 def _encoder_digest(encoder: PointNetEncoder) -> str:

@@ -12,6 +12,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull
 
+from dexdrake.errors import DexdrakeError
+
 
 def obj_bytes(mesh: trimesh.Trimesh) -> bytes:
     """The mesh as OBJ text (vertices in metres, 6 decimals: 1 micron), byte-for-byte stable."""
@@ -77,3 +79,21 @@ def is_stable_rest(mesh: trimesh.Trimesh, tol: float = 0.002, margin: float = 0.
         return False
     hull = ConvexHull(support)
     return bool(np.all(hull.equations[:, :2] @ com + hull.equations[:, 2] <= 1e-9 - margin))
+
+
+def check_mesh(mesh: trimesh.Trimesh, label: str = "mesh") -> None:
+    """Raises DexdrakeError unless `mesh` is non-degenerate, watertight and outward-wound."""
+    if len(mesh.faces) < 4:
+        raise DexdrakeError(f"{label}: has {len(mesh.faces)} faces; a closed surface needs at least 4")
+    areas = mesh.area_faces
+    tiny = int(np.sum(areas <= 1e-12 * max(areas.max(), 1e-30)))
+    if tiny:
+        raise DexdrakeError(f"{label}: {tiny} degenerate (zero-area) faces; repair the mesh first")
+    if not mesh.is_watertight:
+        raise DexdrakeError(f"{label}: not watertight (open boundary or non-manifold edges); "
+                            "signed distances would be wrong")
+    if not mesh.is_winding_consistent:
+        raise DexdrakeError(f"{label}: inconsistent face winding; signed distances would be wrong")
+    if mesh.volume <= 0.0:
+        raise DexdrakeError(f"{label}: faces wound inward (volume {mesh.volume:.3g} m^3 <= 0); "
+                            "flip the faces so normals point outward")

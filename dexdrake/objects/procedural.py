@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from dexdrake.objects.meshfile import is_stable_rest
+from dexdrake.errors import DexdrakeError
+from dexdrake.objects.meshfile import check_mesh, is_stable_rest
 from dexdrake.objects.shapes import Solid, _hull, _union, to_trimesh
 
 GENERATOR = "superquadrics/2"  # recorded in each shape's meta.json: a changed generator remakes the shapes
@@ -89,10 +90,12 @@ def _draw_parts(rng: np.random.Generator) -> list[Superquadric]:
 
 
 def _well_formed(mesh: trimesh.Trimesh) -> bool:
-    """Watertight, and no face degenerates when the vertices are rounded to the mesh file's 1 micron."""
-    rounded = trimesh.Trimesh(np.round(np.asarray(mesh.vertices), 6), np.asarray(mesh.faces), process=False)
-    areas = rounded.area_faces
-    return bool(mesh.is_watertight and np.all(areas > 1e-12 * areas.max()))
+    """`check_mesh` passes on the mesh as its file will hold it (vertices rounded to 1 micron)."""
+    try:
+        check_mesh(trimesh.Trimesh(np.round(np.asarray(mesh.vertices), 6), np.asarray(mesh.faces), process=False))
+    except DexdrakeError:
+        return False
+    return True
 
 
 def procedural_shape(k: int) -> tuple[trimesh.Trimesh, list[trimesh.Trimesh]]:

@@ -142,6 +142,8 @@ def test_stopped_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
     assert not list((tmp_path / "split").glob("*.tmp*"))  # atomic writes leave no temporaries
     _, meta = load_policy(tmp_path / "split" / "dapg_policy_last.pt")
     assert meta["updates"] == 3
+    from_state, _ = load_policy(tmp_path / "split" / "dapg_state.pt")  # a resumable state holds the policy
+    assert all(torch.equal(a, b) for a, b in zip(from_state.parameters(), resumed.parameters()))
 
     with pytest.raises(DexdrakeError, match="already holds a DAPG run"):
         train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, **TOY), demos)

@@ -15,8 +15,9 @@ Artefacts in out_dir, all written atomically every iteration: dapg_log.csv + dap
 policy, baseline + optimiser, iteration, RNG states, log rows, step and CPU counters),
 dapg_manifest.json (config, commands, steps, CPU-hours, last row), dapg_policy_last.pt and
 dapg_policy_best.pt (policy checkpoints, see policy.load_policy; "best" is the policy whose
-own rollouts had the highest mean return), dapg_iter_XXXX.pt every `checkpoint_every`
-iterations, and dapg.rrd (dapg_from_XXXX.rrd after a resume) when rerun logging is on.
+own rollouts had the highest mean return), dapg_iter_XXXX.pt (the state, whose policy
+load_policy reads) every `checkpoint_every` iterations, and dapg.rrd (dapg_from_XXXX.rrd
+after a resume) when rerun logging is on.
 """
 
 from __future__ import annotations

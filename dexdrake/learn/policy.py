@@ -298,7 +298,8 @@ def policy_from_payload(payload: Mapping[str, Any]) -> DexRepNetPolicy:
 
 
 def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
-    """Rebuild a policy from a checkpoint file alone; returns (policy in eval mode, metadata)."""
+    """Rebuild a policy from a checkpoint file alone, or from a training state that holds one
+    under "policy" (DAPG's resumable states); returns (policy in eval mode, metadata)."""
     path = Path(path)
     if not path.is_file():
         raise DexdrakeError(f"policy checkpoint {path} does not exist")
@@ -310,6 +311,8 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
                             f"({type(exc).__name__}; only tensors and plain data are loaded)") from exc
     if not isinstance(payload, Mapping):
         raise DexdrakeError(f"policy checkpoint {path} holds a {type(payload).__name__}, not a policy")
+    if isinstance(payload.get("policy"), Mapping):  # a training state (e.g. DAPG's dapg_iter_XXXX.pt)
+        payload = payload["policy"]
     policy = policy_from_payload(payload)
     policy.eval()
     return policy, dict(payload.get("metadata", {}))

@@ -2,7 +2,7 @@
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
-        [--hand adroit] [--objects train] [--dagger DIR | --shipped]
+        [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration). The result:
@@ -13,7 +13,11 @@ eval_seen.md / eval_unseen.md with their .csv (eval_<hand>_seen.md ... for other
 No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
 on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
 folder (e.g. a long run resumed over several sessions) instead of running DAgger; the
-manifest then records the commands that run's policy and log name. `--shipped` re-evaluates
+manifest then records the commands that run's policy and log name. `--dapg DIR` evaluates and
+ships a DAPG run's best policy (the highest mean return on its own rollouts), which must have
+started from the shipped policy: the manifest keeps that policy's training record, adds the
+DAPG stage (config, sessions, env steps, CPU-hours) and copies its learning curves beside the
+policy (<hand>_dexrep_policy_dapg.csv/.png). `--shipped` re-evaluates
 the shipped policy with the current code (e.g. after a fix that changes the evaluation's
 episodes) and rewrites its tables and metrics, keeping the manifest's training record.
 """
@@ -74,6 +78,7 @@ def main() -> None:
     parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--dagger", type=Path, help="an existing DAgger output folder to evaluate and ship")
+    mode.add_argument("--dapg", type=Path, help="a DAPG output folder (started from the shipped policy) to evaluate and ship")
     mode.add_argument("--shipped", action="store_true",
                       help="re-evaluate the shipped policy, keeping its manifest's training record")
     args = parser.parse_args()
@@ -89,14 +94,16 @@ def main() -> None:
     start = time.perf_counter()
     if args.dagger and not (dagger / "dagger_policy.pt").is_file():
         sys.exit(f"build_default_policy: error: {dagger} has no dagger_policy.pt")
-    if args.shipped and not (target.is_file() and target.with_suffix(".json").is_file()):
+    if (args.shipped or args.dapg) and not (target.is_file() and target.with_suffix(".json").is_file()):
         sys.exit(f"build_default_policy: error: no shipped {target} with its manifest")
-    if not (args.dagger or args.shipped):
+    if args.dapg:
+        check_dapg_started_from(args.dapg, target)
+    if not (args.dagger or args.dapg or args.shipped):
         run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
              "--iterations", str(args.iterations), "--per-object",
              str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
              "--seed", "0"], dagger / "dagger_policy.pt", log)
-    policy = target.relative_to(ROOT) if args.shipped else dagger / "dagger_policy.pt"
+    policy = target.relative_to(ROOT) if args.shipped else args.dapg / "dapg_policy_best.pt" if args.dapg else dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
     for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
         run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
@@ -119,15 +126,57 @@ def main() -> None:
         write_atomic(weights / f"{tables}_{label}.md", text.encode())
         write_csv_beside(weights / f"{tables}_{label}.md")
 
-    if args.shipped:
+    if args.shipped or args.dapg:
         manifest = json.loads(target.with_suffix(".json").read_text())
         kept = [c for c in manifest["commands"] if not c["command"].startswith(("dexdrake eval", "python scripts/build_default_policy.py"))]
+        if args.dapg:
+            kept += add_dapg_stage(manifest, args.dapg, target, weights / name)
         manifest.update(commands=kept + log + [{"command": shlex.join(["python", *sys.argv])}], metrics=metrics)
     else:
         manifest = new_manifest(args, dagger, target, log, metrics, start)
     write_atomic(weights / f"{name}.json", (json.dumps(manifest, indent=1) + "\n").encode())
     print(f"wrote {target} ({target.stat().st_size / 1e6:.2f} MB), its manifest and eval tables; "
           f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
+
+
+def check_dapg_started_from(dapg: Path, target: Path) -> None:
+    """Exit with one line unless the DAPG run in `dapg` started from the shipped `target`, whose
+    manifest's training record the shipped DAPG policy then inherits."""
+    from dexdrake.errors import DexdrakeError
+    from dexdrake.learn.policy import load_policy
+
+    try:
+        _, meta = load_policy(dapg / "dapg_policy_best.pt")
+    except DexdrakeError as exc:
+        sys.exit(f"build_default_policy: error: {exc}")
+    shipped = json.loads(target.with_suffix(".json").read_text())["sha256"]
+    started = meta.get("init_sha256")  # not recorded by runs made before it was (then: the init's path)
+    same = started == shipped if started else (ROOT / meta.get("init", "")).resolve() == target.resolve()
+    if sha256(target) != shipped or not same:
+        sys.exit(f"build_default_policy: error: {dapg} did not start from the shipped {target.name} "
+                 f"(its init: {meta.get('init')}), whose training record the manifest would keep")
+
+
+def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list[dict]:
+    """Record the DAPG run in `dapg` as a training stage of `manifest` (whose sha256 becomes the
+    shipped file's), copy its curves to `stem`_dapg.csv/.png; returns its sessions' commands."""
+    from dexdrake.learn.policy import load_policy
+
+    run = json.loads((dapg / "dapg_manifest.json").read_text())
+    _, meta = load_policy(target)
+    for suffix in (".csv", ".png"):
+        write_atomic(stem.with_name(f"{stem.name}_dapg{suffix}"), (dapg / f"dapg_log{suffix}").read_bytes())
+    training = manifest["training"]
+    training["stages"] = training["stages"].replace("; no DAPG", "") + "; then DAPG (natural policy gradient with the DAgger data as its demonstration term)"
+    training.setdefault("dapg", []).append({
+        "folder": str(dapg), "config": meta["dapg_config"], "demos": meta.get("dataset_metadata"),
+        "init": meta.get("init"), "init_sha256": meta.get("init_sha256") or manifest["sha256"],
+        "chosen_update": meta.get("updates"), "chosen_because": "highest mean return on its own rollouts",
+        "chosen_mean_return": meta.get("mean_return"), "iterations_done": run["iterations_done"],
+        "env_steps": run["env_steps"], "cpu_hours": run["cpu_hours"], "cpu_note": run["cpu_note"], "seeds": run["seeds"],
+        "curves": [f"models/weights/{stem.name}_dapg.csv", f"models/weights/{stem.name}_dapg.png"]})
+    manifest["sha256"] = sha256(target)
+    return [{"command": s["command"], "note": f"DAPG session from iteration {s['from_iteration']}"} for s in run["sessions"]]
 
 
 def new_manifest(args: argparse.Namespace, dagger: Path, target: Path, log: list[dict], metrics: dict,

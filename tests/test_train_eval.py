@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 
 import numpy as np
@@ -119,8 +120,12 @@ def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
     moved = [not torch.equal(trained.state_dict()[k], start.state_dict()[k]) for k in start.state_dict()]
     assert any(moved), "two NPG steps left every parameter unchanged"
     assert meta["objects"] == [OBJECT] and meta["updates"] == 2
+    started_from = hashlib.sha256(init.read_bytes()).hexdigest()
+    assert meta["init_sha256"] == started_from
+    _random_policy(init, blocks, a, seed=9)  # the init file changes (e.g. replaced by the run's result)
     assert main([*argv[:argv.index("--iterations") + 1], "3", *argv[argv.index("--iterations") + 2:], "--resume"]) == 0
     assert len((out / "dapg_log.csv").read_text().strip().splitlines()) == 4
+    assert load_policy(out / "dapg_policy_last.pt")[1]["init_sha256"] == started_from  # the run's start, kept
 
 
 def test_train_dapg_refuses_evaluation_splits(tmp_path, env_blocks, capsys):

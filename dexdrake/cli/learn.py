@@ -6,6 +6,7 @@ Heavy imports (torch, pydrake) happen inside the commands so `--help` stays quic
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 from pathlib import Path
@@ -213,6 +214,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
                                                       "iterations", "per-object", "objects", "horizon", "workers",
                                                       "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
+            "init_sha256": hashlib.sha256(args.init.read_bytes()).hexdigest(),
             "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
             "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")}}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "

@@ -217,7 +217,8 @@ class DAPGTrainer:
         if saved_cfg != self.policy.config.to_dict():
             raise DexdrakeError(f"{path} holds a policy with config {saved_cfg}, not {self.policy.config.to_dict()}")
         self.policy.load_weights(state["policy"]["state_dict"])
-        self.metadata["initial_std"] = state["policy"]["metadata"].get("initial_std")
+        for key in ("initial_std", "init_sha256"):  # facts of the run's start, not of this session
+            self.metadata[key] = state["policy"]["metadata"].get(key)
         self.saved_config = json.loads(json.dumps(state["policy"]["metadata"].get("dapg_config", {})))
         self.baseline.load_full_state(state["baseline"])
         self.iteration = int(state["iteration"])

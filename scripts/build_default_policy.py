@@ -15,9 +15,10 @@ on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAg
 folder (e.g. a long run resumed over several sessions) instead of running DAgger; the
 manifest then records the commands that run's policy and log name. `--dapg DIR` evaluates and
 ships a DAPG run's best policy (the highest mean return on its own rollouts), which must have
-started from the shipped policy: the manifest keeps that policy's training record, adds the
-DAPG stage (config, sessions, env steps, CPU-hours) and copies its learning curves beside the
-policy (<hand>_dexrep_policy_dapg.csv/.png). `--shipped` re-evaluates
+started from the shipped policy (by the sha256 it records) or be the run an earlier iterate of
+which is shipped: the manifest keeps the training record, adds (or, for the same run, replaces)
+the DAPG stage (config, sessions, env steps, CPU-hours) and copies its learning curves beside
+the policy (<hand>_dexrep_policy_dapg.csv/.png). `--shipped` re-evaluates
 the shipped policy with the current code (e.g. after a fix that changes the evaluation's
 episodes) and rewrites its tables and metrics, keeping the manifest's training record.
 """
@@ -130,7 +131,8 @@ def main() -> None:
         manifest = json.loads(target.with_suffix(".json").read_text())
         kept = [c for c in manifest["commands"] if not c["command"].startswith(("dexdrake eval", "python scripts/build_default_policy.py"))]
         if args.dapg:
-            kept += add_dapg_stage(manifest, args.dapg, target, weights / name)
+            sessions = add_dapg_stage(manifest, args.dapg, target, weights / name)
+            kept = [c for c in kept if c not in sessions] + sessions
         manifest.update(commands=kept + log + [{"command": shlex.join(["python", *sys.argv])}], metrics=metrics)
     else:
         manifest = new_manifest(args, dagger, target, log, metrics, start)
@@ -139,9 +141,15 @@ def main() -> None:
           f"seen {metrics['seen']['average_pct']:.1f} %, unseen {metrics['unseen']['average_pct']:.1f} %")
 
 
+def shipped_dapg_entry(manifest: dict, dapg: Path) -> dict | None:
+    """The manifest's record of the DAPG run in `dapg`, if the shipped policy came from it."""
+    return next((e for e in manifest["training"].get("dapg", []) if e["folder"] == str(dapg)), None)
+
+
 def check_dapg_started_from(dapg: Path, target: Path) -> None:
-    """Exit with one line unless the DAPG run in `dapg` started from the shipped `target`, whose
-    manifest's training record the shipped DAPG policy then inherits."""
+    """Exit with one line unless the DAPG run in `dapg` started from the shipped `target` (or is
+    the run an earlier iterate of which is shipped), whose manifest's training record the
+    shipped DAPG policy then inherits."""
     from dexdrake.errors import DexdrakeError
     from dexdrake.learn.policy import load_policy
 
@@ -149,17 +157,19 @@ def check_dapg_started_from(dapg: Path, target: Path) -> None:
         _, meta = load_policy(dapg / "dapg_policy_best.pt")
     except DexdrakeError as exc:
         sys.exit(f"build_default_policy: error: {exc}")
-    shipped = json.loads(target.with_suffix(".json").read_text())["sha256"]
-    started = meta.get("init_sha256")  # not recorded by runs made before it was (then: the init's path)
-    same = started == shipped if started else (ROOT / meta.get("init", "")).resolve() == target.resolve()
-    if sha256(target) != shipped or not same:
+    manifest = json.loads(target.with_suffix(".json").read_text())
+    started = meta.get("init_sha256")  # None for a run made before it was recorded
+    entry = shipped_dapg_entry(manifest, dapg)
+    same = started in (None, entry["init_sha256"]) if entry else started == manifest["sha256"]
+    if sha256(target) != manifest["sha256"] or not same:
         sys.exit(f"build_default_policy: error: {dapg} did not start from the shipped {target.name} "
                  f"(its init: {meta.get('init')}), whose training record the manifest would keep")
 
 
 def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list[dict]:
-    """Record the DAPG run in `dapg` as a training stage of `manifest` (whose sha256 becomes the
-    shipped file's), copy its curves to `stem`_dapg.csv/.png; returns its sessions' commands."""
+    """Record the DAPG run in `dapg` as a training stage of `manifest` (replacing its record of an
+    earlier iterate of the same run; the manifest's sha256 becomes the shipped file's), copy its
+    curves to `stem`_dapg.csv/.png; returns its sessions' commands."""
     from dexdrake.learn.policy import load_policy
 
     run = json.loads((dapg / "dapg_manifest.json").read_text())
@@ -167,10 +177,14 @@ def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list
     for suffix in (".csv", ".png"):
         write_atomic(stem.with_name(f"{stem.name}_dapg{suffix}"), (dapg / f"dapg_log{suffix}").read_bytes())
     training = manifest["training"]
-    training["stages"] = training["stages"].replace("; no DAPG", "") + "; then DAPG (natural policy gradient with the DAgger data as its demonstration term)"
+    earlier = shipped_dapg_entry(manifest, dapg)
+    if earlier:
+        training["dapg"].remove(earlier)
+    else:
+        training["stages"] = training["stages"].replace("; no DAPG", "") + "; then DAPG (natural policy gradient with the DAgger data as its demonstration term)"
     training.setdefault("dapg", []).append({
         "folder": str(dapg), "config": meta["dapg_config"], "demos": meta.get("dataset_metadata"),
-        "init": meta.get("init"), "init_sha256": meta.get("init_sha256") or manifest["sha256"],
+        "init": meta.get("init"), "init_sha256": earlier["init_sha256"] if earlier else meta.get("init_sha256") or manifest["sha256"],
         "chosen_update": meta.get("updates"), "chosen_because": "highest mean return on its own rollouts",
         "chosen_mean_return": meta.get("mean_return"), "iterations_done": run["iterations_done"],
         "env_steps": run["env_steps"], "cpu_hours": run["cpu_hours"], "cpu_note": run["cpu_note"], "seeds": run["seeds"],

@@ -262,18 +262,19 @@ def test_state_reports_the_measured_joints_and_posture(emulator):
 
 
 def test_velocity_limit_on_targets(emulator):
-    """The target moves at the velocity limit (pi rad/s from the model): no faster than the
-    elapsed time allows, and not stuck (at least half that rate)."""
+    """The target moves toward a far command no faster than the velocity limit (pi rad/s from
+    the model) allows in the elapsed time, and is not stuck (on a loaded machine the loop may
+    run late, which only slows it)."""
     arm = make_arm(emulator)
     with arm:
         start = arm.state().q_target
         t0 = time.monotonic()
-        arm.command_positions(UPPER)
+        arm.command_positions(UPPER)  # joint 1 is commanded 2.6 rad away: 0.83 s at pi rad/s
+        assert wait_for(lambda: np.max(np.abs(arm.state().q_target - start)) >= 0.05 * math.pi, 5.0)
         time.sleep(0.1)
         step = np.max(np.abs(arm.state().q_target - start))
         elapsed = time.monotonic() - t0
-        # joint 1 is commanded 2.6 rad away: far more than 0.1 s at pi rad/s
-        assert 0.5 * math.pi * 0.1 <= step <= math.pi * elapsed + 0.01, (step, elapsed)
+        assert 0.05 * math.pi <= step <= math.pi * elapsed + 0.01, (step, elapsed)
 
 
 def test_nan_and_out_of_range_targets(emulator):

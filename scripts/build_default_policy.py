@@ -184,7 +184,7 @@ def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list
         training["stages"] = training["stages"].replace("; no DAPG", "") + "; then DAPG (natural policy gradient with the DAgger data as its demonstration term)"
     training.setdefault("dapg", []).append({
         "folder": str(dapg), "config": meta["dapg_config"], "demos": meta.get("dataset_metadata"),
-        "init": meta.get("init"), "init_sha256": earlier["init_sha256"] if earlier else meta.get("init_sha256") or manifest["sha256"],
+        "init": meta.get("init"), "init_sha256": earlier["init_sha256"] if earlier else meta["init_sha256"],
         "chosen_update": meta.get("updates"), "chosen_because": "highest mean return on its own rollouts",
         "chosen_mean_return": meta.get("mean_return"), "iterations_done": run["iterations_done"],
         "env_steps": run["env_steps"], "cpu_hours": run["cpu_hours"], "cpu_note": run["cpu_note"], "seeds": run["seeds"],

@@ -224,18 +224,18 @@ def main() -> None:
     import mujoco_peer
 
     from dexdrake.learn.policy import load_policy
-    from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.paths import models_dir
+    from dexdrake.systems.env_factory import env_factory_for_policy
     from dexdrake.systems.scene import SceneConfig
 
     torch.set_num_threads(1)
-    factory = GraspEnvFactory("adroit", "DexRep", tuple(objects), args.horizon)
+    policy = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0]
+    factory = env_factory_for_policy(policy.config, objects, args.horizon)  # the shipped policy's features
     dt, period = SceneConfig().time_step, SceneConfig().control_period
     print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}")
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
     print(f"start-up (fresh process: imports, one DexRep env built and reset): {startup_cpu_s(objects[0]):.1f} CPU-s")
-    policy = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0]
     results = {}
     for driver, pol in (("expert-driven", None), ("policy-driven", policy)):
         parts, steps, cpu, split = breakdown(objects, args.episodes, pol, factory, 1000)

@@ -211,6 +211,16 @@ def bench_bc_epoch(config, samples: int, epochs: int = 2) -> float:
         return float(np.mean([float(r["seconds"]) for r in read_csv(result.log_csv)]))
 
 
+def shipped_policy_env(objects: list[str], horizon: int):
+    """(the shipped Adroit policy, the env factory of its hand and feature set over `objects`)."""
+    from dexdrake.learn.policy import load_policy
+    from dexdrake.paths import models_dir
+    from dexdrake.systems.env_factory import env_factory_for_policy
+
+    policy = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0]
+    return policy, env_factory_for_policy(policy.config, objects, horizon)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="mug,can_soda,box_cube,bottle_wine")
@@ -223,14 +233,10 @@ def main() -> None:
 
     import mujoco_peer
 
-    from dexdrake.learn.policy import load_policy
-    from dexdrake.paths import models_dir
-    from dexdrake.systems.env_factory import env_factory_for_policy
     from dexdrake.systems.scene import SceneConfig
 
     torch.set_num_threads(1)
-    policy = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0]
-    factory = env_factory_for_policy(policy.config, objects, args.horizon)  # the shipped policy's features
+    policy, factory = shipped_policy_env(objects, args.horizon)
     dt, period = SceneConfig().time_step, SceneConfig().control_period
     print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}")
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")

@@ -315,3 +315,11 @@ def test_ablation_goes_on_with_the_sets_a_run_of_its_settings_left_and_refuses_o
     args.epochs = 40
     with pytest.raises(SystemExit, match=r"other settings: epochs 20 \(now 40\); use another --out"):
         ablations.finished_rows(args)
+
+
+def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(load_script, one_torch_thread):
+    """The throughput benchmark's policy-driven collection (it once built DexRep envs for a DexRep+Vel policy)."""
+    bench = load_script("bench_rollout")
+    policy, factory = bench.shipped_policy_env(["sphere_small"], 3)
+    parts, steps, cpu, _ = bench.breakdown(["sphere_small"], 1, policy, factory, 1000)
+    assert steps == 3 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0

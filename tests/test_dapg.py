@@ -134,6 +134,12 @@ def test_stopped_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
         for key in _comparable(want):
             assert float(got[key]) == pytest.approx(float(want[key]), rel=1e-5, abs=1e-8), key
     assert [int(r["env_steps"]) for r in logged] == [160, 320, 480] == [r["env_steps"] for r in full.rows]
+    per_object = read_csv(tmp_path / "split" / "dapg_objects.csv")
+    assert per_object == read_csv(tmp_path / "straight" / "dapg_objects.csv")
+    assert [(r["iteration"], r["object"], r["rollouts"]) for r in per_object] == [(str(i), "group_0", "8") for i in range(3)]
+    for got, row in zip(per_object, logged):  # one object: its successes are the iteration's
+        assert int(got["successes"]) == round(8 * float(row["success_rate"]))
+        assert float(got["mean_return"]) == pytest.approx(float(row["mean_return"]))
     assert float(logged[-1]["cpu_s"]) > float(logged[0]["cpu_s"]) > 0
     manifest = json.loads((tmp_path / "split" / "dapg_manifest.json").read_text())
     assert manifest["iterations_done"] == 3 and manifest["env_steps"] == 480 and manifest["cpu_hours"] > 0

@@ -153,3 +153,8 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
     assert np.allclose(meta["initial_std"], np.clip(0.5 * np.load(folder / "data_00.npz")["labels"].std(0),
                                                     np.exp(-3), 1), rtol=1e-4)
     assert (out / "dapg_log.png").stat().st_size > 0
+    per_object = read_csv(out / "dapg_objects.csv")  # one rollout per object and iteration, across the resume
+    assert [(int(r["iteration"]), r["object"], int(r["rollouts"])) for r in per_object] == \
+        [(k, name, 1) for k in (0, 1) for name in TRAIN_OBJECTS]
+    assert [sum(int(r["successes"]) for r in per_object if int(r["iteration"]) == k) for k in (0, 1)] == \
+        [round(len(TRAIN_OBJECTS) * float(r["success_rate"])) for r in rows]

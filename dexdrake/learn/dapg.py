@@ -11,7 +11,8 @@ then refit the baseline on the new returns. On a fresh start the exploration std
 from the demonstrations' action spread (`DexRepNetPolicy.set_log_std_from_actions`).
 
 Artefacts in out_dir, all written atomically every iteration: dapg_log.csv + dapg_log.png
-(return, success, KL against iteration and environment steps), dapg_state.pt (resumable:
+(return, success, KL against iteration and environment steps), dapg_objects.csv (each
+iteration's rollouts, successes and mean return per object), dapg_state.pt (resumable:
 policy, baseline + optimiser, iteration, RNG states, log rows, step and CPU counters),
 dapg_manifest.json (config, commands, steps, CPU-hours, last row), dapg_policy_last.pt and
 dapg_policy_best.pt (policy checkpoints, see policy.load_policy; "best" is the policy whose
@@ -51,6 +52,7 @@ LOG_COLUMNS = [
     "alpha", "kl", "kl_target", "backtracks", "mean_std", "baseline_mse_before", "baseline_mse_after", "seconds",
     "cpu_s",
 ]  # fmt: skip
+OBJECT_COLUMNS = ["iteration", "object", "rollouts", "successes", "mean_return"]  # dapg_objects.csv, per seed group
 
 
 @dataclass(frozen=True)
@@ -173,6 +175,9 @@ class DAPGTrainer:
         self.iteration = 0
         self.best_return = -float("inf")
         self.rows: list[dict[str, float]] = []  # every iteration's log row, since iteration 0
+        self.object_rows: list[dict[str, Any]] = []  # per iteration and seed group (object)
+        names = list(self.metadata.get("objects") or [])
+        self.group_names = names if len(names) == config.seed_groups else [f"group_{g}" for g in range(config.seed_groups)]
         self.env_steps = 0
         self.cpu_s = 0.0  # this process since the last iteration (sampling aside) + every rollout's own CPU
         self._cpu_mark = time.process_time()
@@ -181,6 +186,7 @@ class DAPGTrainer:
         self.rng = np.random.default_rng(config.seed)
         self.state_path = self.out_dir / "dapg_state.pt"
         self.log_csv, self.plot_png = self.out_dir / "dapg_log.csv", self.out_dir / "dapg_log.png"
+        self.objects_csv = self.out_dir / "dapg_objects.csv"
         self.manifest_path = self.out_dir / "dapg_manifest.json"
         self._rerun: _RerunCurves | None = None
         self._sampled_state: dict[str, torch.Tensor] = {}  # weights that produced the last rollouts
@@ -193,6 +199,7 @@ class DAPGTrainer:
             "iteration": self.iteration,
             "best_return": self.best_return,
             "rows": self.rows,
+            "object_rows": self.object_rows,
             "env_steps": self.env_steps,
             "cpu_s": self.cpu_s,
             "sessions": json.dumps(self.sessions),
@@ -224,6 +231,7 @@ class DAPGTrainer:
         self.iteration = int(state["iteration"])
         self.best_return = float(state["best_return"])
         self.rows = [dict(r) for r in state["rows"]]
+        self.object_rows = [dict(r) for r in state.get("object_rows", [])]  # absent in states of older runs
         self.env_steps = int(state["env_steps"])
         self.cpu_s = float(state["cpu_s"])
         self.sessions = json.loads(state["sessions"])
@@ -280,6 +288,7 @@ class DAPGTrainer:
         mse_before, mse_after = self.baseline.fit(
             obs, times, returns, self.rng, epochs=cfg.baseline_epochs, batch_size=cfg.baseline_batch
         )
+        self.object_rows += self._object_rows(k, trajs)
         self.iteration = k + 1
         self.env_steps += len(obs)
         now = time.process_time()
@@ -303,6 +312,15 @@ class DAPGTrainer:
             "seconds": time.perf_counter() - t0,
             "cpu_s": self.cpu_s,
         }
+
+    def _object_rows(self, k: int, trajs: list[Trajectory]) -> list[dict[str, Any]]:
+        """Iteration k's rollouts per seed group (one group per object: rollout seed mod groups)."""
+        groups = np.array([tr.seed % self.config.seed_groups for tr in trajs])
+        success = np.array([tr.success for tr in trajs])
+        ret = np.array([tr.total_reward for tr in trajs])
+        return [{"iteration": k, "object": self.group_names[g], "rollouts": int(np.sum(groups == g)),
+                 "successes": int(success[groups == g].sum()), "mean_return": float(ret[groups == g].mean())}
+                for g in np.unique(groups)]  # fmt: skip
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> DAPGResult:
@@ -347,6 +365,7 @@ class DAPGTrainer:
     def _write_log(self) -> None:
         """The CSV log, its curves and the manifest, rewritten from the run's rows (atomic files)."""
         write_csv(self.log_csv, LOG_COLUMNS, self.rows)
+        write_csv(self.objects_csv, OBJECT_COLUMNS, self.object_rows)
         plot_curves(self.log_csv, self.plot_png, ["iteration", "env_steps"], ["mean_return", "success_rate", "kl"],
                     title="DAPG")
         manifest = {
@@ -362,7 +381,7 @@ class DAPGTrainer:
             "sessions": self.sessions,
             "last_row": self.rows[-1] if self.rows else None,
             "best_return": self.best_return,
-            "artefacts": {"log_csv": self.log_csv.name, "curves_png": self.plot_png.name, "state": self.state_path.name,
+            "artefacts": {"log_csv": self.log_csv.name, "objects_csv": self.objects_csv.name, "curves_png": self.plot_png.name, "state": self.state_path.name,
                           "last_policy": "dapg_policy_last.pt", "best_policy": "dapg_policy_best.pt"},
             "metadata": self.metadata,
         }

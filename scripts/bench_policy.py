@@ -1,8 +1,8 @@
 """Benchmark the DexRepNet policy: batch-1 inference per control step and BC time per epoch.
 
-Sizes are the full DexRep Adroit ones (hand 105 + occupancy/surface 1088 + local-geo 1408
--> 30 actions). Baselines named in the output: the 10 ms control period of 100 Hz Adroit
-control (specs/adroit.md), and the paper's "about 6 minutes" for 150 BC epochs on one GPU.
+Sizes are the shipped Adroit policy's (its recorded observation blocks and actions; fresh
+weights). Baselines named in the output: the scene's control period (SceneConfig), and the
+paper's "about 6 minutes" for 150 BC epochs on one GPU.
 
 Usage: python scripts/bench_policy.py [--steps 2000] [--samples 10000] [--epochs 2]
 """
@@ -18,10 +18,10 @@ import torch
 
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.demo_dataset import DemoDataset
-from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig
+from dexdrake.learn.policy import DexRepNetPolicy, load_policy
+from dexdrake.paths import models_dir
+from dexdrake.systems.scene import SceneConfig
 
-ADROIT_BLOCKS = {"hand": 105, "occ_surf": 1088, "local_geo": 1408}
-CONTROL_PERIOD_S = 0.01  # 100 Hz
 PAPER_BC_SECONDS = 6 * 60  # 150 epochs, one GPU, paper's dataset
 
 
@@ -61,16 +61,19 @@ def main() -> None:
     args = parser.parse_args()
 
     torch.manual_seed(0)
-    policy = DexRepNetPolicy(PolicyConfig.from_blocks(ADROIT_BLOCKS, 30, feature_set="dexrep", hand="adroit")).eval()
+    config = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0].config
+    policy = DexRepNetPolicy(config).eval()
     n_params = sum(p.numel() for p in policy.parameters())
-    print(f"policy: blocks {ADROIT_BLOCKS} -> 30, {n_params} parameters, torch {torch.__version__}")
+    print(f"policy ({config.feature_set}): blocks {dict(config.blocks)} -> {config.action_dim}, {n_params} parameters, "
+          f"torch {torch.__version__}")
+    period = SceneConfig().control_period
 
     torch.set_num_threads(1)
     times = bench_inference(policy, args.steps)
     mean_us, p50, p99 = times.mean() * 1e6, np.percentile(times, 50) * 1e6, np.percentile(times, 99) * 1e6
     print(f"inference (batch 1, 1 thread, {args.steps} steps): mean {mean_us:.1f} us, p50 {p50:.1f} us, p99 {p99:.1f} us")
-    print(f"  vs 10 ms control period (100 Hz): {mean_us / (CONTROL_PERIOD_S * 1e6):.4f} of the period "
-          f"(headroom x{CONTROL_PERIOD_S * 1e6 / mean_us:.0f})")
+    print(f"  vs the {1e3 * period:g} ms control period: {mean_us / (period * 1e6):.4f} of the period "
+          f"(headroom x{period * 1e6 / mean_us:.0f})")
 
     per_epoch: dict[int, float] = {}
     for threads in args.bc_threads:

@@ -5,7 +5,8 @@
         [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
-output already exists in --work (DAgger itself resumes per iteration). The result:
+output already exists in --work (DAgger itself resumes per iteration; evaluations are kept per
+policy file content, so another policy is evaluated afresh). The result:
 models/weights/<hand>_dexrep_policy.pt (DAgger's chosen iterate), <hand>_dexrep_policy.json
 (commands, seeds, data, feature set, compute, metrics) and the evaluation tables
 eval_seen.md / eval_unseen.md with their .csv (eval_<hand>_seen.md ... for other hands than the Adroit);
@@ -97,33 +98,39 @@ def main() -> None:
         sys.exit(f"build_default_policy: error: {dagger} has no dagger_policy.pt")
     if (args.shipped or args.dapg) and not (target.is_file() and target.with_suffix(".json").is_file()):
         sys.exit(f"build_default_policy: error: no shipped {target} with its manifest")
-    if args.dapg:
-        check_dapg_started_from(args.dapg, target)
+    if args.dapg:  # a snapshot: a running DAPG may write a new best file while this evaluates and ships
+        candidate = work / "dapg_policy_best.pt"
+        if not (args.dapg / "dapg_policy_best.pt").is_file():
+            sys.exit(f"build_default_policy: error: {args.dapg} has no dapg_policy_best.pt")
+        write_atomic(candidate, (args.dapg / "dapg_policy_best.pt").read_bytes())
+        check_dapg_started_from(args.dapg, candidate, target)
     if not (args.dagger or args.dapg or args.shipped):
         run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
              "--iterations", str(args.iterations), "--per-object",
              str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
              "--seed", "0"], dagger / "dagger_policy.pt", log)
-    policy = target.relative_to(ROOT) if args.shipped else args.dapg / "dapg_policy_best.pt" if args.dapg else dagger / "dagger_policy.pt"
+    policy = target.relative_to(ROOT) if args.shipped else candidate if args.dapg else dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
+    evals = work / "eval" / sha256(ROOT / policy)[:12]  # per policy content: a stale evaluation is never reused for another
     for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
         run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
-             "--workers", str(args.workers), "--out", str(work / "eval")], work / "eval" / f"eval_{label}.json", log)
+             "--workers", str(args.workers), "--out", str(evals)], evals / f"eval_{label}.json", log)
 
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     if not args.shipped:
         write_atomic(target, policy.read_bytes())
     metrics = {}
     for label in ("seen", "unseen"):
-        report = json.loads((work / "eval" / f"eval_{label}.json").read_text())
+        report = json.loads((evals / f"eval_{label}.json").read_text())
         metrics[label] = {k: report[k] for k in ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object",
                                                   "seed", "seeds_reserved_for_evaluation", "horizon", "command",
                                                   "wall_s", "workers")}
         metrics[label]["successful_seeds"] = {name: [e["seed"] for e in report["episodes"] if e["object"] == name and e["success"]]
                                               for name in report["per_object"]}
-        text = (work / "eval" / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
+        text = (evals / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
         if not args.shipped:
-            text += f"\nThe evaluated file was {policy}, copied byte for byte to models/weights/{name}.pt.\n"
+            source = f"{policy} (a copy of {args.dapg / 'dapg_policy_best.pt'})" if args.dapg else policy
+            text += f"\nThe evaluated file was {source}, copied byte for byte to models/weights/{name}.pt.\n"
         write_atomic(weights / f"{tables}_{label}.md", text.encode())
         write_csv_beside(weights / f"{tables}_{label}.md")
 
@@ -146,15 +153,15 @@ def shipped_dapg_entry(manifest: dict, dapg: Path) -> dict | None:
     return next((e for e in manifest["training"].get("dapg", []) if e["folder"] == str(dapg)), None)
 
 
-def check_dapg_started_from(dapg: Path, target: Path) -> None:
-    """Exit with one line unless the DAPG run in `dapg` started from the shipped `target` (or is
-    the run an earlier iterate of which is shipped), whose manifest's training record the
-    shipped DAPG policy then inherits."""
+def check_dapg_started_from(dapg: Path, candidate: Path, target: Path) -> None:
+    """Exit with one line unless `candidate` (a policy of the DAPG run in `dapg`) comes from a run
+    that started from the shipped `target` (or from the run an earlier iterate of which is
+    shipped), whose manifest's training record the shipped DAPG policy then inherits."""
     from dexdrake.errors import DexdrakeError
     from dexdrake.learn.policy import load_policy
 
     try:
-        _, meta = load_policy(dapg / "dapg_policy_best.pt")
+        _, meta = load_policy(candidate)
     except DexdrakeError as exc:
         sys.exit(f"build_default_policy: error: {exc}")
     manifest = json.loads(target.with_suffix(".json").read_text())

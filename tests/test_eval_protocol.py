@@ -158,3 +158,4 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
         [(k, name, 1) for k in (0, 1) for name in TRAIN_OBJECTS]
     assert [sum(int(r["successes"]) for r in per_object if int(r["iteration"]) == k) for k in (0, 1)] == \
         [round(len(TRAIN_OBJECTS) * float(r["success_rate"])) for r in rows]
+    assert (out / "dapg_objects.png").stat().st_size > 0

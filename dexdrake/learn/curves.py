@@ -81,6 +81,42 @@ def plot_curves(
         axes[-1, j].set_xlabel(x_name)
         if title:
             axes[0, j].set_title(title)
+    return _save(fig, png_path)
+
+
+def plot_success_map(csv_path: str | Path, png_path: str | Path, title: str = "") -> Path:
+    """Success rate per object (rows) and iteration (columns) of a per-object log with columns
+    iteration, object, rollouts, successes (DAPG's dapg_objects.csv), as an image (PNG, atomic)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    rows = read_csv(csv_path)
+    objects = sorted({r["object"] for r in rows})
+    iterations = sorted({int(r["iteration"]) for r in rows})
+    if not rows:
+        raise DexdrakeError(f"{csv_path} has no rows to plot")
+    row_of, col_of = {o: i for i, o in enumerate(objects)}, {k: j for j, k in enumerate(iterations)}
+    grid = np.full((len(objects), len(iterations)), np.nan)
+    for r in rows:
+        grid[row_of[r["object"]], col_of[int(r["iteration"])]] = int(r["successes"]) / int(r["rollouts"])
+    fig, ax = plt.subplots(figsize=(min(4 + 0.08 * len(iterations), 20), min(1.5 + 0.15 * len(objects), 40)))
+    image = ax.imshow(grid, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0.0, vmax=1.0,
+                      extent=(iterations[0] - 0.5, iterations[-1] + 0.5, len(objects) - 0.5, -0.5))
+    ax.set_yticks(range(len(objects)), objects, fontsize=6)
+    ax.set_xlabel("iteration")
+    fig.colorbar(image, ax=ax, label="success rate of its rollouts")
+    if title:
+        ax.set_title(title)
+    return _save(fig, png_path)
+
+
+def _save(fig, png_path: str | Path) -> Path:
+    """Write `fig` to png_path atomically and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     png_path = Path(png_path)
     tmp = png_path.with_name(png_path.stem + ".tmp.png")

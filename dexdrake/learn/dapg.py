@@ -11,8 +11,8 @@ then refit the baseline on the new returns. On a fresh start the exploration std
 from the demonstrations' action spread (`DexRepNetPolicy.set_log_std_from_actions`).
 
 Artefacts in out_dir, all written atomically every iteration: dapg_log.csv + dapg_log.png
-(return, success, KL against iteration and environment steps), dapg_objects.csv (each
-iteration's rollouts, successes and mean return per object), dapg_state.pt (resumable:
+(return, success, KL against iteration and environment steps), dapg_objects.csv + .png (each
+iteration's rollouts, successes and mean return per object; the success map), dapg_state.pt (resumable:
 policy, baseline + optimiser, iteration, RNG states, log rows, step and CPU counters),
 dapg_manifest.json (config, commands, steps, CPU-hours, last row), dapg_policy_last.pt and
 dapg_policy_best.pt (policy checkpoints, see policy.load_policy; "best" is the policy whose
@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.baseline import MLPBaseline
 from dexdrake.eval.seeds import TRAINING_SEEDS
-from dexdrake.learn.curves import plot_curves, write_csv
+from dexdrake.learn.curves import plot_curves, plot_success_map, write_csv
 from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset
 from dexdrake.learn.gae import discounted_returns, gae_advantages
 from dexdrake.learn.npg import flat_grad, natural_gradient_step
@@ -366,6 +366,8 @@ class DAPGTrainer:
         """The CSV log, its curves and the manifest, rewritten from the run's rows (atomic files)."""
         write_csv(self.log_csv, LOG_COLUMNS, self.rows)
         write_csv(self.objects_csv, OBJECT_COLUMNS, self.object_rows)
+        if self.object_rows:
+            plot_success_map(self.objects_csv, self.objects_csv.with_suffix(".png"), title="DAPG rollouts per object")
         plot_curves(self.log_csv, self.plot_png, ["iteration", "env_steps"], ["mean_return", "success_rate", "kl"],
                     title="DAPG")
         manifest = {

@@ -94,10 +94,10 @@ def plot_success_map(csv_path: str | Path, png_path: str | Path, title: str = ""
     import numpy as np
 
     rows = read_csv(csv_path)
-    objects = sorted({r["object"] for r in rows})
-    iterations = sorted({int(r["iteration"]) for r in rows})
     if not rows:
         raise DexdrakeError(f"{csv_path} has no rows to plot")
+    objects = sorted({r["object"] for r in rows})
+    iterations = sorted({int(r["iteration"]) for r in rows})
     row_of, col_of = {o: i for i, o in enumerate(objects)}, {k: j for j, k in enumerate(iterations)}
     grid = np.full((len(objects), len(iterations)), np.nan)
     for r in rows:

@@ -383,7 +383,8 @@ class DAPGTrainer:
             "sessions": self.sessions,
             "last_row": self.rows[-1] if self.rows else None,
             "best_return": self.best_return,
-            "artefacts": {"log_csv": self.log_csv.name, "objects_csv": self.objects_csv.name, "curves_png": self.plot_png.name, "state": self.state_path.name,
+            "artefacts": {"log_csv": self.log_csv.name, "objects_csv": self.objects_csv.name,
+                          "curves_png": self.plot_png.name, "state": self.state_path.name,
                           "last_policy": "dapg_policy_last.pt", "best_policy": "dapg_policy_best.pt"},
             "metadata": self.metadata,
         }

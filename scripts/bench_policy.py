@@ -16,10 +16,10 @@ import time
 import numpy as np
 import torch
 
+from dexdrake.cli.demo import default_policy_path
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
-from dexdrake.paths import models_dir
 from dexdrake.systems.scene import SceneConfig
 
 PAPER_BC_SECONDS = 6 * 60  # 150 epochs, one GPU, paper's dataset
@@ -61,7 +61,7 @@ def main() -> None:
     args = parser.parse_args()
 
     torch.manual_seed(0)
-    config = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0].config
+    config = load_policy(default_policy_path())[0].config
     policy = DexRepNetPolicy(config).eval()
     n_params = sum(p.numel() for p in policy.parameters())
     print(f"policy ({config.feature_set}): blocks {dict(config.blocks)} -> {config.action_dim}, {n_params} parameters, "

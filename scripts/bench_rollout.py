@@ -213,11 +213,11 @@ def bench_bc_epoch(config, samples: int, epochs: int = 2) -> float:
 
 def shipped_policy_env(objects: list[str], horizon: int):
     """(the shipped Adroit policy, the env factory of its hand and feature set over `objects`)."""
+    from dexdrake.cli.demo import default_policy_path
     from dexdrake.learn.policy import load_policy
-    from dexdrake.paths import models_dir
     from dexdrake.systems.env_factory import env_factory_for_policy
 
-    policy = load_policy(models_dir() / "weights" / "adroit_dexrep_policy.pt")[0]
+    policy = load_policy(default_policy_path())[0]
     return policy, env_factory_for_policy(policy.config, objects, horizon)
 
 

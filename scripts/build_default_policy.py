@@ -86,6 +86,9 @@ def main() -> None:
     args = parser.parse_args()
 
     dexdrake = str(Path(sys.executable).with_name("dexdrake"))
+    for option in ("work", "dagger", "dapg"):  # absolute: the eval commands run in the repository root
+        if getattr(args, option) is not None:
+            setattr(args, option, getattr(args, option).resolve())
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     dagger = args.dagger or work / "dagger"

@@ -19,7 +19,8 @@ ships a DAPG run's best policy (the highest mean return on its own rollouts), wh
 started from the shipped policy (by the sha256 it records) or be the run an earlier iterate of
 which is shipped: the manifest keeps the training record, adds (or, for the same run, replaces)
 the DAPG stage (config, sessions, env steps, CPU-hours) and copies its learning curves beside
-the policy (<hand>_dexrep_policy_dapg.csv/.png). `--shipped` re-evaluates
+the policy (<hand>_dexrep_policy_dapg.csv/.png; _dapg2... for a later DAPG run started from a
+shipped DAPG policy). `--shipped` re-evaluates
 the shipped policy with the current code (e.g. after a fix that changes the evaluation's
 episodes) and rewrites its tables and metrics, keeping the manifest's training record.
 """
@@ -152,8 +153,9 @@ def main() -> None:
 
 
 def shipped_dapg_entry(manifest: dict, dapg: Path) -> dict | None:
-    """The manifest's record of the DAPG run in `dapg`, if the shipped policy came from it."""
-    return next((e for e in manifest["training"].get("dapg", []) if e["folder"] == str(dapg)), None)
+    """The manifest's record of the DAPG run in `dapg`, if the shipped policy came from it (its last stage)."""
+    stages = manifest["training"].get("dapg", [])
+    return stages[-1] if stages and stages[-1]["folder"] == str(dapg) else None
 
 
 def check_dapg_started_from(dapg: Path, candidate: Path, target: Path) -> None:
@@ -179,26 +181,30 @@ def check_dapg_started_from(dapg: Path, candidate: Path, target: Path) -> None:
 def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list[dict]:
     """Record the DAPG run in `dapg` as a training stage of `manifest` (replacing its record of an
     earlier iterate of the same run; the manifest's sha256 becomes the shipped file's), copy its
-    curves to `stem`_dapg.csv/.png; returns its sessions' commands."""
+    curves to `stem`_dapg.csv/.png (_dapg2... for a later stage); returns its sessions' commands."""
     from dexdrake.learn.policy import load_policy
 
     run = json.loads((dapg / "dapg_manifest.json").read_text())
     _, meta = load_policy(target)
-    for suffix in (".csv", ".png"):
-        write_atomic(stem.with_name(f"{stem.name}_dapg{suffix}"), (dapg / f"dapg_log{suffix}").read_bytes())
     training = manifest["training"]
     earlier = shipped_dapg_entry(manifest, dapg)
     if earlier:
         training["dapg"].remove(earlier)
+    elif "dapg" in training:
+        training["stages"] += "; then DAPG again from that policy"
     else:
         training["stages"] = training["stages"].replace("; no DAPG", "") + "; then DAPG (natural policy gradient with the DAgger data as its demonstration term)"
-    training.setdefault("dapg", []).append({
+    stage = len(training.setdefault("dapg", [])) + 1
+    curves = stem.with_name(f"{stem.name}_dapg{stage if stage > 1 else ''}")  # one pair of files per DAPG stage
+    for suffix in (".csv", ".png"):
+        write_atomic(curves.with_suffix(suffix), (dapg / f"dapg_log{suffix}").read_bytes())
+    training["dapg"].append({
         "folder": str(dapg), "config": meta["dapg_config"], "demos": meta.get("dataset_metadata"),
         "init": meta.get("init"), "init_sha256": earlier["init_sha256"] if earlier else meta["init_sha256"],
         "chosen_update": meta.get("updates"), "chosen_because": "highest mean return on its own rollouts",
         "chosen_mean_return": meta.get("mean_return"), "iterations_done": run["iterations_done"],
         "env_steps": run["env_steps"], "cpu_hours": run["cpu_hours"], "cpu_note": run["cpu_note"], "seeds": run["seeds"],
-        "curves": [f"models/weights/{stem.name}_dapg.csv", f"models/weights/{stem.name}_dapg.png"]})
+        "curves": [f"models/weights/{curves.name}.csv", f"models/weights/{curves.name}.png"]})
     manifest["sha256"] = sha256(target)
     return [{"command": s["command"], "note": f"DAPG session from iteration {s['from_iteration']}"} for s in run["sessions"]]
 

@@ -16,6 +16,7 @@ from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.eval.evaluate import EvalReport, evaluate_policy
 from dexdrake.eval.paper import PAPER_UNSEEN
 from dexdrake.eval.tables import csv_from_markdown, csv_table, markdown_table, table_rows, write_report
+from dexdrake.learn.curves import read_csv
 from dexdrake.learn.demo_dataset import save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.objects.library import resolve_objects
@@ -109,10 +110,13 @@ def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
     demos = _dataset(tmp_path / "d.npz", blocks, a, n=32)
     out = tmp_path / "dapg"
     argv = ["train", "dapg", "--init", str(init), "--demos", str(demos), "--out", str(out), "--iterations", "2",
-            "--per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3"]
+            "--per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3",
+            "--demo-weight", "0.002"]
     assert main(argv) == 0
     rows = (out / "dapg_log.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and rows[0].startswith("iteration,mean_return")
+    weights = [float(r["demo_weight"]) for r in read_csv(out / "dapg_log.csv")]
+    assert weights == pytest.approx([0.002, 0.002 * 0.95])  # lambda0 from --demo-weight, lambda1 the paper's
     for name in ("dapg_state.pt", "dapg_policy_last.pt", "dapg_policy_best.pt", "dapg_log.png"):
         assert (out / name).is_file(), name
     trained, meta = load_policy(out / "dapg_policy_last.pt")

@@ -73,6 +73,10 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--demo-std-fraction", type=argtypes.positive,
                       help="fresh start: exploration std = this x the demo actions' std, per dimension "
                            "(default: dexdrake.learn.policy.DEMO_STD_FRACTION)")
+    dapg.add_argument("--demo-weight", type=argtypes.positive,
+                      help="the demonstration term's weight lambda0 at iteration 0, decaying by lambda1 per iteration "
+                           "(default: dexdrake.learn.dapg.DAPGConfig.lam0, the paper's); a run started from a DAPG "
+                           "policy may go on from its run's decayed weight")
     dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
     dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
@@ -202,6 +206,8 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
 
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
+    if args.demo_weight is None:
+        args.demo_weight = DAPGConfig.lam0
     policy, init_meta = load_policy(args.init)
     policy.train()
     objects = training_objects(args.objects)
@@ -209,8 +215,8 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True)
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
                         seed_groups=len(objects), time_scale=args.horizon, seed=args.seed,
-                        demo_std_fraction=args.demo_std_fraction)
-    command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "out",
+                        demo_std_fraction=args.demo_std_fraction, lam0=args.demo_weight)
+    command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "demo-weight", "out",
                                                       "iterations", "per-object", "objects", "horizon", "workers",
                                                       "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),

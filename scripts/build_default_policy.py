@@ -183,6 +183,7 @@ def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list
     earlier iterate of the same run; the manifest's sha256 becomes the shipped file's), copy its
     curves to `stem`_dapg.csv/.png (_dapg2... for a later stage); returns its sessions' commands."""
     from dexdrake.learn.policy import load_policy
+    from dexdrake.objects.augment import augment_command
 
     run = json.loads((dapg / "dapg_manifest.json").read_text())
     _, meta = load_policy(target)
@@ -206,7 +207,9 @@ def add_dapg_stage(manifest: dict, dapg: Path, target: Path, stem: Path) -> list
         "env_steps": run["env_steps"], "cpu_hours": run["cpu_hours"], "cpu_note": run["cpu_note"], "seeds": run["seeds"],
         "curves": [f"models/weights/{curves.name}.csv", f"models/weights/{curves.name}.png"]})
     manifest["sha256"] = sha256(target)
-    return [{"command": s["command"], "note": f"DAPG session from iteration {s['from_iteration']}"} for s in run["sessions"]]
+    made_by = augment_command(meta.get("objects", []))
+    objects = [{"command": made_by, "note": "makes the augmented objects the DAPG run trains on"}] if made_by else []
+    return objects + [{"command": s["command"], "note": f"DAPG session from iteration {s['from_iteration']}"} for s in run["sessions"]]
 
 
 def new_manifest(args: argparse.Namespace, dagger: Path, target: Path, log: list[dict], metrics: dict,

@@ -123,7 +123,8 @@ def test_stopped_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
 
     train_dapg(toy_policy(seed=5), sampler, tmp_path / "split", DAPGConfig(iterations=2, **TOY), demos)
     resumed = toy_policy(seed=77)  # every weight comes from the state file
-    part = train_dapg(resumed, sampler, tmp_path / "split", DAPGConfig(iterations=3, **TOY), demos, resume=True)
+    part = train_dapg(resumed, sampler, tmp_path / "split", DAPGConfig(iterations=3, **TOY), demos, resume=True,
+                      metadata={"command": "train the toy again"})
     assert [r["iteration"] for r in part.rows] == [2] and part.iterations_done == 3
     for a, b in zip(resumed.parameters(), straight.parameters()):
         assert torch.allclose(a, b, atol=1e-6)
@@ -153,7 +154,7 @@ def test_stopped_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
 
     with pytest.raises(DexdrakeError, match="already holds a DAPG run"):
         train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, **TOY), demos)
-    with pytest.raises(DexdrakeError, match="changed config.*step_size"):
+    with pytest.raises(DexdrakeError, match="changed config.*step_size.*options of its last session: train the toy again"):
         train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, step_size=0.1, **TOY), demos,
                    resume=True)
 

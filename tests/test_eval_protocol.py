@@ -181,7 +181,8 @@ def test_shipping_a_second_dapg_run_keeps_the_first_ones_record_and_curves(tmp_p
     manifest = {"sha256": "s0", "training": {"stages": "DAgger; no DAPG"}}
     build.add_dapg_stage(manifest, runs["dapg_a"], target, stem)
     assert build.shipped_dapg_entry(manifest, runs["dapg_a"])["init_sha256"] == "s1"
-    meta["init_sha256"] = manifest["sha256"]  # the second run starts from the shipped first one
+    meta.update(init_sha256=manifest["sha256"], objects=["cup_short", "cup_short_s1", "cup_short_s4", "shape_100"])  # the second run starts
+    # from the shipped first one, on augmented objects
     for _ in range(2):  # a later iterate of the same run replaces its record
         sessions = build.add_dapg_stage(manifest, runs["dapg_b"], target, stem)
     stages = manifest["training"]["dapg"]
@@ -190,5 +191,6 @@ def test_shipping_a_second_dapg_run_keeps_the_first_ones_record_and_curves(tmp_p
     assert (stem.parent / "adroit_dexrep_policy_dapg.csv").read_text() == "dapg_a"
     assert (stem.parent / "adroit_dexrep_policy_dapg2.png").read_text() == "dapg_b"
     assert manifest["training"]["stages"] == "DAgger; then DAPG (natural policy gradient with the DAgger data as its demonstration term); then DAPG again from that policy"
-    assert sessions == [{"command": "dexdrake train dapg --out dapg_b", "note": "DAPG session from iteration 0"}]
+    assert sessions == [{"command": "dexdrake objects augment --copies 4 --shapes 100", "note": "makes the augmented objects the DAPG run trains on"},
+                        {"command": "dexdrake train dapg --out dapg_b", "note": "DAPG session from iteration 0"}]
     assert build.shipped_dapg_entry(manifest, runs["dapg_a"]) is None  # only the last stage's run may re-ship

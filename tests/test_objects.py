@@ -545,3 +545,12 @@ def test_procedural_shapes_are_stable_convex_part_solids_grasped_as_their_neares
     assert [i.name for i in list_objects("augmented")] == ["cup_short_s1", "shape_001"]
     assert main(["objects", "augment", "--copies", "1", "--shapes", "2"]) == 0
     assert "2 procedural shapes" in capsys.readouterr().out and len(list_objects("augmented")) == len(train) + 2
+
+
+def test_augment_command_names_the_command_that_makes_a_runs_augmented_objects():
+    from dexdrake.objects.augment import augment_command, build_augmented
+
+    names = ["cup_short", "box_bar"] + build_augmented(3, 2, ["cup_short"])  # cup_short_s1..s3, shape_001..002
+    assert augment_command(names) == "dexdrake objects augment --copies 3 --shapes 2"
+    assert augment_command(["box_bar", "cup_short_s2", "shape_017"]) == "dexdrake objects augment --copies 2 --shapes 17"
+    assert augment_command(["cup_short", "box_bar", "mug_s1"]) is None  # training objects only (mug is unseen)

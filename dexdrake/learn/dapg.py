@@ -460,6 +460,8 @@ def train_dapg(
         now = {k: v for k, v in json.loads(json.dumps(asdict(config))).items() if k not in RESUMABLE_CHANGES}
         changed = sorted(k for k in now if saved.get(k) != now[k])
         if changed:
+            last = trainer.sessions[-1]["command"] if trainer.sessions else ""
             raise DexdrakeError(f"cannot resume {out_dir} with a changed config: {changed} "
-                                f"(was {[saved.get(k) for k in changed]}, now {[now[k] for k in changed]})")
+                                f"(was {[saved.get(k) for k in changed]}, now {[now[k] for k in changed]}); "
+                                f"resume with the options of its last session: {last}")
     return trainer.train()

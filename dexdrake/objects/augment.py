@@ -54,6 +54,20 @@ def shape_name(k: int) -> str:
     return f"shape_{k:03d}"
 
 
+def augment_command(names: Sequence[str]) -> str | None:
+    """The `dexdrake objects augment` command that makes the augmented objects among `names`
+    (copies and shapes are numbered from 1, so the largest numbers fix it); None if there are none."""
+    from dexdrake.objects.library import list_objects
+
+    train = {i.name for i in list_objects("train")}
+    copies = [int(n.rsplit("_s", 1)[1]) for n in names
+              if n not in train and "_s" in n and n.rsplit("_s", 1)[0] in train and n.rsplit("_s", 1)[1].isdigit()]
+    shapes = [int(n[len("shape_"):]) for n in names if n.startswith("shape_") and n[len("shape_"):].isdigit()]
+    if not copies and not shapes:
+        return None
+    return f"dexdrake objects augment --copies {max(copies, default=1)} --shapes {max(shapes, default=0)}"
+
+
 def _size_key(extents: Sequence[float]) -> np.ndarray:
     """Log of the footprint's sides (longer first) and the height: what `nearest_training_object` compares."""
     e = np.asarray(extents, dtype=float)

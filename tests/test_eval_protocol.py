@@ -181,8 +181,8 @@ def test_shipping_a_second_dapg_run_keeps_the_first_ones_record_and_curves(tmp_p
     manifest = {"sha256": "s0", "training": {"stages": "DAgger; no DAPG"}}
     build.add_dapg_stage(manifest, runs["dapg_a"], target, stem)
     assert build.shipped_dapg_entry(manifest, runs["dapg_a"])["init_sha256"] == "s1"
-    meta.update(init_sha256=manifest["sha256"], objects=["cup_short", "cup_short_s1", "cup_short_s4", "shape_100"])  # the second run starts
-    # from the shipped first one, on augmented objects
+    # the second run starts from the shipped first one, on augmented objects
+    meta.update(init_sha256=manifest["sha256"], objects=["cup_short", "cup_short_s1", "cup_short_s4", "shape_100"])
     for _ in range(2):  # a later iterate of the same run replaces its record
         sessions = build.add_dapg_stage(manifest, runs["dapg_b"], target, stem)
     stages = manifest["training"]["dapg"]

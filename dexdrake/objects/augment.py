@@ -60,12 +60,17 @@ def augment_command(names: Sequence[str]) -> str | None:
     from dexdrake.objects.library import list_objects
 
     train = {i.name for i in list_objects("train")}
-    copies = [int(n.rsplit("_s", 1)[1]) for n in names
-              if n not in train and "_s" in n and n.rsplit("_s", 1)[0] in train and n.rsplit("_s", 1)[1].isdigit()]
-    shapes = [int(n[len("shape_"):]) for n in names if n.startswith("shape_") and n[len("shape_"):].isdigit()]
-    if not copies and not shapes:
+    copies, shapes = [0], [0]
+    for name in names:
+        base, _, k = name.rpartition("_s")
+        if base in train and k.isdigit() and copy_name(base, int(k)) == name:
+            copies.append(int(k))
+        k = name.partition("_")[2]
+        if k.isdigit() and shape_name(int(k)) == name:
+            shapes.append(int(k))
+    if max(copies + shapes) == 0:
         return None
-    return f"dexdrake objects augment --copies {max(copies, default=1)} --shapes {max(shapes, default=0)}"
+    return f"dexdrake objects augment --copies {max(max(copies), 1)} --shapes {max(shapes)}"
 
 
 def _size_key(extents: Sequence[float]) -> np.ndarray:

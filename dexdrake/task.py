@@ -10,6 +10,10 @@ Reward (specs/dexrepnet.md): r = r_d + r_g + r_t with
 with p_tar 0.15 m above the object's start. Taken literally, r_t pays 20 to an object that
 never moves (0.15^2 = 0.0225 < 0.05), so here r_t is paid only while the object is lifted
 (the r_g condition); this is the one deliberate departure from the paper's formula.
+Its squared thresholds are radii of 0.224 and 0.316 m, wider than the 0.10 m success radius,
+so r_t pays in full while a policy carries a lifted object away from the target. The
+"aligned" reward (`TaskSpec.reward`) uses Adroit relocate's bonus radii instead, 0.05 and
+0.10 m, so r_t pays only inside the success radius; "paper" (the default) is the formula above.
 
 Success: the object stays within 0.10 m of the target for at least 50 consecutive control
 steps.
@@ -21,6 +25,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dexdrake.errors import DexdrakeError
+
+# r_t pays 20 while ||p_obj - p_tar||^2 is below the first threshold, 10 below the second (m^2)
+TARGET_THRESHOLDS = {"paper": (0.05, 0.1), "aligned": (0.05**2, 0.10**2)}
+
 
 @dataclass(frozen=True)
 class TaskSpec:
@@ -28,6 +37,11 @@ class TaskSpec:
     lift_threshold: float = 0.02  # r_g: lifted above this (m)
     success_radius: float = 0.10  # success: within this of p_tar (m)
     success_steps: int = 50  # ... for this many consecutive control steps
+    reward: str = "paper"  # r_t's thresholds, a key of TARGET_THRESHOLDS
+
+    def __post_init__(self) -> None:
+        if self.reward not in TARGET_THRESHOLDS:
+            raise DexdrakeError(f"unknown reward {self.reward!r}; choose one of {sorted(TARGET_THRESHOLDS)}")
 
 
 @dataclass(frozen=True)
@@ -54,9 +68,10 @@ def reward_terms(
     lifted = float(p_obj[2] - p_start[2]) > spec.lift_threshold
     r_g = 1.0 if lifted else 0.0
     d2 = float(np.sum((p_obj - target_position(p_start, spec)) ** 2))
+    near, far = TARGET_THRESHOLDS[spec.reward]
     r_t = 0.0
     if lifted:
-        r_t = 20.0 if d2 < 0.05 else 10.0 if d2 < 0.1 else 0.0
+        r_t = 20.0 if d2 < near else 10.0 if d2 < far else 0.0
     return RewardTerms(r_d, r_g, r_t)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.task import TaskSpec
 
 
 @dataclass(frozen=True)
@@ -20,6 +21,7 @@ class GraspEnvFactory:
     objects: tuple[str, ...]
     horizon: int = 200
     object_from_seed: bool = False  # reset(seed) runs objects[seed % len(objects)] (balanced training batches)
+    task: TaskSpec = TaskSpec()  # reward and success criterion
 
     def __post_init__(self) -> None:
         if not self.objects:
@@ -32,7 +34,8 @@ class GraspEnvFactory:
         from dexdrake.systems.scene import SceneConfig
 
         config = SceneConfig(hand=self.hand, object=self.objects[0])
-        env = GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, objects=list(self.objects))
+        env = GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
+                        objects=list(self.objects))
         return ObjectFromSeed(env) if self.object_from_seed else env
 
 
@@ -50,7 +53,7 @@ class ObjectFromSeed:
 
 
 def env_factory_for_policy(
-    policy_config, objects: list[str], horizon: int, object_from_seed: bool = False
+    policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec()
 ) -> GraspEnvFactory:
     """The factory matching a policy's hand and feature set (both must be recorded)."""
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
@@ -61,4 +64,4 @@ def env_factory_for_policy(
         raise DexdrakeError(f"policy records hand {hand!r}, not one of {hand_names()}")
     if feature_set not in FEATURE_SETS:
         raise DexdrakeError(f"policy records feature set {feature_set!r}, not one of {list(FEATURE_SETS)}")
-    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed)
+    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task)

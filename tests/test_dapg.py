@@ -157,6 +157,15 @@ def test_stopped_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
     with pytest.raises(DexdrakeError, match="changed config.*step_size.*options of its last session: train the toy again"):
         train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, step_size=0.1, **TOY), demos,
                    resume=True)
+    with pytest.raises(DexdrakeError, match="changed config.*reward"):  # the rollouts' reward is part of the run
+        train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, reward="aligned", **TOY), demos,
+                   resume=True)
+    state_path = tmp_path / "split" / "dapg_state.pt"
+    state = torch.load(state_path, weights_only=True)
+    del state["policy"]["metadata"]["dapg_config"]["reward"]  # a state saved before the field existed ran its default
+    torch.save(state, state_path)
+    older = train_dapg(toy_policy(), sampler, tmp_path / "split", DAPGConfig(iterations=4, **TOY), demos, resume=True)
+    assert older.iterations_done == 4
 
 
 # ----------------------------------------------------------------------------- DAgger data as demos

@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from dexdrake.task import SuccessTracker, TaskSpec, reward_terms, target_position
+from dexdrake.errors import DexdrakeError
+from dexdrake.task import TARGET_THRESHOLDS, SuccessTracker, TaskSpec, reward_terms, target_position
 
 TABLE = np.array([0.3, -0.1, 0.05])  # an object resting on a table, not at the origin
 
@@ -38,13 +39,31 @@ def test_lift_must_exceed_the_threshold():
     assert above.r_g == 1
 
 
-def test_target_bonus_thresholds_are_strict():
-    start = np.zeros(3)
-    for d2, below, at in [(0.05, 20.0, 10.0), (0.1, 10.0, 0.0)]:
+@pytest.mark.parametrize("reward", sorted(TARGET_THRESHOLDS))
+def test_target_bonus_thresholds_are_strict(reward):
+    start, spec = np.zeros(3), TaskSpec(reward=reward)
+    near, far = TARGET_THRESHOLDS[reward]
+    for d2, below, at in [(near, 20.0, 10.0), (far, 10.0, 0.0)]:
         offset = _offset_with_square(d2)
-        assert reward_terms(np.zeros(5), offset + [0, 0, 0.15], start).r_t == at
+        assert reward_terms(np.zeros(5), offset + [0, 0, 0.15], start, spec).r_t == at
         inside = offset * (1 - 1e-9) + [0, 0, 0.15]
-        assert reward_terms(np.zeros(5), inside, start).r_t == below
+        assert reward_terms(np.zeros(5), inside, start, spec).r_t == below
+
+
+def test_aligned_reward_pays_the_target_bonus_only_inside_the_success_radius():
+    start = np.zeros(3)
+    spec = TaskSpec(reward="aligned")
+    carried_off = target_position(start) + [0.12, 0.0, 0.0]  # lifted, 0.12 m beside the target
+    assert reward_terms(np.zeros(5), carried_off, start).r_t == 20.0  # the paper's formula pays in full
+    assert reward_terms(np.zeros(5), carried_off, start, spec).r_t == 0.0
+    assert reward_terms(np.zeros(5), carried_off - [0.04, 0, 0], start, spec).r_t == 10.0
+    assert reward_terms(np.zeros(5), carried_off - [0.09, 0, 0], start, spec).r_t == 20.0
+    assert TARGET_THRESHOLDS["aligned"][1] == pytest.approx(TaskSpec().success_radius**2)
+
+
+def test_unknown_reward_is_refused():
+    with pytest.raises(DexdrakeError, match="unknown reward 'dense'"):
+        TaskSpec(reward="dense")
 
 
 def test_target_height_of_the_spec_is_used():

@@ -22,6 +22,7 @@ from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, sa
 from dexdrake.objects.library import resolve_objects
 from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
 from dexdrake.systems.scripted_grasp import ScriptedGrasp
+from dexdrake.task import TaskSpec
 
 OBJECT = "sphere_small"
 
@@ -111,7 +112,7 @@ def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
     out = tmp_path / "dapg"
     argv = ["train", "dapg", "--init", str(init), "--demos", str(demos), "--out", str(out), "--iterations", "2",
             "--per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3",
-            "--demo-weight", "0.002"]
+            "--demo-weight", "0.002", "--reward", "aligned"]
     assert main(argv) == 0
     rows = (out / "dapg_log.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and rows[0].startswith("iteration,mean_return")
@@ -124,12 +125,19 @@ def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
     moved = [not torch.equal(trained.state_dict()[k], start.state_dict()[k]) for k in start.state_dict()]
     assert any(moved), "two NPG steps left every parameter unchanged"
     assert meta["objects"] == [OBJECT] and meta["updates"] == 2
+    assert meta["dapg_config"]["reward"] == "aligned" and "--reward aligned" in meta["command"]
     started_from = hashlib.sha256(init.read_bytes()).hexdigest()
     assert meta["init_sha256"] == started_from
     _random_policy(init, blocks, a, seed=9)  # the init file changes (e.g. replaced by the run's result)
     assert main([*argv[:argv.index("--iterations") + 1], "3", *argv[argv.index("--iterations") + 2:], "--resume"]) == 0
     assert len((out / "dapg_log.csv").read_text().strip().splitlines()) == 4
     assert load_policy(out / "dapg_policy_last.pt")[1]["init_sha256"] == started_from  # the run's start, kept
+
+
+def test_env_factory_builds_envs_with_its_task():
+    env = GraspEnvFactory("adroit", "Hand2obj", (OBJECT,), horizon=3, task=TaskSpec(reward="aligned"))()
+    env.reset(0)
+    assert env.task.reward == "aligned" and env.tracker.spec.reward == "aligned"
 
 
 def test_train_dapg_refuses_evaluation_splits(tmp_path, env_blocks, capsys):

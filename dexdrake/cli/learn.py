@@ -15,6 +15,7 @@ from typing import Any
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
+from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
 
 def command_line(words: list[str], args: argparse.Namespace, options: list[str]) -> str:
@@ -77,6 +78,10 @@ def add_parser(subparsers) -> None:
                       help="the demonstration term's weight lambda0 at iteration 0, decaying by lambda1 per iteration "
                            "(default: dexdrake.learn.dapg.DAPGConfig.lam0, the paper's); a run started from a DAPG "
                            "policy may go on from its run's decayed weight")
+    dapg.add_argument("--reward", choices=sorted(TARGET_THRESHOLDS), default=TaskSpec.reward,
+                      help="paper: r_t as the paper writes it (full pay up to 0.22 m from the target); aligned: "
+                           "Adroit relocate's 0.05/0.10 m radii, paying r_t only inside the success radius "
+                           "(see dexdrake.task)")
     dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
     dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
@@ -212,11 +217,13 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     policy.train()
     objects = training_objects(args.objects)
     demos = load_demo_term(args.demos, policy.config.obs_dim, policy.config.action_dim, args.demo_samples, args.seed)
-    factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True)
     config = DAPGConfig(iterations=args.iterations, rollouts_per_iteration=args.per_object * len(objects),
                         seed_groups=len(objects), time_scale=args.horizon, seed=args.seed,
-                        demo_std_fraction=args.demo_std_fraction, lam0=args.demo_weight)
-    command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "demo-weight", "out",
+                        demo_std_fraction=args.demo_std_fraction, lam0=args.demo_weight, reward=args.reward)
+    factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True,
+                                     task=TaskSpec(reward=config.reward))
+    command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "demo-weight",
+                                                      "reward", "out",
                                                       "iterations", "per-object", "objects", "horizon", "workers",
                                                       "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),

@@ -45,6 +45,7 @@ from dexdrake.learn.npg import flat_grad, natural_gradient_step
 from dexdrake.learn.policy import DEMO_STD_FRACTION, DexRepNetPolicy, policy_payload, save_payload, save_policy
 from dexdrake.learn.samplers import Sampler
 from dexdrake.learn.trajectory import Trajectory
+from dexdrake.task import TaskSpec
 
 STATE_FORMAT = "dexdrake.dapg/2"
 LOG_COLUMNS = [
@@ -70,6 +71,7 @@ class DAPGConfig:
     damping: float = 1e-4
     lam0: float = 0.1
     lam1: float = 0.95
+    reward: str = TaskSpec.reward  # the rollout env's TaskSpec.reward (recorded here; the env is built outside)
     max_adv: float = 1.0
     demo_samples: int | None = None  # demo pairs per iteration (None: all)
     fisher_samples: int | None = None  # rollout samples for Fisher products (None: all)
@@ -456,8 +458,9 @@ def train_dapg(
                             "continue it with --resume or choose another output folder")
     if resume and trainer.state_path.is_file():
         trainer.load_state()
-        saved = {k: v for k, v in trainer.saved_config.items() if k not in RESUMABLE_CHANGES}
         now = {k: v for k, v in json.loads(json.dumps(asdict(config))).items() if k not in RESUMABLE_CHANGES}
+        defaults = json.loads(json.dumps(asdict(DAPGConfig())))  # a state older than a field ran its default
+        saved = {k: v for k, v in {**defaults, **trainer.saved_config}.items() if k not in RESUMABLE_CHANGES}
         changed = sorted(k for k in now if saved.get(k) != now[k])
         if changed:
             last = trainer.sessions[-1]["command"] if trainer.sessions else ""

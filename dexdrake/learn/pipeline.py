@@ -87,7 +87,7 @@ def open_run(recipe: Recipe, source: Path, out: Path) -> None:
                 for f, a, b, s in refused) + "; restore those fields or use another --out")
         if not changes:
             return
-        print(f"recipe changed in stages not yet started: {', '.join(f for f, _, _ in changes)}", flush=True)
+        print(f"recipe changed where no started stage reads it: {', '.join(f for f, _, _ in changes)}", flush=True)
     _write_json(record, {"source": str(source), "sha256": recipe_sha256(recipe), "recipe": now})
 
 

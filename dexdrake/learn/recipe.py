@@ -209,8 +209,12 @@ def check_recipe(recipe: Recipe) -> None:
 
 
 def recipe_dict(recipe: Recipe) -> dict[str, Any]:
-    """The recipe as plain JSON data (tuples as lists)."""
-    return json.loads(json.dumps(asdict(recipe)))
+    """The recipe as plain JSON data (tuples as lists), without the fields the pipeline derives."""
+    data = json.loads(json.dumps(asdict(recipe)))
+    for config, cls in [(data["dagger"]["config"], DaggerConfig), *((s["config"], DAPGConfig) for s in data["dapg"])]:
+        for key in DERIVED[cls]:
+            del config[key]
+    return data
 
 
 def recipe_sha256(recipe: Recipe) -> str:

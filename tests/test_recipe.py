@@ -11,6 +11,7 @@ import pytest
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, check_evaluation_seeds
+from dexdrake.learn.policy import load_policy
 from dexdrake.learn.recipe import changed_fields, load_recipe, recipe_dict, recipe_sha256, reads, stage_plan
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -35,6 +36,8 @@ def test_shipped_recipes_load(name):
     ("dagger: {config: {hand: shadow}}", "dagger.config.hand: 'shadow' is not one of"),
     ("test: {episodes: 0}", "test.episodes: need >= 1"),
     ("choose: [1]", "recipe field choose: expected a mapping"),
+    ("dagger: {objects: pear}", "dagger.objects: ['pear'] are unseen objects"),
+    ("test: {unseen: no_such_thing}", "test.unseen: "),
 ])
 def test_a_recipe_mistake_is_refused_in_one_line_before_any_work(tmp_path, capsys, text, field):
     path = tmp_path / "r.yaml"
@@ -86,10 +89,12 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     assert manifest["stages"][1]["config"]["workers"] == 1 and manifest["stages"][1]["config"]["backend"] == "sequential"
     assert manifest["metrics"]["seen"]["seed"] == FIRST_TEST_SEED and manifest["metrics"]["unseen"]["per_object"].keys() == {"pear"}
     chosen = manifest["stages"][3]["chosen"]
-    assert chosen["candidate"] == "dapg1/dapg_iter_0001.pt" and chosen["sha256"] == manifest["sha256"]
+    assert chosen["candidate"] == "dapg1/dapg_iter_0001.pt" and manifest["stages"][3]["policy_sha256"] == manifest["sha256"]
     validation = json.loads((out / "choose" / "dapg1_0001" / "eval_validation.json").read_text())
     assert validation["seed"] == FIRST_VALIDATION_SEED and validation["seeds_reserved_for_evaluation"]
     assert (weights / "tiny_policy.pt").read_bytes() == (out / "choose" / "chosen.pt").read_bytes()
+    _, meta = load_policy(weights / "tiny_policy.pt")
+    assert meta["updates"] == 1 and "validation seeds" in meta["selection"] and meta["recipe_stage"] == "dapg1"
     for name in ("eval_tiny_seen.md", "eval_tiny_unseen.csv", "tiny_policy_expert.md", "tiny_policy_dagger.png",
                  "tiny_policy_dapg.csv", "tiny_policy_choice.png"):
         assert (weights / name).stat().st_size > 0, name

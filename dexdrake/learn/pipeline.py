@@ -242,9 +242,14 @@ def _evaluate(path: Path, objects: list[str], episodes: int, seed: int, horizon:
     return json.loads(report_path.read_text())
 
 
+SELECTION = ("the candidate iterate with the highest average success on the validation seeds (ties: the later one); "
+             "candidates: the last training stage's checkpoints and last policy")
+
+
 def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[str, Any]:
     """Every candidate on the validation seeds; the highest average success is chosen (ties: later)."""
     from dexdrake.learn.curves import plot_curves, write_csv
+    from dexdrake.learn.policy import load_policy, save_policy
     from dexdrake.objects.library import resolve_objects
 
     spec, folder = recipe.choose, out / stage.name
@@ -269,8 +274,10 @@ def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
              *(f"| {r['iteration']} | {r['candidate']} | {r['average_pct']:.1f} | {r['ci95_low']:.1f}-"
                f"{r['ci95_high']:.1f} | {'**yes**' if r is best else ''} |" for r in rows), ""]
     write_atomic(folder / "choice.md", "\n".join(lines).encode())
-    write_atomic(folder / "chosen.pt", (out / best["candidate"]).read_bytes())
-    return {"chosen": best, "candidates": len(rows), "objects": objects}
+    policy, meta = load_policy(out / best["candidate"])  # the policy alone (a DAPG checkpoint is a whole state)
+    key = "updates" if recipe.dapg else "iteration"
+    save_policy(folder / "chosen.pt", policy, {**meta, key: best["iteration"], "selection": SELECTION})
+    return {"chosen": best, "candidates": len(rows), "objects": objects, "policy_sha256": sha256(folder / "chosen.pt")}
 
 
 def run_test(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[str, Any]:

@@ -206,6 +206,25 @@ def check_recipe(recipe: Recipe) -> None:
     for name, value in counts.items():
         if value < 1:
             raise DexdrakeError(f"recipe field {name}: need >= 1, got {value}")
+    check_objects(recipe)
+
+
+def check_objects(recipe: Recipe) -> None:
+    """Refuse object selections that name no object, or held-out ones for training (the
+    augmented split is checked when it is made, by the augment stage)."""
+    from dexdrake.objects.library import resolve_objects, training_objects
+
+    specs = [("dagger.objects", recipe.dagger.objects, training_objects),
+             *((f"dapg.{k}.objects", s.objects, training_objects) for k, s in enumerate(recipe.dapg)),
+             ("choose.objects", recipe.choose.objects, resolve_objects),
+             ("test.seen", recipe.test.seen, resolve_objects), ("test.unseen", recipe.test.unseen, resolve_objects)]
+    for where, spec, check in specs:
+        if recipe.augment is not None and "augmented" in spec:
+            continue
+        try:
+            check(spec)
+        except DexdrakeError as exc:
+            raise DexdrakeError(f"recipe field {where}: {exc}") from exc
 
 
 def recipe_dict(recipe: Recipe) -> dict[str, Any]:

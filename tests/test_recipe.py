@@ -84,7 +84,9 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     assert manifest["recipe"]["sha256"] == recipe_sha256(recipe) and manifest["recipe"]["settings"] == recipe_dict(recipe)
     assert [s["stage"] for s in manifest["stages"]] == ["expert", "dagger", "dapg1", "choose", "test"]
     assert all(s["command"].startswith(f"dexdrake train recipe {TINY}") for s in manifest["stages"])
+    assert manifest["stages"][0]["settings"]["dagger.objects"] == "sphere_small,can_soda"
     dapg = manifest["stages"][2]
+    assert dapg["settings"]["dapg.0"] == recipe_dict(recipe)["dapg"][0]
     assert dapg["config"]["rollouts_per_iteration"] == 2 and dapg["config"]["time_scale"] == 4 and dapg["env_steps"] == 8
     assert manifest["stages"][1]["config"]["workers"] == 1 and manifest["stages"][1]["config"]["backend"] == "sequential"
     assert manifest["metrics"]["seen"]["seed"] == FIRST_TEST_SEED and manifest["metrics"]["unseen"]["per_object"].keys() == {"pear"}

@@ -299,6 +299,13 @@ STAGES: dict[str, Callable[[Recipe, StagePlan, Path, Runtime], dict[str, Any]]] 
 
 
 # ---------------------------------------------------------------------------------- shipping
+def _field(data: Any, dotted: str) -> Any:
+    """The value at a dotted recipe field ("dagger.config.hand", "dapg.0") of a recipe dict."""
+    for key in dotted.split("."):
+        data = data[int(key)] if isinstance(data, list) else data[key]
+    return data
+
+
 def ship_run(recipe: Recipe, out: Path, weights: Path, command: str) -> Path:
     """Copy the finished run in `out` into `weights`: NAME.pt, its manifest NAME.json, the test
     tables TABLES_seen/_unseen.md/.csv, and NAME_expert.md/.csv, NAME_dagger.csv/.png,
@@ -336,7 +343,8 @@ def ship_run(recipe: Recipe, out: Path, weights: Path, command: str) -> Path:
     stages = []
     for stage in plan:
         done = json.loads((out / stage.name / DONE_FILE).read_text())
-        stages.append({**done, "folder": str(out / stage.name), "files": files.get(stage.name, [])})
+        settings = {prefix: _field(record["recipe"], prefix) for prefix in stage.reads}
+        stages.append({**done, "settings": settings, "folder": str(out / stage.name), "files": files.get(stage.name, [])})
     manifest = {
         "policy": shown, "sha256": sha256(target), "hand": net.config.hand, "feature_set": net.config.feature_set,
         "observation_blocks": dict(net.config.blocks), "parameters": sum(p.numel() for p in net.parameters()),

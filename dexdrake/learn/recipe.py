@@ -19,7 +19,7 @@ import hashlib
 import json
 import types
 import typing
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -260,7 +260,7 @@ class StagePlan:
     """A stage of the pipeline: its folder name and the recipe fields (dotted prefixes) it reads."""
 
     name: str
-    reads: tuple[str, ...] = field(default=())
+    reads: tuple[str, ...] = ()
 
 
 def stage_plan(recipe: Recipe) -> list[StagePlan]:

@@ -11,6 +11,7 @@ import pytest
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, check_evaluation_seeds
+from dexdrake.learn import pipeline
 from dexdrake.learn.policy import load_policy
 from dexdrake.learn.recipe import changed_fields, load_recipe, recipe_dict, recipe_sha256, reads, stage_plan
 
@@ -74,11 +75,20 @@ def _files(folder: Path) -> dict[str, int]:
     return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(tmp_path, capsys):
+def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(tmp_path, capsys, monkeypatch):
     out, weights = tmp_path / "run", tmp_path / "weights"
     argv = ["train", "recipe", str(TINY), "--out", str(out), "--backend", "sequential", "--workers", "1"]
-    assert main([*argv, "--ship", "--weights", str(weights)]) == 0
+
+    def stop(*args):
+        raise DexdrakeError("stopped")
+
+    with monkeypatch.context() as patch:  # stopped in the choice of iterate
+        patch.setitem(pipeline.STAGES, "choose", stop)
+        assert main(argv) == 2
+    assert (out / "dapg1" / "done.json").is_file() and not (out / "choose" / "done.json").exists()
     capsys.readouterr()
+    assert main([*argv, "--ship", "--weights", str(weights)]) == 0
+    assert capsys.readouterr().out.count("done, skipped") == 3
     recipe = load_recipe(TINY)
     manifest = json.loads((weights / "tiny_policy.json").read_text())
     assert manifest["recipe"]["sha256"] == recipe_sha256(recipe) and manifest["recipe"]["settings"] == recipe_dict(recipe)

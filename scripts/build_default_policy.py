@@ -1,5 +1,8 @@
 """Build the shipped default policy: DAgger with the state-driven expert -> eval -> models/weights.
 
+The whole pipeline from a recipe (expert, DAgger, DAPG stages, choice on validation seeds,
+test tables, shipping) is `dexdrake train recipe`; this script ships runs made by hand.
+
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
         [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped]

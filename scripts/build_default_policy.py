@@ -1,5 +1,8 @@
 """Build the shipped default policy: DAgger with the state-driven expert -> eval -> models/weights.
 
+The whole pipeline from a recipe (expert, DAgger, DAPG stages, choice on validation seeds,
+test tables, shipping) is `dexdrake train recipe`; this script ships runs made by hand.
+
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
         [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped]
@@ -28,7 +31,6 @@ episodes) and rewrites its tables and metrics, keeping the manifest's training r
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import platform
@@ -39,7 +41,7 @@ import time
 from pathlib import Path
 
 from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
-from dexdrake.eval.tables import write_csv_beside
+from dexdrake.learn.ship import sha256, ship_eval_table
 from dexdrake.objects.meshfile import write_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,10 +63,6 @@ def run(cmd: list[str], done: Path, log: list[dict]) -> None:
     start = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=ROOT)
     log.append({"command": text, "wall_s": round(time.perf_counter() - start, 1)})
-
-
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def main() -> None:
@@ -123,20 +121,10 @@ def main() -> None:
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     if not args.shipped:
         write_atomic(target, policy.read_bytes())
-    metrics = {}
-    for label in ("seen", "unseen"):
-        report = json.loads((evals / f"eval_{label}.json").read_text())
-        metrics[label] = {k: report[k] for k in ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object",
-                                                  "seed", "seeds_reserved_for_evaluation", "horizon", "command",
-                                                  "wall_s", "workers")}
-        metrics[label]["successful_seeds"] = {name: [e["seed"] for e in report["episodes"] if e["object"] == name and e["success"]]
-                                              for name in report["per_object"]}
-        text = (evals / f"eval_{label}.md").read_text().replace(str(policy), f"models/weights/{name}.pt")
-        if not args.shipped:
-            source = f"{policy} (a copy of {args.dapg / 'dapg_policy_best.pt'})" if args.dapg else policy
-            text += f"\nThe evaluated file was {source}, copied byte for byte to models/weights/{name}.pt.\n"
-        write_atomic(weights / f"{tables}_{label}.md", text.encode())
-        write_csv_beside(weights / f"{tables}_{label}.md")
+    source = f"{policy} (a copy of {args.dapg / 'dapg_policy_best.pt'})" if args.dapg else policy
+    note = "" if args.shipped else f"The evaluated file was {source}, copied byte for byte to models/weights/{name}.pt."
+    metrics = {label: ship_eval_table(evals, label, policy, weights / f"{tables}_{label}.md",
+                                      f"models/weights/{name}.pt", note) for label in ("seen", "unseen")}
 
     if args.shipped or args.dapg:
         manifest = json.loads(target.with_suffix(".json").read_text())

@@ -124,6 +124,17 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--seed", type=argtypes.seed, default=0)
     dagger.set_defaults(func=cmd_train_dagger)
 
+    recipe = train_sub.add_parser("recipe", help="every stage of a training recipe (expert table, DAgger, DAPG, choice "
+                                  "on validation seeds, test evaluation), resumable; see configs/recipes/")
+    recipe.add_argument("recipe", type=Path, help="recipe YAML (dexdrake.learn.recipe.Recipe)")
+    recipe.add_argument("--out", required=True, type=Path, help="run folder (one subfolder per stage; re-run to resume)")
+    recipe.add_argument("--ship", action="store_true", help="copy the policy, manifest, tables and curves to --weights")
+    recipe.add_argument("--weights", type=Path, help="where --ship writes (default: the installed models/weights)")
+    recipe.add_argument("--workers", type=argtypes.count, default=2)
+    _add_backend_options(recipe)
+    recipe.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
+    recipe.set_defaults(func=cmd_train_recipe)
+
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
@@ -190,23 +201,11 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     return 0
 
 
-def training_objects(spec: str) -> list[str]:
-    """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
-    from dexdrake.objects.library import get_object, resolve_objects
-
-    if spec in ("unseen", "seen"):
-        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
-    _, objects = resolve_objects(spec)
-    held_out = [n for n in objects if get_object(n).split == "unseen"]
-    if held_out:
-        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
-    return objects
-
-
 def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
     from dexdrake.learn.samplers import make_sampler
+    from dexdrake.objects.library import training_objects
     from dexdrake.systems.env_factory import env_factory_for_policy
 
     if args.demo_std_fraction is None:
@@ -251,6 +250,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
 
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import DaggerConfig, train_dagger
+    from dexdrake.objects.library import training_objects
     from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
@@ -309,4 +309,27 @@ def cmd_eval(args: argparse.Namespace) -> int:
     low, high = report.average_ci95_pct()
     print(json.dumps({"average_pct": round(report.average_pct(), 2), "ci95_pct": [round(low, 2), round(high, 2)],
                       "episodes": len(report.episodes)}))
+    return 0
+
+
+def cmd_train_recipe(args: argparse.Namespace) -> int:
+    import torch
+
+    from dexdrake.learn.pipeline import Runtime, run_recipe, ship_run
+    from dexdrake.learn.recipe import load_recipe
+    from dexdrake.paths import models_dir
+    from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
+
+    recipe = load_recipe(args.recipe)
+    torch.set_num_threads(args.threads)
+    command = command_line(["train", "recipe", str(args.recipe)], args,
+                           ["out", "ship", "weights", "workers", "backend", "address", "threads"])
+    runtime = Runtime(GraspEnvFactory, env_factory_for_policy, ReactiveGrasp, args.workers, args.backend, args.address,
+                      command)
+    chosen = run_recipe(recipe, args.recipe, args.out, runtime)
+    print(f"recipe done: {chosen}; tables in {args.out / 'test'}")
+    if args.ship:
+        manifest = ship_run(recipe, args.out, args.weights or models_dir() / "weights", command)
+        print(f"shipped {manifest.with_suffix('.pt')} and its manifest {manifest}")
     return 0

@@ -4,7 +4,9 @@ An episode seed fixes the object placement (and, in training, the action noise).
 (DAPG rollouts) draws its seeds in TRAINING_SEEDS by construction; the evaluation protocol
 (`dexdrake eval`) draws its seeds in EVALUATION_SEEDS, so no evaluation episode replays a
 training episode. DAgger's seeds (seed * 10**6 + iteration * 10**4 + k) stay in
-TRAINING_SEEDS for run seeds below 1000.
+TRAINING_SEEDS for run seeds below 1000. Choices (iterate, variant) are measured on the
+validation block from FIRST_VALIDATION_SEED; a shipped result once, on the test block from
+FIRST_TEST_SEED (`dexdrake train recipe`).
 """
 
 from __future__ import annotations
@@ -14,8 +16,10 @@ from collections.abc import Iterable
 from dexdrake.errors import DexdrakeError
 
 TRAINING_SEEDS = range(0, 10**9)
-EVALUATION_SEEDS = range(10**9, 2 * 10**9)
+EVALUATION_SEEDS = range(10**9, 2_100_000_000)
 FIRST_EVALUATION_SEED = EVALUATION_SEEDS.start
+FIRST_VALIDATION_SEED = 1_500_000_000
+FIRST_TEST_SEED = 2_000_000_000
 
 
 def _describe(r: range) -> str:

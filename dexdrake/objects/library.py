@@ -179,6 +179,17 @@ def resolve_objects(spec: str) -> tuple[str, list[str]]:
     return "selected", names
 
 
+def training_objects(spec: str) -> list[str]:
+    """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
+    if spec in ("unseen", "seen"):
+        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    _, objects = resolve_objects(spec)
+    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    if held_out:
+        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+    return objects
+
+
 def get_object(name: str) -> ObjectInfo:
     """The object called `name`; UnknownNameError lists the valid names."""
     if importer.NAME_PATTERN.match(name):

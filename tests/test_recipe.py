@@ -1,0 +1,128 @@
+"""`dexdrake train recipe`: a recipe is checked before any work, runs every stage end to end,
+resumes without redoing a finished stage, and refuses a change a started stage reads."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from dexdrake.cli import main
+from dexdrake.errors import DexdrakeError
+from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, check_evaluation_seeds
+from dexdrake.learn import pipeline
+from dexdrake.learn.policy import load_policy
+from dexdrake.learn.recipe import changed_fields, load_recipe, recipe_dict, recipe_sha256, reads, stage_plan
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+RECIPES = Path(__file__).resolve().parents[1] / "configs" / "recipes"
+TINY = RECIPES / "tiny.yaml"
+
+
+@pytest.mark.parametrize("name", ["tiny", "adroit", "allegro_z1"])
+def test_shipped_recipes_load(name):
+    recipe = load_recipe(RECIPES / f"{name}.yaml")
+    assert [s.name for s in stage_plan(recipe)][-2:] == ["choose", "test"]
+
+
+@pytest.mark.parametrize("text, field", [
+    ("dagger: {config: {epoch: 3}}", "dagger.config.epoch is unknown"),
+    ("dagger: {config: {epochs: two}}", "dagger.config.epochs: expected int, got 'two'"),
+    ("dagger: {config: {lr: true}}", "dagger.config.lr: expected float, got True"),
+    ("dapg: [{config: {lam0: 0.1}}, {config: {seed_groups: 3}}]", "dapg.1.config.seed_groups is set by the pipeline"),
+    ("dagger: {config: {workers: 4}}", "dagger.config.workers is set by the pipeline (--workers)"),
+    ("dapg: [{config: {reward: best}}]", "dapg.0.config.reward: 'best' is not one of"),
+    ("dagger: {config: {hand: shadow}}", "dagger.config.hand: 'shadow' is not one of"),
+    ("test: {episodes: 0}", "test.episodes: need >= 1"),
+    ("choose: [1]", "recipe field choose: expected a mapping"),
+    ("dagger: {objects: pear}", "dagger.objects: ['pear'] are unseen objects"),
+    ("test: {unseen: no_such_thing}", "test.unseen: "),
+])
+def test_a_recipe_mistake_is_refused_in_one_line_before_any_work(tmp_path, capsys, text, field):
+    path = tmp_path / "r.yaml"
+    path.write_text(text)
+    with pytest.raises(DexdrakeError, match="recipe field"):
+        load_recipe(path)
+    out = tmp_path / "run"
+    assert main(["train", "recipe", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dexdrake train recipe: error: recipe field") and field in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_changed_fields_are_named_and_attributed_to_the_stages_that_read_them():
+    old = recipe_dict(load_recipe(TINY))
+    new = json.loads(json.dumps(old))
+    new["dagger"]["config"]["epochs"] = 5
+    new["dapg"].append(new["dapg"][0])
+    changes = changed_fields(old, new)
+    assert [c[0] for c in changes] == ["dagger.config.epochs", "dapg.1"] and changes[0][1:] == (1, 5)
+    plan = {s.name: s for s in stage_plan(load_recipe(TINY))}
+    assert reads(plan["dagger"], "dagger.config.epochs") and not reads(plan["expert"], "dagger.config.epochs")
+    assert reads(plan["expert"], "dagger.config.hand") and reads(plan["choose"], "dapg.1")
+    assert recipe_sha256(load_recipe(TINY)) == recipe_sha256(load_recipe(TINY))
+
+
+def test_validation_and_test_blocks_are_reserved_and_apart():
+    check_evaluation_seeds(FIRST_VALIDATION_SEED, 1000)
+    check_evaluation_seeds(FIRST_TEST_SEED, 1000)
+    assert FIRST_VALIDATION_SEED + 10**6 < FIRST_TEST_SEED
+
+
+def _files(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(tmp_path, capsys, monkeypatch):
+    out, weights = tmp_path / "run", tmp_path / "weights"
+    argv = ["train", "recipe", str(TINY), "--out", str(out), "--backend", "sequential", "--workers", "1"]
+
+    def stop(*args):
+        raise DexdrakeError("stopped")
+
+    with monkeypatch.context() as patch:  # stopped in the choice of iterate
+        patch.setitem(pipeline.STAGES, "choose", stop)
+        assert main(argv) == 2
+    assert (out / "dapg1" / "done.json").is_file() and not (out / "choose" / "done.json").exists()
+    capsys.readouterr()
+    assert main([*argv, "--ship", "--weights", str(weights)]) == 0
+    assert capsys.readouterr().out.count("done, skipped") == 3
+    recipe = load_recipe(TINY)
+    manifest = json.loads((weights / "tiny_policy.json").read_text())
+    assert manifest["recipe"]["sha256"] == recipe_sha256(recipe) and manifest["recipe"]["settings"] == recipe_dict(recipe)
+    assert [s["stage"] for s in manifest["stages"]] == ["expert", "dagger", "dapg1", "choose", "test"]
+    assert all(s["command"].startswith(f"dexdrake train recipe {TINY}") for s in manifest["stages"])
+    assert manifest["stages"][0]["settings"]["dagger.objects"] == "sphere_small,can_soda"
+    dapg = manifest["stages"][2]
+    assert dapg["settings"]["dapg.0"] == recipe_dict(recipe)["dapg"][0]
+    assert dapg["config"]["rollouts_per_iteration"] == 2 and dapg["config"]["time_scale"] == 4 and dapg["env_steps"] == 8
+    assert manifest["stages"][1]["config"]["workers"] == 1 and manifest["stages"][1]["config"]["backend"] == "sequential"
+    assert manifest["metrics"]["seen"]["seed"] == FIRST_TEST_SEED and manifest["metrics"]["unseen"]["per_object"].keys() == {"pear"}
+    chosen = manifest["stages"][3]["chosen"]
+    assert chosen["candidate"] == "dapg1/dapg_iter_0001.pt" and manifest["stages"][3]["policy_sha256"] == manifest["sha256"]
+    validation = json.loads((out / "choose" / "dapg1_0001" / "eval_validation.json").read_text())
+    assert validation["seed"] == FIRST_VALIDATION_SEED and validation["seeds_reserved_for_evaluation"]
+    assert (weights / "tiny_policy.pt").read_bytes() == (out / "choose" / "chosen.pt").read_bytes()
+    _, meta = load_policy(weights / "tiny_policy.pt")
+    assert meta["updates"] == 1 and "validation seeds" in meta["selection"] and meta["recipe_stage"] == "dapg1"
+    for name in ("eval_tiny_seen.md", "eval_tiny_unseen.csv", "tiny_policy_expert.md", "tiny_policy_dagger.png",
+                 "tiny_policy_dapg.csv", "tiny_policy_choice.png"):
+        assert (weights / name).stat().st_size > 0, name
+    assert "models/weights/tiny_policy.pt" in (weights / "eval_tiny_seen.md").read_text()
+
+    before = _files(out)
+    assert main(argv) == 0  # resumed: every stage finished, nothing redone
+    assert capsys.readouterr().out.count("done, skipped") == 5 and _files(out) == before
+
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(TINY.read_text().replace("    epochs: 1", "    epochs: 2").replace("tables: eval_tiny", "tables: x"))
+    assert main(["train", "recipe", str(changed), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "dagger.config.epochs 1 (now 2) is read by started stage dagger" in err and "ship.tables" not in err
+    assert _files(out) == before
+    later = tmp_path / "later.yaml"  # a change no started stage reads goes on
+    later.write_text(TINY.read_text().replace("tables: eval_tiny", "tables: eval_later"))
+    assert main([*argv[:2], str(later), *argv[3:]]) == 0
+    assert "no started stage reads it: ship.tables" in capsys.readouterr().out

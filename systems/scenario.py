@@ -55,6 +55,9 @@ class HandDriver:
     upper: Optional[list[float]] = None
     max_target_rate: Optional[float] = None  # rad/s
     watchdog_timeout_s: Optional[float] = None
+    # run the driver loop in its own process (hardware/driver_process.py); None: hardware
+    # yes, emulated no (the simulated-clock HIL steps its drivers in lockstep in-process)
+    process: Optional[bool] = None
 
 
 @dc.dataclass
@@ -73,6 +76,7 @@ class ArmDriver:
     max_velocity: Optional[float] = None  # rad/s on targets
     velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
+    process: Optional[bool] = None  # as HandDriver.process
 
 
 @dc.dataclass
@@ -193,6 +197,11 @@ def is_multiple(period: float, step: float) -> bool:
     return n >= 1 and abs(n * step - period) <= 1e-9 * period
 
 
+def own_process(driver: HandDriver | ArmDriver) -> bool:
+    """Whether a hand or arm driver entry runs its driver loop in its own process."""
+    return driver.kind == "hardware" if driver.process is None else driver.process
+
+
 def driver_configs(s: Scenario, arm_controller_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
     drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
@@ -259,6 +268,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  "drivers.hand.interface and .channel must be set")
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")
+        for name, entry in (("hand", h), ("arm", a)):
+            _require(not (entry.process and entry.kind == "emulated"), source,
+                     f"drivers.{name}.process: the simulated-clock HIL (kind emulated) runs its "
+                     "drivers in-process, in lockstep with its world")
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)

@@ -43,6 +43,8 @@ def test_shipped_scenarios_load():
      r"kp\[2\] = 300 exceeds the LOWCMD gain 30 of joint3"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
      "only allowed with an emulated arm"),
+    ("drivers: {hand: {kind: emulated, process: true}, arm: {kind: emulated}}",
+     "drivers.hand.process: the simulated-clock HIL"),
     ("object: no_such_object", "unknown object"),
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),

@@ -1,0 +1,390 @@
+"""A hardware driver run in its own process, behind a proxy with the driver's public API.
+
+The Allegro PD loop and the Z1 client loop are Python threads; in the process that runs the
+diagram, the policy and perception they share one GIL with that work and are starved by
+it. `DriverProcess(factory)` starts a child with the multiprocessing "spawn" context; the
+child calls `factory(stack)` to build the driver (opening its bus or socket there, and
+registering their closing on `stack`), starts it and supervises it every `poll_period_s`:
+
+  parent -> child  shared memory: the joint target (seqlock: sequence number, values) and
+                   the parent's heartbeat (CLOCK_MONOTONIC, shared by all processes),
+                   written every `heartbeat_period_s` by a thread of the proxy; a stop flag.
+                   Pipe: requests (stats, reset_fault, stop).
+  child -> parent  shared memory: the driver's latest state (seqlock, written by the child);
+                   pipe: the fault reason as soon as the driver latches one, replies.
+
+The child runs the driver's safe stop (`driver.stop()`: Allegro zero torque then servo off;
+Z1 PASSIVE) and exits when: the parent asks (stop flag or message), the parent's heartbeat
+is older than `heartbeat_timeout_s` (a hung or starved parent), the pipe closes (a dead
+parent), or SIGTERM comes. It ignores SIGINT: a Ctrl-C in the terminal reaches the whole
+process group, and only the parent decides when the device stops. `stop()` in the parent
+cannot be cut short by Ctrl-C: each step is idempotent and an interrupted stop resumes
+where it was, then re-raises the interrupt; a child that does not exit in
+`stop_timeout_s` gets SIGTERM (its safe stop), then SIGKILL.
+
+Seqlock: the writer makes the sequence odd, writes, makes it even; a reader copies the
+values between two equal even sequence reads. Each side has one writer; CPython stores
+each float64 with one aligned 8-byte store, and x86-64 keeps stores in order (TSO).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import enum
+import math
+import multiprocessing
+import multiprocessing.connection
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.shared_memory import SharedMemory
+from typing import Any
+
+import numpy as np
+
+from dexdrake.hardware.safety import HardwareError, SafeStopContext
+
+Factory = Callable[[contextlib.ExitStack], Any]  # builds a driver with start/stop/state/...
+
+_CAPACITY = 512  # float64 slots per block (the largest state, Allegro's, is 98)
+_HEARTBEAT, _STOP = 0, 1  # control slots
+_CONTROL, _COMMAND, _STATE = 0, 8, 8 + _CAPACITY  # block offsets in the shared array
+
+
+@dataclass(frozen=True)
+class ProcessConfig:
+    """Timing of the exchange with the driver's process (s)."""
+
+    poll_period_s: float = 0.002  # child: takes the target and publishes the state this often
+    heartbeat_period_s: float = 0.01  # parent: writes its heartbeat this often
+    heartbeat_timeout_s: float = 0.5  # child: a heartbeat this old stops the device
+    start_timeout_s: float = 30.0  # spawn, imports and the driver's start sequence
+    stop_timeout_s: float = 3.0  # then SIGTERM, then SIGKILL
+
+
+# ----------------------------------------------------------------------------- seqlock
+def _write(block: np.ndarray, values: np.ndarray) -> None:
+    """Publish `values` in `block` ([sequence, values...]); one writer per block."""
+    block[0] += 1.0
+    block[1: 1 + values.size] = values
+    block[0] += 1.0
+
+
+def _read(block: np.ndarray, size: int) -> tuple[float, np.ndarray]:
+    """(sequence, values) of a consistent snapshot of `block` (retries while it is written)."""
+    while True:
+        seq = block[0]
+        if seq % 2 == 0:
+            values = block[1: 1 + size].copy()
+            if block[0] == seq:
+                return seq, values
+        time.sleep(0)
+
+
+# ----------------------------------------------------------------------------- state codec
+class StateCodec:
+    """Flattens a driver's frozen state dataclass into float64s and back, shaped after a
+    template state: arrays keep their size, enums and ints their type (NaN is None), and
+    the `fault` field travels by pipe, not here."""
+
+    def __init__(self, template: Any):
+        self.template = template
+        self.fields = [f.name for f in dataclasses.fields(template) if f.name != "fault"]
+        self.sizes = [np.size(getattr(template, name)) for name in self.fields]
+        self.size = int(sum(self.sizes))
+        if self.size > _CAPACITY - 1:
+            raise HardwareError(f"driver state of {self.size} values exceeds {_CAPACITY - 1}")
+
+    def encode(self, state: Any) -> np.ndarray:
+        return np.concatenate([np.ravel(np.asarray(math.nan if v is None else v, dtype=float))
+                               for v in (getattr(state, name) for name in self.fields)])
+
+    def decode(self, flat: np.ndarray, fault: str | None) -> Any:
+        values, i = {}, 0
+        for name, size in zip(self.fields, self.sizes):
+            kind = getattr(self.template, name)
+            chunk = flat[i: i + size]
+            i += size
+            if isinstance(kind, np.ndarray):
+                values[name] = chunk.copy()
+            elif isinstance(kind, enum.Enum):
+                values[name] = type(kind)(int(chunk[0]))
+            elif kind is None or isinstance(kind, int):
+                values[name] = None if math.isnan(chunk[0]) else int(chunk[0])
+            else:
+                values[name] = float(chunk[0])
+        return dataclasses.replace(self.template, fault=fault, **values)
+
+
+# ----------------------------------------------------------------------------- child
+def _child_main(factory: Factory, conn: multiprocessing.connection.Connection, shm_name: str,
+                config: ProcessConfig) -> None:
+    """The driver's process: build, start, supervise, safe stop (see the module docstring)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    terminated = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: terminated.set())
+    shm = SharedMemory(shm_name)
+    try:
+        buf = np.ndarray((_STATE + _CAPACITY,), dtype=np.float64, buffer=shm.buf)
+        fault, stats = _run_driver(factory, conn, buf, config, terminated)
+        with contextlib.suppress(OSError):
+            conn.send(("stopped", fault, stats))
+    finally:
+        del buf
+        shm.close()
+
+
+def _run_driver(factory: Factory, conn, buf: np.ndarray, config: ProcessConfig,
+                terminated: threading.Event) -> tuple[str | None, dict]:
+    """Build and start the driver, supervise it, and leave it in its safe stop (the stack
+    closes the driver first, then its bus); (the last fault, the driver's stats)."""
+    with contextlib.ExitStack() as stack:
+        try:
+            driver = factory(stack)
+            stack.callback(driver.stop)
+            driver.start()
+            codec = StateCodec(driver.state())
+        except Exception as err:  # the parent raises it as a HardwareError
+            conn.send(("error", f"{type(err).__name__}: {err}"))
+            return None, {}
+        _write(buf[_STATE:], codec.encode(codec.template))
+        conn.send(("ready", codec.template))
+        reason = _supervise(driver, codec, conn, buf, config, terminated)
+        fault = driver.state().fault
+    with contextlib.suppress(OSError):
+        if reason is not None and fault is None:
+            conn.send(("fault", reason))
+    return fault or reason, driver.stats()
+
+
+def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: ProcessConfig,
+               terminated: threading.Event) -> str | None:
+    """Exchange targets and states until asked to stop (None) or the parent is lost (why)."""
+    n = codec.sizes[codec.fields.index("q")]
+    seq_done, fault_sent = 0.0, None
+    while not terminated.is_set() and buf[_CONTROL + _STOP] == 0:
+        try:
+            if conn.poll(config.poll_period_s):
+                request = conn.recv()
+                if request == "stop":
+                    return None
+                if request == "reset_fault":
+                    driver.reset_fault()
+                    fault_sent = None
+                elif request == "stats":
+                    conn.send(("stats", driver.stats()))
+        except (EOFError, OSError):
+            return "parent process gone"
+        seq, target = _read(buf[_COMMAND:], n)
+        if seq != seq_done:
+            seq_done = seq
+            driver.command_positions(target)
+        state = driver.state()
+        _write(buf[_STATE:], codec.encode(state))
+        if state.fault is not None and state.fault != fault_sent:
+            fault_sent = state.fault
+            with contextlib.suppress(OSError):
+                conn.send(("fault", state.fault))
+        age = time.monotonic() - buf[_CONTROL + _HEARTBEAT]
+        if age > config.heartbeat_timeout_s:
+            return f"parent heartbeat lost for {age * 1e3:.0f} ms"
+    return None
+
+
+# ----------------------------------------------------------------------------- parent
+class DriverProcess(SafeStopContext):
+    """Proxy of a driver running in its own process (module docstring): `start()`,
+    `command_positions(q)`, `state()` (with the fault the child reported), `running`,
+    `stats()`, `reset_fault()`, `stop()`; a context manager like the drivers."""
+
+    def __init__(self, factory: Factory, config: ProcessConfig | None = None, name: str = "driver"):
+        self.factory, self.config, self.name = factory, config or ProcessConfig(), name
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._conn: multiprocessing.connection.Connection | None = None
+        self._shm: SharedMemory | None = None
+        self._buf: np.ndarray | None = None
+        self._codec: StateCodec | None = None
+        self._lock = threading.Lock()  # one parent thread at a time on the pipe / command block
+        self._beating = threading.Event()
+        self._beat: threading.Thread | None = None
+        self._fault: str | None = None
+        self._final_stats: dict | None = None
+
+    @property
+    def pid(self) -> int | None:
+        """The driver process's id (None before start)."""
+        return None if self._process is None else self._process.pid
+
+    # --------------------------------------------------------------- session
+    def start(self) -> None:
+        """Spawn the driver's process and wait until its driver has started."""
+        if self._process is not None:
+            raise HardwareError(f"{self.name}: already started")
+        self._shm = SharedMemory(create=True, size=8 * (_STATE + _CAPACITY))
+        self._buf = np.ndarray((_STATE + _CAPACITY,), dtype=np.float64, buffer=self._shm.buf)
+        self._buf[:] = 0.0
+        self._buf[_CONTROL + _HEARTBEAT] = time.monotonic()
+        self._conn, child_conn = multiprocessing.Pipe()
+        ctx = multiprocessing.get_context("spawn")
+        self._process = ctx.Process(target=_child_main, name=f"dexdrake-{self.name}", daemon=True,
+                                    args=(self.factory, child_conn, self._shm.name, self.config))
+        self._beating.set()
+        self._beat = threading.Thread(target=self._heartbeat, name=f"{self.name}-heartbeat", daemon=True)
+        self._beat.start()
+        self._process.start()
+        child_conn.close()
+        reply = self._await("ready", self.config.start_timeout_s)
+        if reply is None or reply[0] != "ready":
+            self.stop()
+            why = reply[1] if reply is not None and reply[0] == "error" else (
+                f"no answer within {self.config.start_timeout_s} s")
+            raise HardwareError(f"{self.name}: the driver process did not start: {why}")
+        self._codec = StateCodec(reply[1])
+
+    def _heartbeat(self) -> None:
+        while self._beating.is_set():
+            self._buf[_CONTROL + _HEARTBEAT] = time.monotonic()
+            time.sleep(self.config.heartbeat_period_s)
+
+    def stop(self) -> None:
+        """The child's safe stop, then its exit; repeated Ctrl-C resumes it (re-raised after)."""
+        interrupt = None
+        while True:
+            try:
+                self._stop_steps()
+                break
+            except KeyboardInterrupt as err:
+                interrupt = err
+        if interrupt is not None:
+            raise interrupt
+
+    def _stop_steps(self) -> None:
+        """Idempotent: stop flag, heartbeat off, stop request, join (SIGTERM, SIGKILL), free."""
+        if self._buf is not None:
+            self._buf[_CONTROL + _STOP] = 1.0
+        self._beating.clear()
+        if self._beat is not None:
+            self._beat.join()
+        proc = self._process
+        if proc is not None:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                self._conn.send("stop")
+            deadline = time.monotonic() + self.config.stop_timeout_s
+            while proc.is_alive() and time.monotonic() < deadline:
+                self._pump(0.05)
+            for end in (proc.terminate, proc.kill):
+                if proc.is_alive():
+                    end()
+                    proc.join(self.config.stop_timeout_s)
+            self._pump(0.0)
+            proc.join()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self._shm is not None:
+            self._buf = None
+            self._shm.close()
+            self._shm.unlink()
+            self._shm = None
+
+    @property
+    def running(self) -> bool:
+        """True while the child process supervises a started driver."""
+        return (self._codec is not None and self._final_stats is None and self._buf is not None
+                and self._process is not None and self._process.is_alive())
+
+    # --------------------------------------------------------------- pipe
+    def _pump(self, timeout: float, want: str | None = None) -> tuple | None:
+        """Handle the child's messages for up to `timeout` s; the first message of kind
+        `want` is returned (faults and the final report are kept as they come)."""
+        deadline = time.monotonic() + timeout
+        while self._conn is not None:
+            try:
+                if not self._conn.poll(max(deadline - time.monotonic(), 0.0)):
+                    return None
+                msg = self._conn.recv()
+            except (EOFError, OSError):
+                return None
+            if msg[0] == "fault":
+                self._fault = self._fault or msg[1]
+            elif msg[0] == "stopped":
+                self._fault = self._fault or msg[1]
+                self._final_stats = msg[2]
+            if want is not None and msg[0] in (want, "error"):
+                return msg
+        return None
+
+    def _await(self, kind: str, timeout: float) -> tuple | None:
+        with self._lock:
+            return self._pump(timeout, kind)
+
+    def _request(self, request: str) -> None:
+        with self._lock:
+            if not self.running:
+                raise HardwareError(f"{self.name}: the driver process is not running")
+            self._conn.send(request)
+
+    # --------------------------------------------------------------- driver API
+    def command_positions(self, q: np.ndarray) -> None:
+        """Set the joint targets (the driver's order and units); the child's driver clamps,
+        rate-limits and may reject them as in-process (its target shows in state())."""
+        if not self.running:
+            raise HardwareError(f"{self.name}: the driver process is not running")
+        q = np.asarray(q, dtype=float).ravel()
+        n = self._codec.template.q.size
+        if q.size != n:
+            raise HardwareError(f"{self.name}: need {n} joint targets, got {q.size}")
+        with self._lock:
+            _write(self._buf[_COMMAND:], q)
+
+    def state(self) -> Any:
+        """The driver's latest state as the child published it, with the fault it reported."""
+        if self._codec is None:
+            raise HardwareError(f"{self.name}: the driver process was never started")
+        with self._lock:
+            self._pump(0.0)
+        if self._buf is None:  # stopped: the last state is gone with the shared memory
+            return dataclasses.replace(self._codec.template, fault=self._fault)
+        _, flat = _read(self._buf[_STATE:], self._codec.size)
+        return self._codec.decode(flat, self._fault)
+
+    def stats(self) -> dict:
+        """The driver's loop statistics (after stop: those of its last run)."""
+        if self._final_stats is not None or not self.running:
+            return dict(self._final_stats or {})
+        with self._lock:
+            self._conn.send("stats")
+            reply = self._pump(self.config.stop_timeout_s, "stats")
+        return {} if reply is None or reply[0] != "stats" else reply[1]
+
+    def reset_fault(self) -> None:
+        """Ask the child's driver to clear its latched fault (its own rules apply)."""
+        self._request("reset_fault")
+        self._fault = None
+
+
+# ----------------------------------------------------------------------------- factories
+def allegro_on_bus(bus: dict, device_id: int, config, stack: contextlib.ExitStack):
+    """An AllegroHand on the python-can bus of `bus` (can.Bus keyword arguments), opened in
+    the calling process (a `DriverProcess` factory through functools.partial)."""
+    import can
+
+    from dexdrake.hardware.allegro_can import AllegroHand
+
+    try:
+        opened = can.Bus(**bus)
+    except (can.CanError, OSError, ValueError, ImportError) as err:
+        raise HardwareError(f"cannot open CAN bus {bus}: {err}") from None
+    stack.callback(opened.shutdown)
+    return AllegroHand(opened, device_id, config)
+
+
+def z1_client(config, stack: contextlib.ExitStack):
+    """A Z1Arm of `config` (a `DriverProcess` factory through functools.partial; the arm
+    opens its socket when started)."""
+    from dexdrake.hardware.z1_udp import Z1Arm
+
+    return Z1Arm(config)

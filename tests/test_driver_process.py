@@ -1,0 +1,185 @@
+"""Drivers in their own processes (hardware/driver_process.py): the proxy follows targets
+and reports state and faults; the child safe-stops the device when the parent stops it, is
+hit by repeated Ctrl-C, dies or hangs; no process is left behind.
+
+The emulators run in the test process: the Z1 over UDP on a free port, the Allegro on
+python-can's udp_multicast interface (a free port), which crosses processes. An Allegro
+emulator keeps its servo on and its last PWM when the host goes silent (the spec), so a
+servo found off proves the child's safe stop ran."""
+
+import functools
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from dexdrake.hardware.allegro_can import AllegroConfig, default_joint_limits
+from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.driver_process import (
+    DriverProcess, ProcessConfig, StateCodec, allegro_on_bus, z1_client,
+)
+from dexdrake.hardware.safety import HardwareError
+from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, Z1State
+
+from waiting import wait_for
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("", 0))
+        return s.getsockname()[1]
+
+
+def _multicast_bus_args() -> dict:
+    from can.interfaces.udp_multicast import UdpMulticastBus
+
+    return dict(interface="udp_multicast", channel=UdpMulticastBus.DEFAULT_GROUP_IPv4,
+                port=_free_udp_port(), receive_own_messages=False)
+
+
+@pytest.fixture
+def z1_emulator():
+    with Z1Emulator(Z1EmulatorConfig(port=0)) as emu:
+        yield emu
+
+
+@pytest.fixture
+def allegro_emulator():
+    args = _multicast_bus_args()
+    bus = can.Bus(**args)
+    try:
+        with AllegroEmulator(bus, config=EmulatorConfig()) as emu:
+            yield emu, args
+    finally:
+        bus.shutdown()
+
+
+def _gone(pid: int) -> bool:
+    """True when process `pid` has exited (a zombie awaiting its reaper counts as exited)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def test_state_codec_round_trips_a_driver_state():
+    st = Z1State(1.5, ArmFSMState.LOWCMD, np.arange(6.0), -np.arange(6.0), np.ones(6), np.zeros(6),
+                 "fault", np.full(6, 0.5))
+    codec = StateCodec(st)
+    back = codec.decode(codec.encode(st), "reported")
+    assert back.fsm is ArmFSMState.LOWCMD and back.t == 1.5 and back.fault == "reported"
+    np.testing.assert_array_equal(back.q, st.q)
+    np.testing.assert_array_equal(back.q_target, st.q_target)
+
+
+def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
+    emu = z1_emulator
+    arm = DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=emu.port)),
+                        name="Z1 arm")
+    with arm:
+        pid = arm.pid
+        assert arm.running and arm.state().fault is None
+        target = np.array([0.0, 0.3, -0.3, 0.0, 0.0, 0.0])
+        arm.command_positions(target)
+        assert wait_for(lambda: np.allclose(arm.state().q, target, atol=0.02), 15.0)
+        np.testing.assert_allclose(emu.q, target, atol=0.02)
+        assert arm.stats()["cycles"] > 10
+        with pytest.raises(HardwareError, match="6 joint targets"):
+            arm.command_positions(np.zeros(5))
+        sent = emu.commands_received
+    assert not arm.running and _gone(pid)
+    assert emu.commands_received > sent and emu.fsm == ArmFSMState.PASSIVE
+    assert arm.stats()["cycles"] > 10  # the final report of the child
+    with pytest.raises(HardwareError, match="not running"):
+        arm.command_positions(target)
+
+
+def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
+    emu = z1_emulator
+    with DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=emu.port)),
+                       name="Z1 arm") as arm:
+        assert arm.state().fault is None
+        emu.stall(3.0)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        assert "no Z1 state" in arm.state().fault
+
+
+def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():
+    quiet = _multicast_bus_args()  # nobody answers on this bus
+    hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, AllegroConfig()), name="Allegro hand")
+    with pytest.raises(HardwareError, match="did not start: HardwareError: Allegro: no Info reply"):
+        hand.start()
+    assert _gone(hand.pid) and not hand.running
+
+
+def test_allegro_in_its_process_stops_with_servo_off(allegro_emulator):
+    emu, args = allegro_emulator
+    lo, hi = default_joint_limits()
+    with DriverProcess(functools.partial(allegro_on_bus, args, 0, AllegroConfig()), name="Allegro hand") as hand:
+        pid = hand.pid
+        assert wait_for(lambda: emu.servo_on, 5.0)
+        target = lo + 0.4 * (hi - lo)
+        hand.command_positions(target)
+        assert wait_for(lambda: np.allclose(emu.q, target, atol=0.05), 20.0)
+        assert np.isfinite(hand.state().t) and hand.state().fault is None
+    assert _gone(pid) and not emu.servo_on and not np.any(emu.pwm)
+
+
+_PARENT = """
+import functools, sys, time
+from dexdrake.hardware.allegro_can import AllegroConfig
+from dexdrake.hardware.driver_process import DriverProcess, ProcessConfig, allegro_on_bus
+if __name__ == "__main__":
+    args = dict(interface="udp_multicast", channel={channel!r}, port={port}, receive_own_messages=False)
+    with DriverProcess(functools.partial(allegro_on_bus, args, 0, AllegroConfig()),
+                       ProcessConfig(heartbeat_timeout_s=0.3), name="Allegro hand") as hand:
+        print(hand.pid, flush=True)
+        while True:
+            time.sleep(0.01)
+"""
+
+
+@pytest.fixture
+def parent_script(allegro_emulator, tmp_path):
+    """(emulator, Popen of a parent process holding an Allegro DriverProcess, child pid)."""
+    emu, args = allegro_emulator
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent(_PARENT.format(channel=args["channel"], port=args["port"])))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                            start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        child = int(proc.stdout.readline())
+        assert wait_for(lambda: emu.servo_on, 10.0)
+        yield emu, proc, child
+    finally:
+        with __import__("contextlib").suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+
+
+def test_repeated_ctrl_c_ends_in_the_childs_safe_stop(parent_script):
+    emu, proc, child = parent_script
+    for _ in range(3):  # a terminal's Ctrl-C reaches the whole process group
+        os.killpg(proc.pid, signal.SIGINT)
+        time.sleep(0.001)
+    assert proc.wait(20) != 0  # the interrupt is re-raised once the stop is done
+    assert wait_for(lambda: _gone(child), 10.0)
+    assert not emu.servo_on and not np.any(emu.pwm)
+
+
+@pytest.mark.parametrize("end", [signal.SIGKILL, signal.SIGSTOP], ids=["parent_dies", "parent_hangs"])
+def test_the_child_stops_the_device_when_the_parent_is_lost(parent_script, end):
+    emu, proc, child = parent_script
+    os.kill(proc.pid, end)
+    assert wait_for(lambda: not emu.servo_on, 10.0)
+    assert not np.any(emu.pwm)
+    assert wait_for(lambda: _gone(child), 10.0)

@@ -45,7 +45,8 @@ class HandDriver:
 
     kind: str = "sim"
     interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
-    channel: str = "dexdrake_allegro"  # socketcan: "can0"
+    channel: str = "dexdrake_allegro"  # socketcan: "can0"; udp_multicast: the group address
+    port: Optional[int] = None  # udp_multicast: the UDP port (None: python-can's default)
     bitrate: int = 1_000_000
     device_id: int = 0
     kp: Optional[list[float]] = None  # PWM per rad

@@ -526,7 +526,8 @@ def _bus_maps(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
 def can_bus_args(scenario: Scenario) -> dict:
     """The can.Bus keyword arguments of the hand driver entry."""
     h = scenario.drivers.hand
-    return dict(interface=h.interface, channel=h.channel, bitrate=h.bitrate, receive_own_messages=False)
+    port = {} if h.port is None else {"port": h.port}
+    return dict(interface=h.interface, channel=h.channel, bitrate=h.bitrate, receive_own_messages=False, **port)
 
 
 def open_can_bus(scenario: Scenario):

@@ -904,3 +904,50 @@ def test_hil_episode_is_repeatable():
     first, second = episode(), episode()
     assert first.shape == second.shape and np.array_equal(first, second), \
         f"differ by up to {np.abs(first - second).max():.2e}"
+
+
+def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
+    """configs/real.yaml's drivers (process by default) against emulators in this process (the
+    hand on udp_multicast, the arm over UDP): the diagram reads their states through the
+    proxies and holds the hand; leaving the station safe-stops both and ends their processes."""
+    import socket
+
+    import can
+    from can.interfaces.udp_multicast import UdpMulticastBus
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.driver_process import DriverProcess
+    from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+    from dexdrake.systems.station import make_station
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as free:
+        free.bind(("", 0))
+        port = free.getsockname()[1]
+    group = UdpMulticastBus.DEFAULT_GROUP_IPv4
+    bus = can.Bus(interface="udp_multicast", channel=group, port=port, receive_own_messages=False)
+    try:
+        with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
+            path = _real_config(tmp_path, group, arm.port, "x.pt")
+            Path(path).write_text(Path(path).read_text().replace(
+                "interface: virtual", f"interface: udp_multicast\n    port: {port}"))
+            scenario = load_scenario(path)
+            with make_station(scenario) as station:
+                drivers = [station.devices["allegro"], station.devices["z1"]]
+                assert all(isinstance(d, DriverProcess) for d in drivers)
+                pids = [d.pid for d in drivers]
+                diagram = station.diagram
+                sim = Simulator(diagram)
+                ctx = sim.get_mutable_context()
+                state = diagram.GetOutputPort("hand_state").Eval(diagram.CreateDefaultContext())
+                diagram.GetInputPort("command").FixValue(ctx, state[: station.hand.num_actuators])
+                sim.AdvanceTo(0.2)
+                assert np.all(np.isfinite(diagram.GetOutputPort("hand_state").Eval(ctx)))
+                assert hand.servo_on and arm.fsm.name == "LOWCMD"
+            assert not hand.servo_on and arm.fsm.name == "PASSIVE"
+            assert not any(d.running for d in drivers)
+            assert all(not Path(f"/proc/{pid}").exists()
+                       or Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z"
+                       for pid in pids)
+    finally:
+        bus.shutdown()

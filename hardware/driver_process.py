@@ -22,6 +22,9 @@ cannot be cut short by Ctrl-C: each step is idempotent and an interrupted stop r
 where it was, then re-raises the interrupt; a child that does not exit in
 `stop_timeout_s` gets SIGTERM (its safe stop), then SIGKILL.
 
+With `realtime_priority` the child's threads run SCHED_FIFO: its loops then wait for no
+normal process on the machine (the host's load), only for the devices.
+
 Seqlock: the writer makes the sequence odd, writes, makes it even; a reader copies the
 values between two equal even sequence reads. Each side has one writer; CPython stores
 each float64 with one aligned 8-byte store, and x86-64 keeps stores in order (TSO).
@@ -35,6 +38,7 @@ import enum
 import math
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import threading
 import time
@@ -63,6 +67,24 @@ class ProcessConfig:
     heartbeat_timeout_s: float = 0.5  # child: a heartbeat this old stops the device
     start_timeout_s: float = 30.0  # spawn, imports and the driver's start sequence
     stop_timeout_s: float = 3.0  # then SIGTERM, then SIGKILL
+    # 1..99: the child's threads run SCHED_FIFO at this priority (needs CAP_SYS_NICE or an
+    # rtprio limit, `ulimit -r`; refused otherwise), so that no normal process delays them;
+    # 0: normal scheduling
+    realtime_priority: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.realtime_priority <= 99:
+            raise HardwareError(f"realtime_priority must be 0..99, got {self.realtime_priority}")
+
+
+def set_realtime_priority(priority: int) -> None:
+    """Run the calling thread, and the threads it starts later, SCHED_FIFO at `priority`
+    (1..99); HardwareError saying what is missing when the system refuses."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as err:
+        raise HardwareError(f"cannot run at SCHED_FIFO priority {priority}: {err.strerror} (needs "
+                            f"CAP_SYS_NICE or `ulimit -r` >= {priority})") from None
 
 
 # ----------------------------------------------------------------------------- seqlock
@@ -143,6 +165,8 @@ def _run_driver(factory: Factory, conn, buf: np.ndarray, config: ProcessConfig,
     closes the driver first, then its bus); (the last fault, the driver's stats)."""
     with contextlib.ExitStack() as stack:
         try:
+            if config.realtime_priority:
+                set_realtime_priority(config.realtime_priority)
             driver = factory(stack)
             stack.callback(driver.stop)
             driver.start()

@@ -59,6 +59,10 @@ class HandDriver:
     # run the driver loop in its own process (hardware/driver_process.py); None: hardware
     # yes, emulated no (the simulated-clock HIL steps its drivers in lockstep in-process)
     process: Optional[bool] = None
+    # with `process`: that process's threads run SCHED_FIFO at this priority (1..99; needs
+    # CAP_SYS_NICE or `ulimit -r`, refused at start otherwise), so that the host's load
+    # cannot delay them; None: normal scheduling
+    realtime_priority: Optional[int] = None
 
 
 @dc.dataclass
@@ -78,6 +82,7 @@ class ArmDriver:
     velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
     process: Optional[bool] = None  # as HandDriver.process
+    realtime_priority: Optional[int] = None  # as HandDriver.realtime_priority
 
 
 @dc.dataclass
@@ -273,6 +278,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
             _require(not (entry.process and entry.kind == "emulated"), source,
                      f"drivers.{name}.process: the simulated-clock HIL (kind emulated) runs its "
                      "drivers in-process, in lockstep with its world")
+            p = entry.realtime_priority
+            _require(p is None or (own_process(entry) and 1 <= p <= 99), source,
+                     f"drivers.{name}.realtime_priority {p}: 1..99, for a driver in its own process")
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)

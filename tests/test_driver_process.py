@@ -103,6 +103,30 @@ def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
         arm.command_positions(target)
 
 
+def _may_run_realtime() -> bool:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+def test_a_realtime_priority_is_set_in_the_child_or_refused_at_start(z1_emulator):
+    cfg = ProcessConfig(realtime_priority=20)
+    arm = DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=z1_emulator.port)),
+                        cfg, "Z1 arm")
+    if not _may_run_realtime():
+        with pytest.raises(HardwareError, match="cannot run at SCHED_FIFO priority 20"):
+            arm.start()
+        return
+    with arm:
+        assert os.sched_getscheduler(arm.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(arm.pid).sched_priority == 20
+    with pytest.raises(HardwareError, match="0..99"):
+        ProcessConfig(realtime_priority=100)
+
+
 def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
     emu = z1_emulator
     with DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=emu.port)),

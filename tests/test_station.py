@@ -45,6 +45,10 @@ def test_shipped_scenarios_load():
      "only allowed with an emulated arm"),
     ("drivers: {hand: {kind: emulated, process: true}, arm: {kind: emulated}}",
      "drivers.hand.process: the simulated-clock HIL"),
+    ("drivers: {hand: {kind: hardware, process: false, realtime_priority: 50}, arm: {kind: hardware}, "
+     "camera: {kind: k4a}}", "drivers.hand.realtime_priority 50: 1..99, for a driver in its own process"),
+    ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, realtime_priority: 100}, camera: {kind: k4a}}",
+     "drivers.arm.realtime_priority 100"),
     ("object: no_such_object", "unknown object"),
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),
@@ -929,8 +933,9 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
     try:
         with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
             path = _real_config(tmp_path, group, arm.port, "x.pt")
-            Path(path).write_text(Path(path).read_text().replace(
-                "interface: virtual", f"interface: udp_multicast\n    port: {port}"))
+            Path(path).write_text(Path(path).read_text().replace(  # normal scheduling: no privilege
+                "interface: virtual", f"interface: udp_multicast\n    port: {port}").replace(
+                "realtime_priority: 50", "realtime_priority: null"))
             scenario = load_scenario(path)
             with make_station(scenario) as station:
                 drivers = [station.devices["allegro"], station.devices["z1"]]

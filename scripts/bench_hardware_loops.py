@@ -9,6 +9,8 @@ mode runs both drivers together for `--seconds`:
   in   in-process      AllegroHand and Z1Arm threads in the bench process (one GIL with the load)
   out  out-of-process  each driver in its own process (hardware/driver_process.DriverProcess)
   rt   own process, RT the same, its threads SCHED_FIFO (`--priority`; ProcessConfig.realtime_priority)
+  stream               no driver: a listener process (at `--priority`) times the emulator's
+                       3 ms position stream, the floor any CAN loop period sits on
 
 and prints per mode: the CAN PD loop's period p50/p99/max (ms) and its trips (faults latched;
 each is counted, then reset), the Z1 loop's rate (Hz), period p99/max and trips, and each
@@ -20,7 +22,7 @@ sampled during each run and printed with the figures. Period statistics come fro
 drivers' windows (the last 20000 cycles: 60 s of CAN, 40 s of Z1), read every 20 s; the
 worst window's p99 and max are printed.
 
-    .venv/bin/python scripts/bench_hardware_loops.py [--seconds 60] [--load-procs 2] [--modes in,out,rt]
+    .venv/bin/python scripts/bench_hardware_loops.py [--seconds 60] [--load-procs 2] [--modes in,out,rt,stream]
 """
 
 from __future__ import annotations
@@ -116,7 +118,43 @@ class Run:
     loads: list[float] = field(default_factory=list)
 
 
-MODES = {"in": "in-process", "out": "out-of-process", "rt": "own process, RT"}
+MODES = {"in": "in-process", "out": "out-of-process", "rt": "own process, RT", "stream": "stream alone"}
+
+
+def _listen_main(bus_args: dict, priority: int, seconds: float, conn) -> None:
+    """Ask the emulator for its 3 ms position stream and time the last finger's frames
+    (SCHED_FIFO at `priority`, no driver): the device side's own jitter."""
+    from dexdrake.hardware.allegro_can import Msg, SetPeriod, can_id, encode
+    from dexdrake.hardware.safety import period_stats
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if priority:
+        set_realtime_priority(priority)
+    bus = can.Bus(**bus_args)
+    try:
+        bus.send(encode(SetPeriod(3, 0, 0)))
+        times, end = [], time.monotonic() + seconds
+        while time.monotonic() < end:
+            msg = bus.recv(0.1)
+            if msg is not None and msg.arbitration_id == can_id(Msg.POSITION + 3):
+                times.append(time.monotonic())
+        bus.send(encode(SetPeriod(0, 0, 0)))
+    finally:
+        bus.shutdown()
+    conn.send(period_stats(times))
+
+
+def stream_alone(priority: int, seconds: float, bus_args: dict) -> Run:
+    """The emulator's position stream as a bare listener process hears it (no driver)."""
+    run = Run("stream", MODES["stream"])
+    ctx = multiprocessing.get_context("spawn")
+    conn, child = ctx.Pipe()
+    proc = ctx.Process(target=_listen_main, args=(bus_args, priority, seconds, child), daemon=True)
+    proc.start()
+    run.can_windows.append(conn.recv())
+    run.loads.append(os.getloadavg()[0])
+    proc.join()
+    return run
 
 
 def _drivers(mode: str, priority: int, bus_args: dict, z1_port: int, stack: contextlib.ExitStack):
@@ -175,11 +213,11 @@ def _window(run: Run, hand, arm) -> None:
 
 # ----------------------------------------------------------------------------- report
 def _figures(run: Run) -> dict[str, float]:
-    worst = lambda windows, key: max(w[key] for w in windows)  # noqa: E731
+    worst = lambda windows, key: max((w[key] for w in windows), default=float("nan"))  # noqa: E731
     return {"can_p50": float(np.median([w["p50_ms"] for w in run.can_windows])),
             "can_p99": worst(run.can_windows, "p99_ms"), "can_max": worst(run.can_windows, "max_ms"),
             "can_trips": len(run.trips["can"]),
-            "z1_rate": min(w["rate_hz"] for w in run.z1_windows),
+            "z1_rate": min((w["rate_hz"] for w in run.z1_windows), default=float("nan")),
             "z1_p99": worst(run.z1_windows, "p99_ms"), "z1_max": worst(run.z1_windows, "max_ms"),
             "z1_trips": len(run.trips["z1"])}
 
@@ -218,8 +256,9 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=60.0, help="run time per mode")
     parser.add_argument("--load-procs", type=int, default=0, help="busy background processes to add")
     parser.add_argument("--no-cpu-thread", action="store_true", help="no CPU-bound thread in the bench process")
-    parser.add_argument("--modes", default="in,out,rt",
-                        help="comma-separated: in (in-process), out (own process), rt (own process, SCHED_FIFO)")
+    parser.add_argument("--modes", default="in,out,rt,stream",
+                        help="comma-separated: in (in-process), out (own process), rt (own process, "
+                             "SCHED_FIFO), stream (the emulator's stream alone, at --priority)")
     parser.add_argument("--priority", type=int, default=50, help="SCHED_FIFO priority of mode rt's drivers")
     parser.add_argument("--emulator-priority", type=int, default=60,
                         help="SCHED_FIFO priority of the emulators (devices have CPUs of their own); 0: normal")
@@ -243,7 +282,8 @@ def main() -> None:
         with emulator("allegro", bus_args, args.emulator_priority), \
                 emulator("z1", {}, args.emulator_priority) as z1_port:
             for mode in modes:
-                runs.append(run_mode(mode, args.priority, args.seconds, bus_args, z1_port, not args.no_cpu_thread))
+                runs.append(stream_alone(args.priority, args.seconds, bus_args) if mode == "stream" else
+                            run_mode(mode, args.priority, args.seconds, bus_args, z1_port, not args.no_cpu_thread))
     finally:
         for proc in busy:
             proc.kill()

@@ -95,15 +95,17 @@ def _write(block: np.ndarray, values: np.ndarray) -> None:
     block[0] += 1.0
 
 
-def _read(block: np.ndarray, size: int) -> tuple[float, np.ndarray]:
-    """(sequence, values) of a consistent snapshot of `block` (retries while it is written)."""
-    while True:
+def _read(block: np.ndarray, size: int, tries: int = 1000) -> tuple[float, np.ndarray] | None:
+    """(sequence, values) of a consistent snapshot of `block`, retried while it is being
+    written; None after `tries` (a writer that died in the middle of a write)."""
+    for _ in range(tries):
         seq = block[0]
         if seq % 2 == 0:
             values = block[1: 1 + size].copy()
             if block[0] == seq:
                 return seq, values
         time.sleep(0)
+    return None
 
 
 # ----------------------------------------------------------------------------- state codec
@@ -202,10 +204,10 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
                     conn.send(("stats", driver.stats()))
         except (EOFError, OSError):
             return "parent process gone"
-        seq, target = _read(buf[_COMMAND:], n)
-        if seq != seq_done:
-            seq_done = seq
-            driver.command_positions(target)
+        command = _read(buf[_COMMAND:], n)  # None: the parent died writing (its heartbeat tells)
+        if command is not None and command[0] != seq_done:
+            seq_done = command[0]
+            driver.command_positions(command[1])
         state = driver.state()
         _write(buf[_STATE:], codec.encode(state))
         if state.fault is not None and state.fault != fault_sent:
@@ -262,9 +264,11 @@ class DriverProcess(SafeStopContext):
         child_conn.close()
         reply = self._await("ready", self.config.start_timeout_s)
         if reply is None or reply[0] != "ready":
+            exited = not self._process.is_alive()
             self.stop()
-            why = reply[1] if reply is not None and reply[0] == "error" else (
-                f"no answer within {self.config.start_timeout_s} s")
+            why = reply[1] if reply is not None else (
+                f"it exited with code {self._process.exitcode}" if exited
+                else f"no answer within {self.config.start_timeout_s} s")
             raise HardwareError(f"{self.name}: the driver process did not start: {why}")
         self._codec = StateCodec(reply[1])
 
@@ -294,8 +298,9 @@ class DriverProcess(SafeStopContext):
             self._beat.join()
         proc = self._process
         if proc is not None:
-            with contextlib.suppress(OSError, ValueError, AttributeError):
-                self._conn.send("stop")
+            if self._conn is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    self._conn.send("stop")
             deadline = time.monotonic() + self.config.stop_timeout_s
             while proc.is_alive() and time.monotonic() < deadline:
                 self._pump(0.05)
@@ -372,8 +377,10 @@ class DriverProcess(SafeStopContext):
             self._pump(0.0)
         if self._buf is None:  # stopped: the last state is gone with the shared memory
             return dataclasses.replace(self._codec.template, fault=self._fault)
-        _, flat = _read(self._buf[_STATE:], self._codec.size)
-        return self._codec.decode(flat, self._fault)
+        snapshot = _read(self._buf[_STATE:], self._codec.size)
+        if snapshot is None:
+            raise HardwareError(f"{self.name}: the driver process stopped in the middle of a state write")
+        return self._codec.decode(snapshot[1], self._fault)
 
     def stats(self) -> dict:
         """The driver's loop statistics (after stop: those of its last run)."""

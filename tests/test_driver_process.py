@@ -32,6 +32,15 @@ from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, Z1State
 
 from waiting import wait_for
 
+# generous timeouts: the emulators share this (possibly loaded) process; the tests are about
+# what happens, not how fast
+HAND = AllegroConfig(watchdog_timeout_s=1.0, temperature_timeout_s=3.0, reply_timeout_s=2.0)
+PROC = ProcessConfig(heartbeat_timeout_s=5.0)
+
+
+def _z1(port: int) -> Z1Config:
+    return Z1Config(local_port=0, controller_port=port, watchdog_timeout_s=1.0, mode_timeout_s=5.0)
+
 
 def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -83,8 +92,7 @@ def test_state_codec_round_trips_a_driver_state():
 
 def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
     emu = z1_emulator
-    arm = DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=emu.port)),
-                        name="Z1 arm")
+    arm = DriverProcess(functools.partial(z1_client, _z1(emu.port)), PROC, "Z1 arm")
     with arm:
         pid = arm.pid
         assert arm.running and arm.state().fault is None
@@ -113,9 +121,8 @@ def _may_run_realtime() -> bool:
 
 
 def test_a_realtime_priority_is_set_in_the_child_or_refused_at_start(z1_emulator):
-    cfg = ProcessConfig(realtime_priority=20)
-    arm = DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=z1_emulator.port)),
-                        cfg, "Z1 arm")
+    cfg = ProcessConfig(heartbeat_timeout_s=5.0, realtime_priority=20)
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)), cfg, "Z1 arm")
     if not _may_run_realtime():
         with pytest.raises(HardwareError, match="cannot run at SCHED_FIFO priority 20"):
             arm.start()
@@ -129,17 +136,16 @@ def test_a_realtime_priority_is_set_in_the_child_or_refused_at_start(z1_emulator
 
 def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
     emu = z1_emulator
-    with DriverProcess(functools.partial(z1_client, Z1Config(local_port=0, controller_port=emu.port)),
-                       name="Z1 arm") as arm:
+    with DriverProcess(functools.partial(z1_client, _z1(emu.port)), PROC, "Z1 arm") as arm:
         assert arm.state().fault is None
-        emu.stall(3.0)
+        emu.stall(5.0)
         assert wait_for(lambda: arm.state().fault is not None, 10.0)
         assert "no Z1 state" in arm.state().fault
 
 
 def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():
     quiet = _multicast_bus_args()  # nobody answers on this bus
-    hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, AllegroConfig()), name="Allegro hand")
+    hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, HAND), PROC, "Allegro hand")
     with pytest.raises(HardwareError, match="did not start: HardwareError: Allegro: no Info reply"):
         hand.start()
     assert _gone(hand.pid) and not hand.running
@@ -148,7 +154,7 @@ def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process()
 def test_allegro_in_its_process_stops_with_servo_off(allegro_emulator):
     emu, args = allegro_emulator
     lo, hi = default_joint_limits()
-    with DriverProcess(functools.partial(allegro_on_bus, args, 0, AllegroConfig()), name="Allegro hand") as hand:
+    with DriverProcess(functools.partial(allegro_on_bus, args, 0, HAND), PROC, "Allegro hand") as hand:
         pid = hand.pid
         assert wait_for(lambda: emu.servo_on, 5.0)
         target = lo + 0.4 * (hi - lo)
@@ -164,8 +170,9 @@ from dexdrake.hardware.allegro_can import AllegroConfig
 from dexdrake.hardware.driver_process import DriverProcess, ProcessConfig, allegro_on_bus
 if __name__ == "__main__":
     args = dict(interface="udp_multicast", channel={channel!r}, port={port}, receive_own_messages=False)
-    with DriverProcess(functools.partial(allegro_on_bus, args, 0, AllegroConfig()),
-                       ProcessConfig(heartbeat_timeout_s=0.3), name="Allegro hand") as hand:
+    config = AllegroConfig(watchdog_timeout_s=1.0, temperature_timeout_s=3.0, reply_timeout_s=2.0)
+    with DriverProcess(functools.partial(allegro_on_bus, args, 0, config),
+                       ProcessConfig(heartbeat_timeout_s=1.0), name="Allegro hand") as hand:
         print(hand.pid, flush=True)
         while True:
             time.sleep(0.01)
@@ -207,3 +214,17 @@ def test_the_child_stops_the_device_when_the_parent_is_lost(parent_script, end):
     assert wait_for(lambda: not emu.servo_on, 10.0)
     assert not np.any(emu.pwm)
     assert wait_for(lambda: _gone(child), 10.0)
+
+
+def test_a_parent_that_stops_in_the_middle_of_a_command_write_is_still_lost(z1_emulator):
+    """A parent frozen halfway through writing a target (the sequence left odd) and no longer
+    beating: the child neither spins on the half-written target nor keeps the arm going."""
+    from dexdrake.hardware import driver_process as dp
+
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)),
+                        ProcessConfig(heartbeat_timeout_s=0.3), "Z1 arm")
+    with arm:
+        arm._beating.clear()  # the parent's heartbeat stops ...
+        arm._buf[dp._COMMAND] += 1.0  # ... halfway through a write
+        assert wait_for(lambda: not arm._process.is_alive(), 10.0)
+        assert "parent heartbeat lost" in arm.state().fault

@@ -935,7 +935,8 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
             path = _real_config(tmp_path, group, arm.port, "x.pt")
             Path(path).write_text(Path(path).read_text().replace(  # normal scheduling: no privilege
                 "interface: virtual", f"interface: udp_multicast\n    port: {port}").replace(
-                "realtime_priority: 50", "realtime_priority: null"))
+                "realtime_priority: 50", "realtime_priority: null").replace(  # a loaded host
+                "watchdog_timeout_s: 0.05", "watchdog_timeout_s: 1.0"))
             scenario = load_scenario(path)
             with make_station(scenario) as station:
                 drivers = [station.devices["allegro"], station.devices["z1"]]

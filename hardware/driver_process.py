@@ -16,7 +16,7 @@ registering their closing on `stack`), starts it and supervises it every `poll_p
 The child runs the driver's safe stop (`driver.stop()`: Allegro zero torque then servo off;
 Z1 PASSIVE) and exits when: the parent asks (stop flag or message), the parent's heartbeat
 is older than `heartbeat_timeout_s` (a hung or starved parent), the pipe closes (a dead
-parent), or SIGTERM comes. It ignores SIGINT: a Ctrl-C in the terminal reaches the whole
+parent), SIGTERM comes, the driver's loop thread ends or the supervision itself fails. It ignores SIGINT: a Ctrl-C in the terminal reaches the whole
 process group, and only the parent decides when the device stops. `stop()` in the parent
 cannot be cut short by Ctrl-C: each step is idempotent and an interrupted stop resumes
 where it was, then re-raises the interrupt; a child that does not exit in
@@ -178,7 +178,10 @@ def _run_driver(factory: Factory, conn, buf: np.ndarray, config: ProcessConfig,
             return None, {}
         _write(buf[_STATE:], codec.encode(codec.template))
         conn.send(("ready", codec.template))
-        reason = _supervise(driver, codec, conn, buf, config, terminated)
+        try:
+            reason = _supervise(driver, codec, conn, buf, config, terminated)
+        except Exception as err:  # a failing supervisor ends in the safe stop too, reported
+            reason = f"driver process failed: {err!r}"
         fault = driver.state().fault
     with contextlib.suppress(OSError):
         if reason is not None and fault is None:
@@ -214,6 +217,8 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
             fault_sent = state.fault
             with contextlib.suppress(OSError):
                 conn.send(("fault", state.fault))
+        if not driver.running:  # its loop thread ended (the driver latched why)
+            return state.fault or "driver loop ended"
         age = time.monotonic() - buf[_CONTROL + _HEARTBEAT]
         if age > config.heartbeat_timeout_s:
             return f"parent heartbeat lost for {age * 1e3:.0f} ms"

@@ -42,10 +42,13 @@ import can
 import numpy as np
 
 from dexdrake.hardware.allegro_can import AllegroConfig, AllegroHand
+from dexdrake.hardware.allegro_emulator import EmulatorConfig
 from dexdrake.hardware.allegro_can import default_joint_limits as hand_limits
 from dexdrake.hardware.driver_process import (
     DriverProcess, ProcessConfig, allegro_on_bus, set_realtime_priority, z1_client,
 )
+from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_emulator, z1_emulator
+from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
 from dexdrake.hardware.z1_udp import Z1Arm, Z1Config
 from dexdrake.hardware.z1_udp import default_joint_limits as arm_limits
 
@@ -53,46 +56,7 @@ CONTROL_PERIOD_S = 0.02
 STATS_EVERY_S = 20.0
 
 
-# ----------------------------------------------------------------------------- devices
-def _emulator_main(kind: str, bus_args: dict, priority: int, conn) -> None:
-    """An emulator process (SCHED_FIFO at `priority` if > 0: a device has CPUs of its own):
-    serve until the bench sends anything (Z1: reports its port)."""
-    from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
-    from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if priority:
-        set_realtime_priority(priority)
-    if kind == "allegro":
-        bus = can.Bus(**bus_args)
-        lo, hi = hand_limits()
-        with AllegroEmulator(bus, config=EmulatorConfig(lower=lo, upper=hi)):
-            conn.send(None)
-            conn.recv()
-        bus.shutdown()
-    else:
-        lo, hi = arm_limits()
-        with Z1Emulator(Z1EmulatorConfig(port=0, lower=lo, upper=hi)) as emu:
-            conn.send(emu.port)
-            conn.recv()
-
-
-@contextlib.contextmanager
-def emulator(kind: str, bus_args: dict, priority: int):
-    """Run an emulator process; yields what it reports (the Z1 emulator's port)."""
-    ctx = multiprocessing.get_context("spawn")
-    conn, child = ctx.Pipe()
-    proc = ctx.Process(target=_emulator_main, args=(kind, bus_args, priority, child), daemon=True)
-    proc.start()
-    try:
-        yield conn.recv()
-    finally:
-        conn.send("stop")
-        proc.join(5)
-        if proc.is_alive():
-            proc.kill()
-
-
+# ----------------------------------------------------------------------------- load
 def _burn(stop: threading.Event) -> None:
     """CPU-bound pure Python (holds the GIL but for the interpreter's switch interval)."""
     x = 0
@@ -279,8 +243,12 @@ def main() -> None:
         proc.start()
     runs = []
     try:
-        with emulator("allegro", bus_args, args.emulator_priority), \
-                emulator("z1", {}, args.emulator_priority) as z1_port:
+        (hlo, hhi), (alo, ahi) = hand_limits(), arm_limits()
+        hand_emulator = functools.partial(allegro_emulator, bus_args, EmulatorConfig(lower=hlo, upper=hhi))
+        arm_emulator = functools.partial(z1_emulator, Z1EmulatorConfig(port=0, lower=alo, upper=ahi))
+        with EmulatorProcess(hand_emulator, args.emulator_priority), \
+                EmulatorProcess(arm_emulator, args.emulator_priority) as arm_process:
+            z1_port = arm_process.report
             for mode in modes:
                 runs.append(stream_alone(args.priority, args.seconds, bus_args) if mode == "stream" else
                             run_mode(mode, args.priority, args.seconds, bus_args, z1_port, not args.no_cpu_thread))

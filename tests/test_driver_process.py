@@ -228,3 +228,39 @@ def test_a_parent_that_stops_in_the_middle_of_a_command_write_is_still_lost(z1_e
         arm._buf[dp._COMMAND] += 1.0  # ... halfway through a write
         assert wait_for(lambda: not arm._process.is_alive(), 10.0)
         assert "parent heartbeat lost" in arm.state().fault
+
+
+class _BrokenDriver:
+    """A driver whose command path raises; `stop()` leaves a marker file (its safe stop)."""
+
+    def __init__(self, marker: str):
+        self.marker, self.running = marker, False
+
+    def start(self) -> None:
+        self.running = True
+
+    def stop(self) -> None:
+        self.running = False
+        Path(self.marker).write_text("stopped")
+
+    def state(self) -> Z1State:
+        return Z1State(0.0, ArmFSMState.LOWCMD, np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(6), None)
+
+    def command_positions(self, q) -> None:
+        raise RuntimeError("command path broken")
+
+    def stats(self) -> dict:
+        return {}
+
+
+def _broken_driver(marker: str, stack) -> _BrokenDriver:
+    return _BrokenDriver(marker)
+
+
+def test_a_failing_supervision_ends_in_the_safe_stop_and_is_reported(tmp_path):
+    marker = tmp_path / "stopped"
+    with DriverProcess(functools.partial(_broken_driver, str(marker)), PROC, "broken") as proxy:
+        proxy.command_positions(np.zeros(6))
+        assert wait_for(lambda: not proxy.running, 10.0)
+        assert "driver process failed: RuntimeError('command path broken')" in proxy.state().fault
+    assert marker.read_text() == "stopped"

@@ -380,6 +380,9 @@ class DriverProcess(SafeStopContext):
             raise HardwareError(f"{self.name}: the driver process was never started")
         with self._lock:
             self._pump(0.0)
+        proc = self._process
+        if self._fault is None and self._final_stats is None and not proc.is_alive():
+            self._fault = f"the driver process exited with code {proc.exitcode} without its report"
         if self._buf is None:  # stopped: the last state is gone with the shared memory
             return dataclasses.replace(self._codec.template, fault=self._fault)
         snapshot = _read(self._buf[_STATE:], self._codec.size)

@@ -264,3 +264,11 @@ def test_a_failing_supervision_ends_in_the_safe_stop_and_is_reported(tmp_path):
         assert wait_for(lambda: not proxy.running, 10.0)
         assert "driver process failed: RuntimeError('command path broken')" in proxy.state().fault
     assert marker.read_text() == "stopped"
+
+
+def test_a_killed_driver_process_is_a_fault_and_stop_still_cleans_up(z1_emulator):
+    with DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)), PROC, "Z1 arm") as arm:
+        os.kill(arm.pid, signal.SIGKILL)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        assert "exited with code -9" in arm.state().fault and not arm.running
+    assert _gone(arm.pid)

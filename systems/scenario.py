@@ -272,6 +272,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(0 <= h.device_id <= 3, source, f"drivers.hand.device_id must be 0..3, got {h.device_id}")
         _require(bool(h.interface) and bool(h.channel), source,
                  "drivers.hand.interface and .channel must be set")
+        _require(h.port is None or 1 <= h.port <= 65535, source, f"drivers.hand.port {h.port} is not a UDP port")
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")
         for name, entry in (("hand", h), ("arm", a)):

@@ -43,6 +43,7 @@ def test_shipped_scenarios_load():
      r"kp\[2\] = 300 exceeds the LOWCMD gain 30 of joint3"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
      "only allowed with an emulated arm"),
+    ("drivers: {hand: {kind: emulated, port: 0}, arm: {kind: emulated}}", "drivers.hand.port 0 is not a UDP port"),
     ("drivers: {hand: {kind: emulated, process: true}, arm: {kind: emulated}}",
      "drivers.hand.process: the simulated-clock HIL"),
     ("drivers: {hand: {kind: hardware, process: false, realtime_priority: 50}, arm: {kind: hardware}, "

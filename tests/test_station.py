@@ -950,7 +950,7 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
                 diagram.GetInputPort("command").FixValue(ctx, state[: station.hand.num_actuators])
                 sim.AdvanceTo(0.2)
                 assert np.all(np.isfinite(diagram.GetOutputPort("hand_state").Eval(ctx)))
-                assert hand.servo_on and arm.fsm.name == "LOWCMD"
+                assert hand.servo_on and arm.commands_received > 0
             assert not hand.servo_on and arm.fsm.name == "PASSIVE"
             assert not any(d.running for d in drivers)
             assert all(not Path(f"/proc/{pid}").exists()

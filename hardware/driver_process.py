@@ -53,14 +53,14 @@ from dexdrake.hardware.safety import HardwareError, SafeStopContext
 
 Factory = Callable[[contextlib.ExitStack], Any]  # builds a driver with start/stop/state/...
 
-_CAPACITY = 512  # float64 slots per block (the largest state, Allegro's, is 98)
+_CAPACITY = 512  # float64 slots per block (the largest state, Allegro's, takes 82)
 _HEARTBEAT, _STOP = 0, 1  # control slots
 _CONTROL, _COMMAND, _STATE = 0, 8, 8 + _CAPACITY  # block offsets in the shared array
 
 
 @dataclass(frozen=True)
 class ProcessConfig:
-    """Timing of the exchange with the driver's process (s)."""
+    """How the driver's process runs: the timing of the exchange (s) and its scheduling."""
 
     poll_period_s: float = 0.002  # child: takes the target and publishes the state this often
     heartbeat_period_s: float = 0.01  # parent: writes its heartbeat this often

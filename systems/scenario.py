@@ -45,7 +45,8 @@ class HandDriver:
 
     kind: str = "sim"
     interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
-    channel: str = "dexdrake_allegro"  # socketcan: "can0"
+    channel: str = "dexdrake_allegro"  # socketcan: "can0"; udp_multicast: the group address
+    port: Optional[int] = None  # udp_multicast: the UDP port (None: python-can's default)
     bitrate: int = 1_000_000
     device_id: int = 0
     kp: Optional[list[float]] = None  # PWM per rad
@@ -55,6 +56,13 @@ class HandDriver:
     upper: Optional[list[float]] = None
     max_target_rate: Optional[float] = None  # rad/s
     watchdog_timeout_s: Optional[float] = None
+    # run the driver loop in its own process (hardware/driver_process.py); None: hardware
+    # yes, emulated no (the simulated-clock HIL steps its drivers in lockstep in-process)
+    process: Optional[bool] = None
+    # with `process`: that process's threads run SCHED_FIFO at this priority (1..99; needs
+    # CAP_SYS_NICE or `ulimit -r`, refused at start otherwise), so that the host's load
+    # cannot delay them; None: normal scheduling
+    realtime_priority: Optional[int] = None
 
 
 @dc.dataclass
@@ -73,6 +81,8 @@ class ArmDriver:
     max_velocity: Optional[float] = None  # rad/s on targets
     velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
+    process: Optional[bool] = None  # as HandDriver.process
+    realtime_priority: Optional[int] = None  # as HandDriver.realtime_priority
 
 
 @dc.dataclass
@@ -193,6 +203,11 @@ def is_multiple(period: float, step: float) -> bool:
     return n >= 1 and abs(n * step - period) <= 1e-9 * period
 
 
+def own_process(driver: HandDriver | ArmDriver) -> bool:
+    """Whether a hand or arm driver entry runs its driver loop in its own process."""
+    return driver.kind == "hardware" if driver.process is None else driver.process
+
+
 def driver_configs(s: Scenario, arm_controller_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
     drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
@@ -257,8 +272,16 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(0 <= h.device_id <= 3, source, f"drivers.hand.device_id must be 0..3, got {h.device_id}")
         _require(bool(h.interface) and bool(h.channel), source,
                  "drivers.hand.interface and .channel must be set")
+        _require(h.port is None or 1 <= h.port <= 65535, source, f"drivers.hand.port {h.port} is not a UDP port")
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")
+        for name, entry in (("hand", h), ("arm", a)):
+            _require(not (entry.process and entry.kind == "emulated"), source,
+                     f"drivers.{name}.process: the simulated-clock HIL (kind emulated) runs its "
+                     "drivers in-process, in lockstep with its world")
+            p = entry.realtime_priority
+            _require(p is None or (own_process(entry) and 1 <= p <= 99), source,
+                     f"drivers.{name}.realtime_priority {p}: 1..99, for a driver in its own process")
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)

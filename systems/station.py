@@ -19,8 +19,9 @@ hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus,
       during the episode on the simulated clock, each pose used one camera period after
       its frame, moved on to the present at its track's velocity) or, with
       camera kind "sim", straight from the world.
-real: the same driver systems on socketcan / the real z1_controller, and a K4A camera
-      (read in a thread that keeps the newest frame) with the same PerceptionSystem.
+real: the same driver systems on socketcan / the real z1_controller, each driver in its own
+      process by default (`process` of a driver entry; hardware/driver_process.py), and a
+      K4A camera (read in a thread that keeps the newest frame) with the same PerceptionSystem.
 
 Safety at the station level (the drivers keep their own limits, watchdogs and safe stop):
 - `Station` is a context manager; leaving it (normally, by exception, Ctrl-C or SIGTERM)
@@ -43,6 +44,7 @@ import multiprocessing
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from pydrake.common.eigen_geometry import AngleAxis, Quaternion
@@ -59,7 +61,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.systems.command_guard import CommandGuard
-from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs
+from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
 
@@ -521,6 +523,13 @@ def _bus_maps(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
     return S, A
 
 
+def can_bus_args(scenario: Scenario) -> dict:
+    """The can.Bus keyword arguments of the hand driver entry."""
+    h = scenario.drivers.hand
+    port = {} if h.port is None else {"port": h.port}
+    return dict(interface=h.interface, channel=h.channel, bitrate=h.bitrate, receive_own_messages=False, **port)
+
+
 def open_can_bus(scenario: Scenario):
     """The python-can bus of the hand driver entry; HardwareError when it cannot open."""
     import can
@@ -529,8 +538,7 @@ def open_can_bus(scenario: Scenario):
 
     h = scenario.drivers.hand
     try:
-        return can.Bus(interface=h.interface, channel=h.channel, bitrate=h.bitrate,
-                       receive_own_messages=False)
+        return can.Bus(**can_bus_args(scenario))
     except (can.CanError, OSError, ValueError, ImportError) as err:
         raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
 
@@ -580,8 +588,18 @@ def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
         time.sleep(0.005)
 
 
+def _process_config(entry):
+    from dexdrake.hardware.driver_process import ProcessConfig
+
+    return ProcessConfig(realtime_priority=entry.realtime_priority or 0)
+
+
 def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool) -> Station:
+    """hil/real: drivers of the scenario (a started real station runs each driver entry
+    with `process` in its own process, hardware/driver_process.py; a dry run's drivers are
+    never started and stay in-process), the diagram around them, perception."""
     from dexdrake.hardware.allegro_can import AllegroHand
+    from dexdrake.hardware.driver_process import DriverProcess, allegro_on_bus, z1_client
     from dexdrake.hardware.z1_udp import Z1Arm
 
     hand = load_hand(scenario.hand)
@@ -596,10 +614,18 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port)
     if world is not None:  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
-    bus = open_can_bus(scenario)
-    stack.callback(bus.shutdown)
-    allegro = AllegroHand(bus, scenario.drivers.hand.device_id, hand_cfg, clock=clock)
-    z1 = Z1Arm(arm_cfg, clock=clock)
+    hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
+    if start and own_process(hand_entry):
+        allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
+                                        hand_cfg), _process_config(hand_entry), "Allegro hand")
+    else:
+        bus = open_can_bus(scenario)
+        stack.callback(bus.shutdown)
+        allegro = AllegroHand(bus, hand_entry.device_id, hand_cfg, clock=clock)
+    if start and own_process(arm_entry):
+        z1 = DriverProcess(partial(z1_client, arm_cfg), _process_config(arm_entry), "Z1 arm")
+    else:
+        z1 = Z1Arm(arm_cfg, clock=clock)
     devices["allegro"], devices["z1"] = allegro, z1
     if world is not None:  # the world steps in lockstep with the Z1 client's ticks once it runs
         world.attach_arm_client(z1)

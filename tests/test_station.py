@@ -43,6 +43,13 @@ def test_shipped_scenarios_load():
      r"kp\[2\] = 300 exceeds the LOWCMD gain 30 of joint3"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
      "only allowed with an emulated arm"),
+    ("drivers: {hand: {kind: emulated, port: 0}, arm: {kind: emulated}}", "drivers.hand.port 0 is not a UDP port"),
+    ("drivers: {hand: {kind: emulated, process: true}, arm: {kind: emulated}}",
+     "drivers.hand.process: the simulated-clock HIL"),
+    ("drivers: {hand: {kind: hardware, process: false, realtime_priority: 50}, arm: {kind: hardware}, "
+     "camera: {kind: k4a}}", "drivers.hand.realtime_priority 50: 1..99, for a driver in its own process"),
+    ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, realtime_priority: 100}, camera: {kind: k4a}}",
+     "drivers.arm.realtime_priority 100"),
     ("object: no_such_object", "unknown object"),
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),
@@ -902,3 +909,52 @@ def test_hil_episode_is_repeatable():
     first, second = episode(), episode()
     assert first.shape == second.shape and np.array_equal(first, second), \
         f"differ by up to {np.abs(first - second).max():.2e}"
+
+
+def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
+    """configs/real.yaml's drivers (process by default) against emulators in this process (the
+    hand on udp_multicast, the arm over UDP): the diagram reads their states through the
+    proxies and holds the hand; leaving the station safe-stops both and ends their processes."""
+    import socket
+
+    import can
+    from can.interfaces.udp_multicast import UdpMulticastBus
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.driver_process import DriverProcess
+    from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+    from dexdrake.systems.station import make_station
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as free:
+        free.bind(("", 0))
+        port = free.getsockname()[1]
+    group = UdpMulticastBus.DEFAULT_GROUP_IPv4
+    bus = can.Bus(interface="udp_multicast", channel=group, port=port, receive_own_messages=False)
+    try:
+        with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
+            path = _real_config(tmp_path, group, arm.port, "x.pt")
+            Path(path).write_text(Path(path).read_text().replace(  # normal scheduling: no privilege
+                "interface: virtual", f"interface: udp_multicast\n    port: {port}").replace(
+                "realtime_priority: 50", "realtime_priority: null").replace(  # a loaded host
+                "watchdog_timeout_s: 0.05", "watchdog_timeout_s: 1.0"))
+            scenario = load_scenario(path)
+            with make_station(scenario) as station:
+                drivers = [station.devices["allegro"], station.devices["z1"]]
+                assert all(isinstance(d, DriverProcess) for d in drivers)
+                pids = [d.pid for d in drivers]
+                diagram = station.diagram
+                sim = Simulator(diagram)
+                ctx = sim.get_mutable_context()
+                state = diagram.GetOutputPort("hand_state").Eval(diagram.CreateDefaultContext())
+                diagram.GetInputPort("command").FixValue(ctx, state[: station.hand.num_actuators])
+                sim.AdvanceTo(0.2)
+                assert np.all(np.isfinite(diagram.GetOutputPort("hand_state").Eval(ctx)))
+                assert hand.servo_on and arm.commands_received > 0
+            assert not hand.servo_on and arm.fsm.name == "PASSIVE"
+            assert not any(d.running for d in drivers)
+            assert all(not Path(f"/proc/{pid}").exists()
+                       or Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z"
+                       for pid in pids)
+    finally:
+        bus.shutdown()

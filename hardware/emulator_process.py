@@ -1,0 +1,114 @@
+"""Device emulators in processes of their own, in real time on real transports.
+
+`EmulatorProcess(factory)` spawns a child that builds an emulator with `factory(stack)`
+(starting it in its own thread, registering its stop and its transport's closing on
+`stack`), reports what a client needs to reach it (the Z1 emulator's port) and serves
+until `stop()` or until the parent is gone (its pipe closes). The child ignores SIGINT (a
+terminal's Ctrl-C is the parent's to handle) and stops on SIGTERM. With `realtime_priority`
+its threads run SCHED_FIFO: a device has CPUs of its own, so the host's load must not slow
+the device side of a measurement.
+
+Factories: `allegro_emulator` (the firmware emulator on a python-can bus that crosses
+processes, e.g. `udp_multicast`), `z1_emulator` (the controller emulator on a UDP port).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import signal
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from dexdrake.hardware.driver_process import set_realtime_priority
+from dexdrake.hardware.safety import HardwareError
+
+Factory = Callable[[contextlib.ExitStack], Any]  # builds and starts an emulator; returns what to report
+
+
+def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    terminated = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: terminated.set())
+    with contextlib.ExitStack() as stack:
+        try:
+            if realtime_priority:
+                set_realtime_priority(realtime_priority)
+            report = factory(stack)
+        except Exception as err:  # the parent raises it as a HardwareError
+            conn.send(("error", f"{type(err).__name__}: {err}"))
+            return
+        conn.send(("ready", report))
+        while not terminated.is_set():
+            try:
+                if conn.poll(0.1):
+                    conn.recv()  # anything: stop
+                    return
+            except (EOFError, OSError):  # the parent is gone
+                return
+
+
+class EmulatorProcess:
+    """An emulator in its own process (module docstring); a context manager. `report` is
+    what the factory returned (e.g. the Z1 emulator's port)."""
+
+    def __init__(self, factory: Factory, realtime_priority: int = 0, start_timeout_s: float = 30.0):
+        self.factory, self.realtime_priority, self.start_timeout_s = factory, realtime_priority, start_timeout_s
+        self.report: Any = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._conn = None
+
+    def start(self) -> Any:
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=_child_main, args=(self.factory, child, self.realtime_priority),
+                                    name="dexdrake-emulator", daemon=True)
+        self._process.start()
+        child.close()
+        reply = self._conn.recv() if self._conn.poll(self.start_timeout_s) else None
+        if reply is None or reply[0] != "ready":
+            self.stop()
+            raise HardwareError(f"emulator process did not start: {reply[1] if reply else 'no answer'}")
+        self.report = reply[1]
+        return self.report
+
+    def stop(self) -> None:
+        """Ask the child to stop its emulator and exit (SIGKILL after 5 s)."""
+        if self._conn is not None:
+            with contextlib.suppress(OSError):
+                self._conn.send("stop")
+        if self._process is not None:
+            self._process.join(5.0)
+            if self._process.is_alive():
+                self._process.kill()
+                self._process.join()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def __enter__(self) -> EmulatorProcess:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> None:
+    """The Allegro firmware emulator (EmulatorConfig `config`) on the python-can bus of
+    `bus` (can.Bus keyword arguments), started; reports nothing."""
+    import can
+
+    from dexdrake.hardware.allegro_emulator import AllegroEmulator
+
+    opened = can.Bus(**bus)
+    stack.callback(opened.shutdown)
+    stack.enter_context(AllegroEmulator(opened, config=config))
+
+
+def z1_emulator(config, stack: contextlib.ExitStack) -> int:
+    """The Z1 controller emulator (Z1EmulatorConfig `config`), started; reports its port."""
+    from dexdrake.hardware.z1_emulator import Z1Emulator
+
+    return stack.enter_context(Z1Emulator(config)).port

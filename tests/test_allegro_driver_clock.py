@@ -42,7 +42,8 @@ def bench():
     spare = can.Bus(interface="virtual", channel=channel)
     clock = FakeClock()
     hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2,
-                                                  temperature_timeout_s=0.5), clock=clock)
+                                                  temperature_timeout_s=0.5, limit_margin_rad=0.0),
+                       clock=clock)  # no margin: targets clamp onto the limits, as computed below
     yield hand, spare, clock
     host.shutdown()
     spare.shutdown()

@@ -498,8 +498,9 @@ class AllegroHand(SafeStopContext):
         self._fresh = [False] * NUM_FINGERS
         self._heard = [False] * NUM_FINGERS  # a valid position of each finger since (re)start
         self._t_position = np.full(NUM_FINGERS, clock())  # each finger's last valid position frame
-        self._t_speed = np.zeros(NUM_FINGERS)  # start of each finger's speed window, and its q
+        self._t_speed = np.zeros(NUM_FINGERS)  # start of each finger's speed window, its q
         self._q_speed = np.zeros(n)
+        self._n_speed = np.zeros(NUM_FINGERS)  # and the frames since
         self._t_status = clock()  # the last status reply
         self._q = np.zeros(n)
         self._dq = np.zeros(n)
@@ -782,21 +783,24 @@ class AllegroHand(SafeStopContext):
             self._cycle(self._clock())
 
     def _check_speed(self, finger: int, q: np.ndarray, now: float) -> None:
-        """Trip when a joint's mean speed |q - q0| / (t - t0) over a window of at least
-        `velocity_window_s` exceeds its max_velocity: a window of many frames keeps the
-        host's jitter in reading them from posing as speed."""
+        """Trip when a joint's mean speed over a window of at least `velocity_window_s`
+        exceeds its max_velocity: |q - q0| / T with T = max(t - t0, n * period), n frames
+        since q0 at t0. The frames' count bounds frames read late in a burst (their host
+        times crowd together), the host's clock frames the hand dropped."""
         sl = slice(4 * finger, 4 * finger + 4)
-        elapsed = now - self._t_speed[finger]
-        if self._heard[finger] and elapsed < self.config.velocity_window_s:
+        self._n_speed[finger] += 1
+        span = max(now - self._t_speed[finger],
+                   self._n_speed[finger] * self.config.position_period_ms / 1e3)
+        if self._heard[finger] and span < self.config.velocity_window_s:
             return
         if self._heard[finger] and not self.fault.tripped:
-            speed = np.abs(q - self._q_speed[sl]) / elapsed
+            speed = np.abs(q - self._q_speed[sl]) / span
             over = speed > self.settings.max_velocity[sl]
             if np.any(over):
                 j = int(np.argmax(over))
                 self._trip(f"joint {4 * finger + j} measured at {speed[j]:.1f} rad/s "
                            f"(limit {self.settings.max_velocity[4 * finger + j]:g} rad/s)")
-        self._t_speed[finger], self._q_speed[sl] = now, q
+        self._t_speed[finger], self._q_speed[sl], self._n_speed[finger] = now, q, 0
 
     def _cycle(self, now: float) -> None:
         """One PD step after a complete set of 4 position frames. The first cycle after

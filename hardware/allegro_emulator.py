@@ -11,7 +11,7 @@ when a test asks for one. `power_cycle()` emulates a power loss (servo off, no s
 A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
 Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature,
-never report temperatures, lose power.
+never report temperatures or the status, never send some fingers' positions, lose power.
 """
 
 from __future__ import annotations
@@ -115,6 +115,8 @@ class _Injection:
     over_temperature: bool = False
     silent: bool = False  # answer nothing at all (not even RTR)
     mute_temperature: bool = False  # never send temperature frames (periodic or RTR)
+    mute_status: bool = False  # never answer a status request (nor stream status)
+    mute_fingers: frozenset[int] = frozenset()  # never send these fingers' position frames
     counts: collections.Counter = field(default_factory=collections.Counter)
 
 
@@ -257,9 +259,11 @@ class AllegroEmulator:
             case Msg.SERIAL:
                 self._send(Serial(self.config.serial))
             case Msg.STATUS:
-                self._send(Status(self.status_bits()))
+                if not self.inject.mute_status:
+                    self._send(Status(self.status_bits()))
             case Msg.POSITION:
-                self._send(self._position(req.finger))
+                if req.finger not in self.inject.mute_fingers:
+                    self._send(self._position(req.finger))
             case Msg.TEMPERATURE:
                 if not self.inject.mute_temperature:
                     self._send(Temperature(req.finger, self._temperatures(req.finger)))
@@ -334,13 +338,14 @@ class AllegroEmulator:
                 continue
             if name == "position":
                 for f in range(NUM_FINGERS):
-                    self._send(self._position(f), periodic=True)
+                    if f not in self.inject.mute_fingers:
+                        self._send(self._position(f), periodic=True)
                 self.position_batches += 1
                 self._torque_fingers.clear()
             elif name == "temperature" and not self.inject.mute_temperature:
                 for f in range(NUM_FINGERS):
                     self._send(Temperature(f, self._temperatures(f)), periodic=True)
-            else:
+            elif name == "status" and not self.inject.mute_status:
                 self._send(Status(self.status_bits()), periodic=True)
 
     def poll(self, now: float, timeout: float = 0.0) -> None:

@@ -4,6 +4,7 @@ import contextlib
 import itertools
 import os
 import signal
+import threading
 import time
 import uuid
 
@@ -446,6 +447,9 @@ FAULTS = {
     "temperatures not heard": (lambda hand, emu: setattr(emu.inject, "mute_temperature", True),
                                "temperature not heard"),
     "power loss": (lambda hand, emu: emu.power_cycle(), "silent"),
+    "one finger's positions missing": (lambda hand, emu: setattr(emu.inject, "mute_fingers", frozenset({1})),
+                                       "finger 1 position stream silent"),
+    "status not heard": (lambda hand, emu: setattr(emu.inject, "mute_status", True), "status not heard"),
     "driver loop error": (_fail_loop, "driver loop failed"),
 }
 
@@ -638,3 +642,45 @@ def test_ctrl_c_leads_to_safe_stop(rig):
             time.sleep(1.0)  # interrupted by the signal
     assert not hand.running
     assert wait_for(lambda: not emu.servo_on and emu.periods.position_ms == 0, 1.0)
+
+
+def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(rig):
+    """SIGINT 200 times ~1 ms apart while the hand pushes hard on a busy bus: one KeyboardInterrupt, and
+    the stop runs to its end: zero torque first (no other torque after it), then the
+    stream off (period 0) and servo off."""
+    hand, emu, _ = rig
+    emu.dynamics = _Blocked(emu.q)
+    send = hand.bus.send
+
+    def slow_send(msg, timeout=None):  # a busy bus: 1 ms a frame, so the stop takes a while
+        time.sleep(0.001)
+        return send(msg, timeout)
+
+    hand.bus.send = slow_send
+    counted = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
+
+    def storm():
+        for _ in range(200):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.001)
+
+    sender = threading.Thread(target=storm)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with hand:
+                hand.command_positions(UPPER)
+                assert wait_for(lambda: np.max(np.abs(emu.pwm)) > 100, 1.0)
+                n = len(emu.log)
+                sender.start()
+                time.sleep(5.0)
+        sender.join()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert not hand.running
+    assert wait_for(lambda: not emu.servo_on and emu.periods.position_ms == 0, 1.0)
+    assert not np.any(emu.pwm)
+    after = list(emu.log)[n:]
+    zero = next(i for i, f in enumerate(after) if isinstance(f, Torque) and not any(f.pwm))
+    assert all(not any(f.pwm) for f in after[zero:] if isinstance(f, Torque))
+    assert after[zero:].index(SetPeriod(0, 0, 0)) < after[zero:].index(ServoOff())

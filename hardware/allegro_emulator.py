@@ -66,6 +66,7 @@ class EmulatorConfig:
     serial: str = "AH4EMU01"
     accel_per_pwm: float = 2.0  # rad/s^2 per PWM count
     damping: float = 5.0  # 1/s
+    max_speed: float = 7.0  # rad/s: the joints move no faster (the spec's velocity limit)
     torque_timeout_s: float | None = None  # None: keep the last PWM on host silence (spec)
     physics_dt_s: float = 0.0005
     temperature_c: int = 35
@@ -86,20 +87,23 @@ class JointDynamics(Protocol):
 
 class PwmJointDynamics:
     """Per-joint double integrator ddq = accel_per_pwm * pwm - damping * dq inside hard stops,
-    integrated with sub-steps of at most `physics_dt_s`."""
+    |dq| <= max_speed, integrated with sub-steps of at most `physics_dt_s`."""
 
     def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                 accel_per_pwm: float = 2.0, damping: float = 5.0, physics_dt_s: float = 0.0005):
+                 accel_per_pwm: float = 2.0, damping: float = 5.0, physics_dt_s: float = 0.0005,
+                 max_speed: float = 7.0):
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         self.q = np.clip(np.asarray(q0, float), self.lower, self.upper)
         self.dq = np.zeros_like(self.q)
         self.accel_per_pwm, self.damping, self.physics_dt_s = accel_per_pwm, damping, physics_dt_s
+        self.max_speed = max_speed
 
     def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         steps = max(1, int(np.ceil(dt / self.physics_dt_s)))
         h = dt / steps
         for _ in range(steps):
-            self.dq = self.dq + h * (self.accel_per_pwm * pwm - self.damping * self.dq)
+            self.dq = np.clip(self.dq + h * (self.accel_per_pwm * pwm - self.damping * self.dq),
+                              -self.max_speed, self.max_speed)
             self.q = self.q + h * self.dq
             low, high = self.q < self.lower, self.q > self.upper
             self.q = np.clip(self.q, self.lower, self.upper)
@@ -142,7 +146,8 @@ class AllegroEmulator:
         self._q = np.clip(q0, self.lower, self.upper)
         self._dq = np.zeros(NUM_JOINTS)
         self.dynamics: JointDynamics = dynamics or PwmJointDynamics(
-            self._q, self.lower, self.upper, cfg.accel_per_pwm, cfg.damping, cfg.physics_dt_s)
+            self._q, self.lower, self.upper, cfg.accel_per_pwm, cfg.damping, cfg.physics_dt_s,
+            cfg.max_speed)
         self._pwm = np.zeros(NUM_JOINTS)
         self._last_torque = -np.inf
         self._last_tick: float | None = None
@@ -231,8 +236,10 @@ class AllegroEmulator:
 
     def _corrupt(self, msg: can.Message) -> can.Message:
         kind = CORRUPTIONS[self._rng.integers(len(CORRUPTIONS))]
-        self.inject.counts[f"corrupt_{kind}"] += 1
         arb, data = msg.arbitration_id, bytes(msg.data)
+        if kind == "range" and not Msg.POSITION <= arb >> 2 < Msg.POSITION + NUM_FINGERS:
+            kind = "dlc"  # only a position has an invalid range (any int8 is a temperature)
+        self.inject.counts[f"corrupt_{kind}"] += 1
         if kind == "dlc":
             data = data[: int(self._rng.integers(len(data)))]
         elif kind == "device":

@@ -35,6 +35,7 @@ import numpy as np
 
 from dexdrake.hands import allegro_units as units
 from dexdrake.hardware.safety import (
+    OVERSPEED_TOLERANCE,
     FaultLatch,
     SafeStopContext,
     HardwareError,
@@ -55,9 +56,6 @@ STATUS_PALM_OVER_TEMP = 0x10
 STATUS_FAULT_BITS = STATUS_JOINT_OVER_TEMP | STATUS_JOINT_COMM_TIMEOUT | STATUS_PALM_OVER_TEMP
 _STATUS_VALID_BITS = 0x1F
 MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder reading is a broken sensor: a fault
-# measured speeds trip above max_velocity * (1 + this): lost frames and the host's jitter
-# make the measured mean speed up to ~15 % high (emulator, 15 % of frames lost or corrupt)
-SPEED_TOLERANCE = 0.25
 
 
 class Msg(IntEnum):
@@ -367,7 +365,7 @@ class AllegroConfig:
     filter_cutoff_hz: float = 80.0  # first-order low-pass on position before differentiating
     max_target_rate: float = 3.0  # rad/s on position targets
     limit_margin_rad: float = 0.02  # targets stay this far inside the joint limits
-    max_velocity: float | None = None  # measured speed above this (rad/s) trips; None: the model's
+    max_measured_velocity: float | None = None  # rad/s (x 1.5) a joint may reach; None: the model's
     velocity_window_s: float = 0.1  # the measured speed is the mean over at least this long
     max_temperature_c: float = 70.0  # joint or palm temperature that stops the hand
     position_margin_rad: float = 0.3  # measured positions beyond limits +- margin are rejected
@@ -389,7 +387,7 @@ class AllegroSettings:
     upper: np.ndarray
     target_lower: np.ndarray  # the limits less the margin: targets are clamped into these
     target_upper: np.ndarray
-    max_velocity: np.ndarray  # rad/s, per joint: a faster measured joint trips
+    max_measured_velocity: np.ndarray  # rad/s, per joint (x 1.5: a faster measured joint trips)
 
 
 def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
@@ -420,12 +418,12 @@ def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
     if not (math.isfinite(cfg.max_target_rate) and 0 < cfg.max_target_rate <= vmax):
         raise HardwareError(f"Allegro max_target_rate {cfg.max_target_rate:g} rad/s must be in "
                             f"(0, {vmax:g}], the joints' velocity limit in the model")
-    if cfg.max_velocity is None:
-        max_velocity = vel.copy()
-    elif math.isfinite(cfg.max_velocity) and 0 < cfg.max_velocity <= vmax:
-        max_velocity = np.full(NUM_JOINTS, float(cfg.max_velocity))
+    if cfg.max_measured_velocity is None:
+        max_measured_velocity = vel.copy()
+    elif math.isfinite(cfg.max_measured_velocity) and 0 < cfg.max_measured_velocity <= vmax:
+        max_measured_velocity = np.full(NUM_JOINTS, float(cfg.max_measured_velocity))
     else:
-        raise HardwareError(f"Allegro max_velocity {cfg.max_velocity:g} rad/s must be in "
+        raise HardwareError(f"Allegro max_measured_velocity {cfg.max_measured_velocity:g} rad/s must be in "
                             f"(0, {vmax:g}], the joints' velocity limit in the model")
     m = cfg.limit_margin_rad
     if not (math.isfinite(m) and 0 <= m and np.all(upper - lower > 2 * m)):
@@ -439,7 +437,7 @@ def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
     if not cfg.status_poll_s > 0:
         raise HardwareError(f"Allegro status_poll_s must be > 0 (status and temperatures are "
                             f"polled with it), got {cfg.status_poll_s}")
-    return AllegroSettings(kp, kd, pwm, lower, upper, lower + m, upper - m, max_velocity)
+    return AllegroSettings(kp, kd, pwm, lower, upper, lower + m, upper - m, max_measured_velocity)
 
 
 @dataclass(frozen=True)
@@ -787,8 +785,8 @@ class AllegroHand(SafeStopContext):
 
     def _check_speed(self, finger: int, q: np.ndarray, now: float) -> None:
         """Trip when a joint's mean speed over a window of at least `velocity_window_s`
-        exceeds its max_velocity (1 + SPEED_TOLERANCE): |q - q0| / T with T = max(t - t0, n * period), n frames
-        since q0 at t0. The frames' count bounds frames read late in a burst (their host
+        exceeds max_measured_velocity * (1 + OVERSPEED_TOLERANCE): the speed is |q - q0| / T,
+        T = max(t - t0, n * period), n frames since q0 at t0. The frames' count bounds frames read late in a burst (their host
         times crowd together), the host's clock frames the hand dropped."""
         sl = slice(4 * finger, 4 * finger + 4)
         self._n_speed[finger] += 1
@@ -798,11 +796,11 @@ class AllegroHand(SafeStopContext):
             return
         if self._heard[finger] and not self.fault.tripped:
             speed = np.abs(q - self._q_speed[sl]) / span
-            over = speed > self.settings.max_velocity[sl] * (1 + SPEED_TOLERANCE)
+            over = speed > self.settings.max_measured_velocity[sl] * (1 + OVERSPEED_TOLERANCE)
             if np.any(over):
                 j = int(np.argmax(over))
                 self._trip(f"joint {4 * finger + j} measured at {speed[j]:.1f} rad/s "
-                           f"(limit {self.settings.max_velocity[4 * finger + j]:g} rad/s)")
+                           f"(limit {self.settings.max_measured_velocity[4 * finger + j]:g} rad/s)")
         self._t_speed[finger], self._q_speed[sl], self._n_speed[finger] = now, q, 0
 
     def _cycle(self, now: float) -> None:

@@ -24,6 +24,12 @@ from dexdrake.errors import DexdrakeError
 
 Clock = Callable[[], float]
 
+# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault:
+# targets may move at the limit itself and tracking overshoots them (Z1 emulator, steps at
+# pi rad/s: peaks +31 %); a speed from frame times is noisy (Allegro emulator capped at its
+# limit, 15 % of frames lost: +15 %)
+OVERSPEED_TOLERANCE = 0.5
+
 
 class HardwareError(DexdrakeError):
     """A hardware driver or device problem a user can act on."""

@@ -241,7 +241,7 @@ def test_state_reports_the_measured_joints_and_posture(emulator):
     assert st.fsm == ArmFSMState.INVALID and math.isnan(st.t) and st.fault is None
     for v, n in ((st.q, 6), (st.dq, 6), (st.tau, 6), (st.posture, 6)):
         assert v.shape == (n,) and np.all(np.isnan(v))
-    np.testing.assert_array_equal(st.q_target, np.zeros(6))
+    np.testing.assert_array_equal(st.q_target, np.clip(0.0, LOWER + 0.02, UPPER - 0.02))  # the margin
     stats = arm.stats()
     assert stats["packets_received"] == 0 and stats["cycles"] == 0 and stats["packet_errors"] == {}
     with arm:
@@ -282,11 +282,11 @@ def test_nan_and_out_of_range_targets(emulator):
     with arm:
         np.testing.assert_allclose(arm.command_positions(TARGET), TARGET)
         np.testing.assert_allclose(arm.command_positions([math.nan] * 6), TARGET)
-        np.testing.assert_allclose(arm.command_positions(np.full(6, 9.0)), UPPER)
+        np.testing.assert_allclose(arm.command_positions(np.full(6, 9.0)), UPPER - 0.02)  # the margin
         assert arm.stats()["rejected_commands"] == 1 and arm.stats()["clamped_commands"] == 1
         with pytest.raises(HardwareError):
             arm.command_positions(np.zeros(5))
-        assert wait_for(lambda: np.max(np.abs(emulator.q - UPPER)) < 0.01, 4.0)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - UPPER + 0.02)) < 0.01, 4.0)
 
 
 def test_watchdog_latches_passive_until_reset(emulator):
@@ -412,7 +412,7 @@ def test_commands_stay_inside_the_configured_limits_when_the_arm_starts_outside(
     """The arm rests beyond a lowered limit: the reference starts clamped into the limits
     and no command ever leaves them."""
     emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, gravity=False,
-                                      q0=[1.0, 0.5, -0.5, 0.0, 0.0, 0.0]))
+                                      q0=[0.55, 0.95, -0.95, 0.0, 0.0, 0.0]))
     emu.start()
     lower, upper = LOWER.copy(), UPPER.copy()
     upper[0], lower[1], upper[2] = 0.5, 1.0, -1.0
@@ -751,7 +751,8 @@ def test_config_at_the_model_limits_and_zero_gains_is_accepted():
     arm = Z1Arm(Z1Config(local_port=0, kp=(0,) * 6, kd=(0,) * 6, max_velocity=math.pi, lower=LOWER, upper=UPPER))
     np.testing.assert_array_equal(arm.kp, 0.0)
     assert arm.settings.max_velocity == math.pi
-    np.testing.assert_array_equal(arm.limits.upper, UPPER)
+    np.testing.assert_array_equal(arm.settings.upper, UPPER)
+    np.testing.assert_array_equal(arm.limits.upper, UPPER - 0.02)  # targets: the default margin inside
     with pytest.raises(HardwareError, match="Z1: not started"):
         arm.local_port
 

@@ -244,7 +244,7 @@ class Z1Config:
     limit and joint limits may be lowered from there, never raised (`check_z1_config`)."""
 
     host: str = "127.0.0.1"
-    local_port: int = SDK_PORT  # 0: an ephemeral port (tests)
+    local_port: int = SDK_PORT  # the controller sends every state here (a real one: 8072 only)
     controller_port: int = CONTROLLER_PORT
     rate_hz: float = 500.0
     watchdog_timeout_s: float = 0.05
@@ -699,6 +699,14 @@ class Z1Arm(SafeStopContext):
             while self._running.is_set() and (left := next_tick - self._clock()) > 1e-9:
                 select.select([self._sock], [], [], left)
                 self._receive()
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port on `host` that is free now (bound and released): for a client and an
+    emulated controller that must agree on the client's port before either binds."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
 
 
 def _vec6(values: Sequence[float] | np.ndarray, name: str) -> np.ndarray:

@@ -54,6 +54,7 @@ class HandDriver:
     lower: Optional[list[float]] = None  # rad
     upper: Optional[list[float]] = None
     max_target_rate: Optional[float] = None  # rad/s
+    limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     watchdog_timeout_s: Optional[float] = None
 
 
@@ -71,6 +72,7 @@ class ArmDriver:
     kp: Optional[list[float]] = None  # raw LOWCMD gains
     kd: Optional[list[float]] = None
     max_velocity: Optional[float] = None  # rad/s on targets
+    limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
 
@@ -193,10 +195,11 @@ def is_multiple(period: float, step: float) -> bool:
     return n >= 1 and abs(n * step - period) <= 1e-9 * period
 
 
-def driver_configs(s: Scenario, arm_controller_port: int | None = None):
+def driver_configs(s: Scenario, arm_controller_port: int | None = None,
+                   arm_local_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
     drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
-    None keep the driver's default."""
+    None keep the driver's default; the ports given replace the scenario's."""
     from dexdrake.hardware.allegro_can import AllegroConfig, check_allegro_config
     from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, check_z1_config
 
@@ -205,13 +208,13 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None):
 
     h, a = s.drivers.hand, s.drivers.arm
     hand = AllegroConfig(**given(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
-                                 max_target_rate=h.max_target_rate,
+                                 max_target_rate=h.max_target_rate, limit_margin_rad=h.limit_margin_rad,
                                  watchdog_timeout_s=h.watchdog_timeout_s))
-    arm = Z1Config(**given(host=a.host, local_port=a.local_port,
+    arm = Z1Config(**given(host=a.host, local_port=a.local_port if arm_local_port is None else arm_local_port,
                            controller_port=a.controller_port if arm_controller_port is None
                            else arm_controller_port,
                            watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode],
-                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity,
+                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity, limit_margin_rad=a.limit_margin_rad,
                            velocity_feedforward=a.velocity_feedforward))
     check_allegro_config(hand)
     check_z1_config(arm)

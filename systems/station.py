@@ -587,13 +587,13 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand = load_hand(scenario.hand)
     devices: dict = {}
     world = None
-    arm_port = None
+    arm_port = arm_local_port = None
     clock = time.monotonic
     if scenario.mode == "hil":  # every device runs on the world's simulated clock
         world = _start_world(scenario, stack, hand)
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
-        arm_port, clock = world.arm_emulator.port, world.clock
-    hand_cfg, arm_cfg = driver_configs(scenario, arm_port)
+        arm_port, arm_local_port, clock = world.arm_emulator.port, world.arm_client_port, world.clock
+    hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
     if world is not None:  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
     bus = open_can_bus(scenario)

@@ -21,8 +21,8 @@ I * ddq = clip(tau, +-effort) - g(q) - b * dq inside hard joint stops.
 A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or `open()` it and call `poll(now)` from yours.
 Fault injection: stall replies, corrupt replies, report a motor error or a motor
-temperature, drop to PASSIVE on its own (`force_passive`, as the controller's own
-protection or another program would).
+temperature, drop to PASSIVE and stay there a while (`force_passive`, as the
+controller's own protection or another program would).
 """
 
 from __future__ import annotations
@@ -197,6 +197,7 @@ class Z1Emulator:
         self.log: collections.deque[SendCmd] = collections.deque(maxlen=10000)  # valid commands
         self.motor_temperature_c = 25  # what every motor reports (int8)
         self.stall_until = -math.inf
+        self.passive_until = -math.inf
         self.corrupt_replies = False
         self.motor_error: tuple[int, int] | None = None  # (joint index, flags)
         self._rng = np.random.default_rng(cfg.seed)
@@ -257,10 +258,12 @@ class Z1Emulator:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def force_passive(self) -> None:
-        """Drop to PASSIVE now, as something outside the client would."""
+    def force_passive(self, seconds: float) -> None:
+        """Drop to PASSIVE now and refuse every other state for `seconds`, as something
+        outside the client would (the controller's own protection, another program)."""
         with self._lock:
             self.fsm = ArmFSMState.PASSIVE
+            self.passive_until = self._clock() + seconds
 
     def stall(self, seconds: float) -> None:
         """Send no replies for `seconds` (commands are still read and obeyed)."""
@@ -272,7 +275,7 @@ class Z1Emulator:
             return
         if new == ArmFSMState.PASSIVE:
             self.fsm = new
-        elif new in self._ENTRY and self.fsm in self._ENTRY[new]:
+        elif new in self._ENTRY and self.fsm in self._ENTRY[new] and now >= self.passive_until:
             self.fsm = new
             self._q_d, self._dq_d = self._q.copy(), np.zeros(NUM_ARM_JOINTS)
             self._tau_ff = self._own_gravity(self._q_d)

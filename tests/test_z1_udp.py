@@ -785,3 +785,99 @@ def test_non_numeric_target_raises_the_drivers_error(emulator):
     with arm:
         with pytest.raises(HardwareError, match="numbers"):
             arm.command_positions(["up"] * 6)
+
+
+def test_spontaneous_passive_is_a_fault_never_re_armed(emulator):
+    """specs/z1.md: PASSIVE reported while the client streams its mode means something outside
+    changed the arm's state: a fault; the client keeps commanding PASSIVE, never the mode."""
+    arm = make_arm(emulator)
+    with arm:
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 1.0)
+        emulator.force_passive(0.3)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        assert arm.state().fault == "controller left LOWCMD for PASSIVE on its own"
+        n = len(emulator.log)
+        time.sleep(0.5)  # the forced PASSIVE is over: still PASSIVE, nothing asked otherwise
+        assert emulator.fsm == ArmFSMState.PASSIVE
+        assert all(c.state == ArmFSMState.PASSIVE for c in list(emulator.log)[n:])
+
+
+@pytest.mark.parametrize("inject, fault", [
+    (lambda emu: setattr(emu, "motor_temperature_c", 71), "joint1 motor temperature 71 C (limit 70 C)"),
+    (lambda emu: setattr(emu, "motor_temperature_c", -60), "joint1 motor temperature -60 C: a broken sensor"),
+])
+def test_motor_temperature_trips(emulator, inject, fault):
+    arm = make_arm(emulator)
+    with arm:
+        inject(emulator)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        assert arm.state().fault == fault
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
+
+
+def test_a_joint_reported_beyond_its_velocity_limit_trips():
+    """The controller reports each joint's velocity: beyond pi rad/s (the model) + 50 % trips."""
+
+    class Spinning:
+        def __init__(self):
+            self.w = 0.0
+
+        def step(self, command, dt):
+            return np.full(6, 0.5) * [1, 1, -1, 0, 0, 0], np.r_[self.w, np.zeros(5)], np.zeros(6)
+
+    spin = Spinning()
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), lower=LOWER, upper=UPPER),
+                     dynamics=spin)
+    emu.start()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            spin.w = 1.4 * math.pi
+            time.sleep(0.2)
+            assert arm.state().fault is None
+            spin.w = -1.6 * math.pi
+            assert wait_for(lambda: arm.state().fault is not None, 1.0)
+            assert arm.state().fault == "joint1 reported at -5.03 rad/s (limit 3.14159 rad/s)"
+    finally:
+        emu.stop()
+
+
+def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop():
+    """SIGINT 200 times ~1 ms apart while tracking: one KeyboardInterrupt, and the stop runs
+    to its end: a hold at the measured position (zero velocity) first, nothing else of the
+    mode after it, then PASSIVE; the socket closed."""
+    import os
+    import signal
+    import threading
+
+    emu = quiet_emulator()
+    counted = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
+
+    def storm():
+        for _ in range(200):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.001)
+
+    sender = threading.Thread(target=storm)
+    arm = make_arm(emu)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with arm:
+                arm.command_positions(TARGET)
+                time.sleep(0.2)
+                n = len(emu.log)
+                sender.start()
+                time.sleep(5.0)
+        sender.join()
+        assert not arm.running
+        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 1.0)
+        after = list(emu.log)[n:]
+        hold = next(i for i, c in enumerate(after) if c.state == ArmFSMState.LOWCMD
+                    and all(j.W == 0.0 for j in c.joints))
+        assert after[hold + 1:] and all(c.state == ArmFSMState.PASSIVE for c in after[hold + 1:])
+        with pytest.raises(HardwareError, match="Z1: not started"):
+            arm.local_port
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        emu.stop()

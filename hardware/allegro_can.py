@@ -611,6 +611,28 @@ class AllegroHand(SafeStopContext):
             self._send(SetPeriod(0, 0, 0))
             self._send(ServoOff())
 
+    def probe(self, timeout_s: float = 0.3) -> AllegroInfo:
+        """Ask the hand who it is and nothing else: RTR info and serial requests, queries the
+        firmware answers without acting on them; every other frame heard is ignored (no servo,
+        torque, period or safe-stop frame is ever sent, so a hand another program drives is
+        left alone). HardwareError when a reply does not come within `timeout_s`."""
+        if self._thread is not None:
+            raise HardwareError("Allegro: probe() is for a hand that is not started")
+        replies: dict[type, Frame] = {}
+        for msg, kind in ((Msg.INFO, Info), (Msg.SERIAL, Serial)):
+            self._send(Request(msg))
+            deadline = self._clock() + timeout_s
+            while kind not in replies and (left := deadline - self._clock()) > 0:
+                frame = self._recv(left)
+                if isinstance(frame, kind):
+                    replies[kind] = frame
+            if kind not in replies:
+                raise HardwareError(f"Allegro: no {kind.__name__} reply within {timeout_s} s (device "
+                                    f"{self.device_id}; powered? bitrate 1 Mbit/s?)")
+        info, serial = replies[Info], replies[Serial]
+        return AllegroInfo(info.hw_version, info.fw_version, info.left_hand, info.palm_temperature_c,
+                           info.status, serial.text)
+
     @property
     def running(self) -> bool:
         """True while the PD loop thread is alive."""

@@ -338,6 +338,28 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
 
 
 @dataclass(frozen=True)
+class Z1Probe:
+    """What `Z1Arm.probe()` found: whether the controller's port is bound on this machine
+    (None: not knowable, a remote host or no /proc/net/udp) and a state heard unasked."""
+
+    controller_bound: bool | None
+    state: RecvState | None
+
+
+def udp_port_bound(port: int) -> bool | None:
+    """Whether a local UDP socket (IPv4 or IPv6) is bound to `port`, read from the kernel's
+    /proc/net/udp tables (nothing is sent or bound); None where they cannot be read."""
+    found = None
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = open(table).read().splitlines()[1:]
+        except OSError:
+            continue
+        found = bool(found) or any(int(line.split()[1].rsplit(":", 1)[1], 16) == port for line in lines)
+    return found
+
+
+@dataclass(frozen=True)
 class Z1State:
     t: float
     fsm: ArmFSMState
@@ -402,6 +424,28 @@ class Z1Arm(SafeStopContext):
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
+
+    def probe(self, timeout_s: float = 0.3) -> Z1Probe:
+        """Check the link without sending anything: the Z1 protocol has no pure query (every
+        SendCmd names a state the controller enters, PASSIVE included: an arm another
+        program holds would go limp), so this binds the client port (HardwareError when it
+        is taken: another program is the controller's client), listens `timeout_s` for a
+        state sent unasked, and reads whether the controller's port is bound locally."""
+        if self._sock is not None:
+            raise HardwareError("Z1: probe() is for an arm that is not started")
+        cfg = self.config
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind((cfg.host, cfg.local_port))
+            except OSError as err:
+                raise HardwareError(f"Z1: cannot bind UDP {cfg.host}:{cfg.local_port}: {err} "
+                                    "(another program is the controller's client?)") from err
+            state = None
+            if select.select([sock], [], [], timeout_s)[0]:
+                with contextlib.suppress(PacketError):
+                    state = RecvState.unpack(sock.recv(4096))
+        local = cfg.host in ("127.0.0.1", "localhost", "::1")
+        return Z1Probe(udp_port_bound(cfg.controller_port) if local else None, state)
 
     def start(self) -> None:
         """Bind, start the loop (PASSIVE first, then the configured mode) and wait for it."""

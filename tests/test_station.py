@@ -590,7 +590,8 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
         assert code == 2 and "policy refused" in err and "all devices answered" not in out
         return
     assert code == 0, out + err
-    for line in ("CAN virtual", "Z1 127.0.0.1", "state PASSIVE", "camera recorded: OK",
+    for line in ("CAN virtual", "Z1 127.0.0.1", "controller port bound",
+                 "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
                  "diagram (built, not run): station (real: command_to_devices, z1_driver, allegro_driver, "
                  "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
@@ -598,9 +599,9 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
         assert line in out, out
     assert "lift 0.17" not in out
     # the whole diagram was built around the drivers, yet nothing moved: the hand's servo never
-    # came on and got no torque, the arm got the dry run's one PASSIVE and nothing else
+    # came on and got no torque, the arm got nothing at all (not even a PASSIVE)
     assert not hand.servo_on and hand.answered_batches == 0
-    assert arm_commands == 1 and arm_mode.name == "PASSIVE"
+    assert arm_commands == 0 and arm_mode.name == "PASSIVE"
 
 
 def test_a_station_built_without_starting_never_runs(tmp_path):

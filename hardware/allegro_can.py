@@ -35,6 +35,7 @@ import numpy as np
 
 from dexdrake.hands import allegro_units as units
 from dexdrake.hardware.safety import (
+    MIN_PLAUSIBLE_TEMPERATURE_C,
     OVERSPEED_TOLERANCE,
     FaultLatch,
     SafeStopContext,
@@ -55,7 +56,6 @@ STATUS_JOINT_COMM_TIMEOUT = 0x08
 STATUS_PALM_OVER_TEMP = 0x10
 STATUS_FAULT_BITS = STATUS_JOINT_OVER_TEMP | STATUS_JOINT_COMM_TIMEOUT | STATUS_PALM_OVER_TEMP
 _STATUS_VALID_BITS = 0x1F
-MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder reading is a broken sensor: a fault
 
 
 class Msg(IntEnum):

@@ -29,6 +29,7 @@ Clock = Callable[[], float]
 # pi rad/s: peaks +31 %); a speed from frame times is noisy (Allegro emulator capped at its
 # limit, 15 % of frames lost: +15 %)
 OVERSPEED_TOLERANCE = 0.5
+MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder temperature reading is a broken sensor: a fault
 
 
 class HardwareError(DexdrakeError):

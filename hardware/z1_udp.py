@@ -38,6 +38,7 @@ import numpy as np
 
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, Z1Limits, z1_model
 from dexdrake.hardware.safety import (
+    MIN_PLAUSIBLE_TEMPERATURE_C,
     OVERSPEED_TOLERANCE,
     FaultLatch,
     SafeStopContext,
@@ -54,7 +55,6 @@ COMMAND_HEAD = (0xFE, 0xFF)  # SendCmd.head: anything else is dropped by the con
 
 # motor error flags and connection codes (Motor_State)
 MOTOR_OVER_CURRENT, MOTOR_PHASE_LEAKAGE, MOTOR_OVER_HEAT, MOTOR_JUMPED = 0x01, 0x02, 0x04, 0x20
-MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder motor reading is a broken sensor: a fault
 
 
 class ArmFSMState(IntEnum):

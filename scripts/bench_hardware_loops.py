@@ -20,7 +20,7 @@ import numpy as np
 from dexdrake.hardware.allegro_can import AllegroConfig, AllegroHand, default_joint_limits
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
-from dexdrake.hardware.z1_udp import Z1Arm, Z1Config
+from dexdrake.hardware.z1_udp import Z1Arm, Z1Config, free_udp_port
 
 
 def _follow_sine(command, measure, lower: np.ndarray, upper: np.ndarray, seconds: float) -> float:
@@ -54,8 +54,9 @@ def bench_z1(seconds: float) -> tuple[dict, float]:
     from dexdrake.hardware.z1_udp import default_joint_limits as z1_limits
 
     lower, upper = z1_limits()
-    with Z1Emulator(Z1EmulatorConfig(port=0, lower=lower, upper=upper)) as emu, \
-            Z1Arm(Z1Config(local_port=0, controller_port=emu.port, lower=lower, upper=upper)) as arm:
+    with Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), lower=lower, upper=upper)) as emu, \
+            Z1Arm(Z1Config(local_port=emu.config.client_port, controller_port=emu.port, lower=lower,
+                           upper=upper)) as arm:
         rms = _follow_sine(arm.command_positions, lambda: emu.q, lower, upper, seconds)
         return arm.stats(), rms
 

@@ -1,13 +1,19 @@
 """An Allegro Hand v4 firmware emulator on a python-can bus (for tests and hardware-in-loop).
 
-It answers RTR info / serial / status / temperature / position / IMU requests, streams
-position (and temperature/status) frames at the periods the host sets, obeys servo on/off
-and moves its joints with a pluggable `JointDynamics` model, stepped every tick with the
-effective PWM: the last torque frames' PWM while the servo is on, zero when it is off.
-Host silence does not stop it: nothing documents a firmware timeout (specs/allegro_v4.md),
-so by default the last PWM stays applied; `torque_timeout_s` adds such a cut-off only
-when a test asks for one. `power_cycle()` emulates a power loss (servo off, no streams). The default, `PwmJointDynamics`, is a per-joint double integrator:
-    ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits.
+From the spec (specs/allegro_v4.md): it answers RTR info / serial / status / temperature /
+position / IMU requests (info verbatim: the spec's real frame by default), streams position
+(and temperature/status) frames at the periods the host sets, obeys servo on/off, and
+applies the last torque frames' PWM while the servo is on (zero when it is off).
+Assumptions where the spec is silent, each the less convenient one for the client:
+  host silence does not stop it: the last PWM stays applied with the servo on, however
+    long no torque frame comes (`torque_timeout_s` adds a cut-off only when a test asks);
+  a power loss (`power_cycle()`) forgets the servo and every periodic stream: the hand
+    streams nothing until told again;
+  its joints move up to the spec's velocity limit (7 rad/s): a PD that overshoots runs
+    them that fast, not slower.
+The joints move with a pluggable `JointDynamics` model, stepped every tick with the
+effective PWM. The default, `PwmJointDynamics`, is a per-joint double integrator:
+    ddq = accel_per_pwm * pwm - damping * dq,  |dq| <= max_speed,  q inside the joint limits.
 A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
 Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature,

@@ -43,6 +43,10 @@ def test_shipped_scenarios_load():
      r"kp\[2\] = 300 exceeds the LOWCMD gain 30 of joint3"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
      "only allowed with an emulated arm"),
+    ("drivers: {hand: {kind: emulated, limit_margin_rad: 0.5}, arm: {kind: emulated}}",
+     r"Allegro limit_margin_rad 0.5 must be >= 0 and leave every joint a range"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: emulated, limit_margin_rad: -0.1}}",
+     r"Z1 limit_margin_rad -0.1 must be >= 0"),
     ("object: no_such_object", "unknown object"),
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),
@@ -55,6 +59,22 @@ def test_shipped_scenarios_load():
 def test_bad_scenarios_are_refused_with_a_clear_message(text, message):
     with pytest.raises(ScenarioError, match=message):
         parse_scenario(text, source="bad.yaml")
+
+
+def test_joint_margins_come_from_the_scenario():
+    """drivers.*.limit_margin_rad reaches the drivers: targets clamp that far inside the
+    joint limits (default 0.02 rad), never onto them."""
+    from dexdrake.hardware.allegro_can import check_allegro_config
+    from dexdrake.hardware.z1_udp import check_z1_config
+    from dexdrake.systems.scenario import driver_configs
+
+    text = "drivers: {hand: {kind: emulated, limit_margin_rad: 0.05}, arm: {kind: emulated, limit_margin_rad: 0.1}}"
+    hand, arm = driver_configs(parse_scenario(text))
+    hs, zs = check_allegro_config(hand), check_z1_config(arm)
+    np.testing.assert_allclose(hs.target_upper, hs.upper - 0.05)
+    np.testing.assert_allclose(zs.target_lower, zs.lower + 0.1)
+    hand, arm = driver_configs(parse_scenario("drivers: {hand: {kind: emulated}, arm: {kind: emulated}}"))
+    assert hand.limit_margin_rad == arm.limit_margin_rad == 0.02
 
 
 def test_missing_scenario_file():

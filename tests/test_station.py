@@ -394,6 +394,37 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
         _drain(_perception([None, None, None], on_failure="hold"), 5)
 
 
+def test_a_pose_older_than_its_limit_stops_the_station():
+    """A worker that does not finish: the last pose keeps its frame's age, and past the
+    camera's max_pose_age_s the station stops instead of feeding it on."""
+    import threading
+
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem, StationFault
+
+    hang = threading.Event()
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
+        if track:  # every estimate after the first hangs
+            hang.wait(5.0)
+        return {"success": True, "reason": "", "X_WO": np.eye(4), "fitness": 1.0}
+
+    camera = CameraDriver(kind="rendered", period_s=0.05, max_pose_age_s=0.3)
+    system = PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate)
+    try:
+        system.poll()
+        cf.wait([system._future])
+        system.poll()
+        assert system.has_pose
+        t0 = time.monotonic()
+        with pytest.raises(StationFault, match=r"object pose 0\.3\d s old \(limit 0\.3 s\)"):
+            while time.monotonic() - t0 < 2.0:
+                system.poll()
+                time.sleep(0.01)
+    finally:
+        hang.set()
+
+
 def test_perception_moves_the_tracked_pose_on_to_the_present():
     """The pose the controller gets is the last estimate moved on at its track's velocity
     (between the last two frames) by the estimate's age, at most predict_s; the first pose

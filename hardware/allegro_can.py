@@ -5,12 +5,16 @@ little-endian payloads. Arrays are in CAN bus order: index j0..j3, middle, ring,
 The firmware does not implement position set-points, so `AllegroHand` runs a 333 Hz PD
 loop on the host: it waits for the 4 position frames of a cycle, low-pass filters the
 position, differentiates it, computes PD torques in PWM counts with the vendor gains,
-clamps them to the per-joint PWM limits and sends 4 torque frames.
+clamps them to the per-joint PWM limits and sends 4 torque frames. Targets are clamped
+`limit_margin_rad` inside the joint limits and rate limited.
 Nothing says the firmware stops when the host goes quiet (specs/allegro_v4.md), so every
-fault path ends on the host's side: zero torque and servo off (`_trip`). Faults: a silent
-position stream, a hot joint or palm, a status fault bit, temperatures not heard for
-`temperature_timeout_s` (polled by RTR with the status), a failing loop. `reset_fault()`
-re-runs the whole start sequence (after a power loss the hand streams nothing until told).
+fault path ends on the host's side: zero torque and servo off (`_trip`). Faults: a finger
+without a valid position frame for `watchdog_timeout_s` (each finger watched on its own),
+a joint measured faster than its velocity limit, a hot joint or palm (any reading above
+`max_temperature_c`, or below -40 C), a status fault bit, temperatures of a finger or the
+status not heard for their timeouts (polled by RTR), a failing loop. `stop()` sends zero
+torque before anything else. `reset_fault()` re-runs the whole start sequence (after a
+power loss the hand streams nothing until told). `probe()` asks info and serial only.
 """
 
 from __future__ import annotations
@@ -31,12 +35,13 @@ import numpy as np
 
 from dexdrake.hands import allegro_units as units
 from dexdrake.hardware.safety import (
+    MIN_PLAUSIBLE_TEMPERATURE_C,
+    OVERSPEED_TOLERANCE,
     FaultLatch,
     SafeStopContext,
     HardwareError,
     JointLimits,
     RateLimiter,
-    Watchdog,
     period_stats,
 )
 
@@ -267,7 +272,8 @@ def decode(msg: can.Message, device_id: int = 0) -> Frame:
     """The Allegro frame in `msg`; raises FrameError (with a `kind`) for anything invalid.
 
     Checks: standard 11-bit id, known message id, device id, DLC, and value ranges
-    (status reserved bits, hand type, serial is ASCII, temperatures plausible).
+    (status reserved bits, hand type, serial is ASCII). Temperatures are passed on as
+    read: an implausible one is the driver's fault to raise, not a frame to drop.
     """
     if msg.is_extended_id or msg.arbitration_id > 0x7FF:
         raise FrameError("id", f"extended or out-of-range id {msg.arbitration_id:#x}")
@@ -310,11 +316,8 @@ def decode(msg: can.Message, device_id: int = 0) -> Frame:
             return Position(finger, struct.unpack("<4h", data))
         case Msg.IMU:
             return Imu(struct.unpack("<4h", data))
-        case Msg.TEMPERATURE:
-            temps = struct.unpack("<4b", data)
-            if any(not -40 <= t <= 125 for t in temps):
-                raise FrameError("range", f"temperatures {temps} outside -40..125 C")
-            return Temperature(finger, temps)
+        case Msg.TEMPERATURE:  # every int8 is a reading: the driver judges its value
+            return Temperature(finger, struct.unpack("<4b", data))
         case Msg.STATUS:
             if data[0] & ~_STATUS_VALID_BITS:
                 raise FrameError("range", f"status reserved bits set: {data[0]:#04x}")
@@ -356,10 +359,14 @@ class AllegroConfig:
     temperature_period_ms: int = 100
     status_poll_s: float = 0.1  # RTR status + temperature request interval
     temperature_timeout_s: float = 0.5  # no temperature of a finger for this long: fault
-    watchdog_timeout_s: float = 0.05
+    status_timeout_s: float = 0.5  # no status reply for this long: fault
+    watchdog_timeout_s: float = 0.05  # no valid position frame of a finger for this long: fault
     reply_timeout_s: float = 0.2  # for the RTR info/serial replies during start()
     filter_cutoff_hz: float = 80.0  # first-order low-pass on position before differentiating
     max_target_rate: float = 3.0  # rad/s on position targets
+    limit_margin_rad: float = 0.02  # targets stay this far inside the joint limits
+    max_measured_velocity: float | None = None  # rad/s (x 1.5) a joint may reach; None: the model's
+    velocity_window_s: float = 0.1  # the measured speed is the mean over at least this long
     max_temperature_c: float = 70.0  # joint or palm temperature that stops the hand
     position_margin_rad: float = 0.3  # measured positions beyond limits +- margin are rejected
     kp: Sequence[float] | None = None  # PWM per rad
@@ -376,14 +383,18 @@ class AllegroSettings:
     kp: np.ndarray
     kd: np.ndarray
     pwm_limit: np.ndarray
-    lower: np.ndarray
+    lower: np.ndarray  # the joint limits (measured positions are judged against these)
     upper: np.ndarray
+    target_lower: np.ndarray  # the limits less the margin: targets are clamped into these
+    target_upper: np.ndarray
+    max_measured_velocity: np.ndarray  # rad/s, per joint (x 1.5: a faster measured joint trips)
 
 
 def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
     """Resolve `cfg`; HardwareError naming the limit a value exceeds: gains above the vendor
     gains, PWM limits above the vendor's, joint limits outside the model's, a target rate
-    above the joints' velocity limit, or no way to hear the temperatures."""
+    or velocity limit above the joints' velocity limit, a margin that leaves no range, or no
+    way to hear the temperatures."""
     lo_m, hi_m, vel = _model_limits()
 
     def capped(values, ceiling: np.ndarray, name: str, what: str) -> np.ndarray:
@@ -407,14 +418,26 @@ def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
     if not (math.isfinite(cfg.max_target_rate) and 0 < cfg.max_target_rate <= vmax):
         raise HardwareError(f"Allegro max_target_rate {cfg.max_target_rate:g} rad/s must be in "
                             f"(0, {vmax:g}], the joints' velocity limit in the model")
-    for name in ("watchdog_timeout_s", "temperature_timeout_s", "reply_timeout_s"):
+    if cfg.max_measured_velocity is None:
+        max_measured_velocity = vel.copy()
+    elif math.isfinite(cfg.max_measured_velocity) and 0 < cfg.max_measured_velocity <= vmax:
+        max_measured_velocity = np.full(NUM_JOINTS, float(cfg.max_measured_velocity))
+    else:
+        raise HardwareError(f"Allegro max_measured_velocity {cfg.max_measured_velocity:g} rad/s must be in "
+                            f"(0, {vmax:g}], the joints' velocity limit in the model")
+    m = cfg.limit_margin_rad
+    if not (math.isfinite(m) and 0 <= m and np.all(upper - lower > 2 * m)):
+        raise HardwareError(f"Allegro limit_margin_rad {m:g} must be >= 0 and leave every joint a "
+                            f"range (narrowest {float(np.min(upper - lower)):g} rad)")
+    for name in ("watchdog_timeout_s", "temperature_timeout_s", "status_timeout_s", "reply_timeout_s",
+                 "velocity_window_s"):
         value = getattr(cfg, name)
         if not (math.isfinite(value) and value > 0):
             raise HardwareError(f"Allegro {name} must be > 0, got {value}")
     if not cfg.status_poll_s > 0:
         raise HardwareError(f"Allegro status_poll_s must be > 0 (status and temperatures are "
                             f"polled with it), got {cfg.status_poll_s}")
-    return AllegroSettings(kp, kd, pwm, lower, upper)
+    return AllegroSettings(kp, kd, pwm, lower, upper, lower + m, upper - m, max_measured_velocity)
 
 
 @dataclass(frozen=True)
@@ -463,9 +486,9 @@ class AllegroHand(SafeStopContext):
         n = NUM_JOINTS
         st = check_allegro_config(cfg)
         self.kp, self.kd, self.pwm_limit = st.kp, st.kd, st.pwm_limit
-        self.limits = JointLimits(st.lower, st.upper)
+        self.settings = st
+        self.limits = JointLimits(st.target_lower, st.target_upper)
         self._rate = RateLimiter(cfg.max_target_rate, initial=self.limits.last_safe)
-        self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
         self._stats = _Stats()
         self._lock = threading.Lock()
@@ -474,6 +497,12 @@ class AllegroHand(SafeStopContext):
         self._has_command = False  # until commanded, the loop holds the measured position
         self._raw = np.zeros(n)
         self._fresh = [False] * NUM_FINGERS
+        self._heard = [False] * NUM_FINGERS  # a valid position of each finger since (re)start
+        self._t_position = np.full(NUM_FINGERS, clock())  # each finger's last valid position frame
+        self._t_speed = np.zeros(NUM_FINGERS)  # start of each finger's speed window, its q
+        self._q_speed = np.zeros(n)
+        self._n_speed = np.zeros(NUM_FINGERS)  # and the frames since
+        self._t_status = clock()  # the last status reply
         self._q = np.zeros(n)
         self._dq = np.zeros(n)
         self._tau = np.zeros(n)
@@ -483,6 +512,7 @@ class AllegroHand(SafeStopContext):
         self._t_cycle: float | None = None
         self._initialised = False
         self._faulted_stop_done = False
+        self._halted = False  # set by stop(): no torque but zero is sent from then on
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
         self._reset_request = threading.Event()
@@ -528,6 +558,7 @@ class AllegroHand(SafeStopContext):
             raise HardwareError(f"Allegro: fault latched ({self.fault.reason}); call reset_fault() first")
         while self.bus.recv(0.0) is not None:  # flush
             pass
+        self._halted = False
         self._start_sequence()
         self._running.set()
         self._thread = threading.Thread(target=self._loop, name="allegro-pd", daemon=True)
@@ -542,6 +573,7 @@ class AllegroHand(SafeStopContext):
         with self._lock:
             self._initialised, self._has_command = False, False
             self._fresh = [False] * NUM_FINGERS
+            self._heard = [False] * NUM_FINGERS
         self._send(ServoOff())
         self._send(Request(Msg.INFO))
         info = self._await(Info, cfg.reply_timeout_s)
@@ -558,19 +590,48 @@ class AllegroHand(SafeStopContext):
         if self.fault.tripped:  # the hand reported a fault during the sequence: stay off
             raise HardwareError(f"Allegro: fault during start: {self.fault.reason}")
         self._send(ServoOn())
-        self._watchdog.reset()
-        self._t_temps[:] = self._clock()
+        now = self._clock()
+        self._t_position[:] = now
+        self._t_temps[:] = now
+        self._t_status = now
 
     def stop(self) -> None:
-        """Stop the loop, zero the torques, stop streaming (period 0) and servo off."""
+        """Safe stop: zero torque first (from then on the loop sends no other torque), then
+        the loop thread ends, the stream stops (period 0) and the servo goes off (the
+        vendor's stop sequence). Run it to the end: `with hand:` shields it from signals."""
         self._running.clear()
+        with contextlib.suppress(can.CanError):
+            with self._send_lock:
+                self._halted = True
+            self._send_zero_torque()
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
         with contextlib.suppress(can.CanError):
-            self._send_zero_torque()
             self._send(SetPeriod(0, 0, 0))
             self._send(ServoOff())
+
+    def probe(self, timeout_s: float = 0.3) -> AllegroInfo:
+        """Ask the hand who it is and nothing else: RTR info and serial requests, queries the
+        firmware answers without acting on them; every other frame heard is ignored (no servo,
+        torque, period or safe-stop frame is ever sent, so a hand another program drives is
+        left alone). HardwareError when a reply does not come within `timeout_s`."""
+        if self._thread is not None:
+            raise HardwareError("Allegro: probe() is for a hand that is not started")
+        replies: dict[type, Frame] = {}
+        for msg, kind in ((Msg.INFO, Info), (Msg.SERIAL, Serial)):
+            self._send(Request(msg))
+            deadline = self._clock() + timeout_s
+            while kind not in replies and (left := deadline - self._clock()) > 0:
+                frame = self._recv(left)
+                if isinstance(frame, kind):
+                    replies[kind] = frame
+            if kind not in replies:
+                raise HardwareError(f"Allegro: no {kind.__name__} reply within {timeout_s} s (device "
+                                    f"{self.device_id}; powered? bitrate 1 Mbit/s?)")
+        info, serial = replies[Info], replies[Serial]
+        return AllegroInfo(info.hw_version, info.fw_version, info.left_hand, info.palm_temperature_c,
+                           info.status, serial.text)
 
     @property
     def running(self) -> bool:
@@ -656,19 +717,33 @@ class AllegroHand(SafeStopContext):
                 self._stats.frame_errors[f"bus:{type(err).__name__}"] += 1
 
     def _iterate(self, now: float) -> None:
-        """One pass: pending reset, watchdog, then at most one received frame."""
+        """One pass: pending reset, staleness of every stream, then at most one received frame."""
         if self._reset_request.is_set():
             self._reset_request.clear()
             self._do_reset()
-        if not self.fault.tripped and self._watchdog.expired(now):
-            self._trip(f"position stream silent for {self._watchdog.since_last(now) * 1e3:.0f} ms")
-        stale = now - self._t_temps
-        if not self.fault.tripped and np.max(stale) > self.config.temperature_timeout_s:
-            f = int(np.argmax(stale))
-            self._trip(f"finger {f} temperature not heard for {stale[f] * 1e3:.0f} ms")
+        if not self.fault.tripped:
+            self._check_staleness(now)
         frame = self._recv(0.005)
         if frame is not None:
             self._handle(frame)
+
+    def _check_staleness(self, now: float) -> None:
+        """Trip on the first stream older than its limit: each finger's valid position
+        frames (the watchdog), each finger's temperatures, the status replies."""
+        cfg = self.config
+        silent = now - self._t_position
+        if np.max(silent) > cfg.watchdog_timeout_s:
+            f = int(np.argmax(silent))
+            who = "" if np.all(silent > cfg.watchdog_timeout_s) else f"finger {f} "
+            self._trip(f"{who}position stream silent for {silent[f] * 1e3:.0f} ms")
+            return
+        stale = now - self._t_temps
+        if np.max(stale) > cfg.temperature_timeout_s:
+            f = int(np.argmax(stale))
+            self._trip(f"finger {f} temperature not heard for {stale[f] * 1e3:.0f} ms")
+            return
+        if now - self._t_status > cfg.status_timeout_s:
+            self._trip(f"status not heard for {(now - self._t_status) * 1e3:.0f} ms")
 
     def _do_reset(self) -> None:
         self.fault.reset()
@@ -688,9 +763,12 @@ class AllegroHand(SafeStopContext):
                 self._t_temps[finger] = self._clock()
                 if max(celsius) > self.config.max_temperature_c:
                     self._trip(f"finger {finger} joint temperature {max(celsius)} C")
+                elif min(celsius) < MIN_PLAUSIBLE_TEMPERATURE_C:
+                    self._trip(f"finger {finger} joint temperature {min(celsius)} C: a broken sensor")
             case Status(bits):
                 with self._lock:
                     self._status = bits
+                self._t_status = self._clock()
                 if bits & STATUS_FAULT_BITS:
                     self._trip(f"hand status {bits:#04x} reports a fault")
             case _:
@@ -700,26 +778,52 @@ class AllegroHand(SafeStopContext):
         """False (and counted) for positions beyond the joint limits +- the margin."""
         sl = slice(4 * finger, 4 * finger + 4)
         m = self.config.position_margin_rad
-        if np.any(q < self.limits.lower[sl] - m) or np.any(q > self.limits.upper[sl] + m):
+        if np.any(q < self.settings.lower[sl] - m) or np.any(q > self.settings.upper[sl] + m):
             self._stats.frame_errors["range"] += 1
             return False
         return True
 
     def _on_position(self, finger: int, counts: tuple[int, ...]) -> None:
+        """A finger's position frame: range-checked, then its speed checked (`_check_speed`);
+        the batch's PD cycle runs once all 4 fingers are in (or a finger repeats), never
+        before every finger was heard since the start."""
         q = units.counts_to_rad(np.asarray(counts, dtype=float))
         sl = slice(4 * finger, 4 * finger + 4)
         if not self._position_in_range(finger, q):
             return
-        self._watchdog.feed()
+        now = self._clock()
+        self._check_speed(finger, q, now)
+        self._t_position[finger] = now
         if self._fresh[finger]:  # a new batch began before the last one completed (drop)
             self._stats.duplicates += 1
             self._fresh = [False] * NUM_FINGERS
-            self._cycle(self._clock())
+            if all(self._heard):
+                self._cycle(self._clock())
         self._raw[sl] = q
-        self._fresh[finger] = True
+        self._fresh[finger] = self._heard[finger] = True
         if all(self._fresh):
             self._fresh = [False] * NUM_FINGERS
             self._cycle(self._clock())
+
+    def _check_speed(self, finger: int, q: np.ndarray, now: float) -> None:
+        """Trip when a joint's mean speed over a window of at least `velocity_window_s`
+        exceeds max_measured_velocity * (1 + OVERSPEED_TOLERANCE): the speed is |q - q0| / T,
+        T = max(t - t0, n * period), n frames since q0 at t0. The frames' count bounds frames read late in a burst (their host
+        times crowd together), the host's clock frames the hand dropped."""
+        sl = slice(4 * finger, 4 * finger + 4)
+        self._n_speed[finger] += 1
+        span = max(now - self._t_speed[finger],
+                   self._n_speed[finger] * self.config.position_period_ms / 1e3)
+        if self._heard[finger] and span < self.config.velocity_window_s:
+            return
+        if self._heard[finger] and not self.fault.tripped:
+            speed = np.abs(q - self._q_speed[sl]) / span
+            over = speed > self.settings.max_measured_velocity[sl] * (1 + OVERSPEED_TOLERANCE)
+            if np.any(over):
+                j = int(np.argmax(over))
+                self._trip(f"joint {4 * finger + j} measured at {speed[j]:.1f} rad/s "
+                           f"(limit {self.settings.max_measured_velocity[4 * finger + j]:g} rad/s)")
+        self._t_speed[finger], self._q_speed[sl], self._n_speed[finger] = now, q, 0
 
     def _cycle(self, now: float) -> None:
         """One PD step after a complete set of 4 position frames. The first cycle after
@@ -750,8 +854,11 @@ class AllegroHand(SafeStopContext):
                 pwm = self.kp * (q_ref - self._q) - self.kd * self._dq
                 pwm = np.clip(np.rint(pwm), -self.pwm_limit, self.pwm_limit)
             self._tau = pwm
-        for f in range(NUM_FINGERS):
-            self._send(Torque(f, tuple(int(v) for v in pwm[4 * f: 4 * f + 4])))
+        with self._send_lock:  # after stop() has sent zero torque, nothing else goes out
+            if not self._halted:
+                for f in range(NUM_FINGERS):
+                    self.bus.send(encode(Torque(f, tuple(int(v) for v in pwm[4 * f: 4 * f + 4])),
+                                         self.device_id))
 
 
 def _array(values: Sequence[float], name: str) -> np.ndarray:

@@ -1,17 +1,23 @@
 """An Allegro Hand v4 firmware emulator on a python-can bus (for tests and hardware-in-loop).
 
-It answers RTR info / serial / status / temperature / position / IMU requests, streams
-position (and temperature/status) frames at the periods the host sets, obeys servo on/off
-and moves its joints with a pluggable `JointDynamics` model, stepped every tick with the
-effective PWM: the last torque frames' PWM while the servo is on, zero when it is off.
-Host silence does not stop it: nothing documents a firmware timeout (specs/allegro_v4.md),
-so by default the last PWM stays applied; `torque_timeout_s` adds such a cut-off only
-when a test asks for one. `power_cycle()` emulates a power loss (servo off, no streams). The default, `PwmJointDynamics`, is a per-joint double integrator:
-    ddq = accel_per_pwm * pwm - damping * dq,  q kept inside the joint limits.
+From the spec (specs/allegro_v4.md): it answers RTR info / serial / status / temperature /
+position / IMU requests (info verbatim: the spec's real frame by default), streams position
+(and temperature/status) frames at the periods the host sets, obeys servo on/off, and
+applies the last torque frames' PWM while the servo is on (zero when it is off).
+Assumptions where the spec is silent, each the less convenient one for the client:
+  host silence does not stop it: the last PWM stays applied with the servo on, however
+    long no torque frame comes (`torque_timeout_s` adds a cut-off only when a test asks);
+  a power loss (`power_cycle()`) forgets the servo and every periodic stream: the hand
+    streams nothing until told again;
+  its joints move up to the spec's velocity limit (7 rad/s): a PD that overshoots runs
+    them that fast, not slower.
+The joints move with a pluggable `JointDynamics` model, stepped every tick with the
+effective PWM. The default, `PwmJointDynamics`, is a per-joint double integrator:
+    ddq = accel_per_pwm * pwm - damping * dq,  |dq| <= max_speed,  q inside the joint limits.
 A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or call `poll(now)` from a thread of yours.
 Fault injection: stall the stream, drop or corrupt outgoing frames, report over-temperature,
-never report temperatures, lose power.
+never report temperatures or the status, never send some fingers' positions, lose power.
 """
 
 from __future__ import annotations
@@ -66,6 +72,7 @@ class EmulatorConfig:
     serial: str = "AH4EMU01"
     accel_per_pwm: float = 2.0  # rad/s^2 per PWM count
     damping: float = 5.0  # 1/s
+    max_speed: float = 7.0  # rad/s: the joints move no faster (the spec's velocity limit)
     torque_timeout_s: float | None = None  # None: keep the last PWM on host silence (spec)
     physics_dt_s: float = 0.0005
     temperature_c: int = 35
@@ -86,20 +93,23 @@ class JointDynamics(Protocol):
 
 class PwmJointDynamics:
     """Per-joint double integrator ddq = accel_per_pwm * pwm - damping * dq inside hard stops,
-    integrated with sub-steps of at most `physics_dt_s`."""
+    |dq| <= max_speed, integrated with sub-steps of at most `physics_dt_s`."""
 
     def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                 accel_per_pwm: float = 2.0, damping: float = 5.0, physics_dt_s: float = 0.0005):
+                 accel_per_pwm: float = 2.0, damping: float = 5.0, physics_dt_s: float = 0.0005,
+                 max_speed: float = 7.0):
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         self.q = np.clip(np.asarray(q0, float), self.lower, self.upper)
         self.dq = np.zeros_like(self.q)
         self.accel_per_pwm, self.damping, self.physics_dt_s = accel_per_pwm, damping, physics_dt_s
+        self.max_speed = max_speed
 
     def step(self, pwm: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         steps = max(1, int(np.ceil(dt / self.physics_dt_s)))
         h = dt / steps
         for _ in range(steps):
-            self.dq = self.dq + h * (self.accel_per_pwm * pwm - self.damping * self.dq)
+            self.dq = np.clip(self.dq + h * (self.accel_per_pwm * pwm - self.damping * self.dq),
+                              -self.max_speed, self.max_speed)
             self.q = self.q + h * self.dq
             low, high = self.q < self.lower, self.q > self.upper
             self.q = np.clip(self.q, self.lower, self.upper)
@@ -115,6 +125,8 @@ class _Injection:
     over_temperature: bool = False
     silent: bool = False  # answer nothing at all (not even RTR)
     mute_temperature: bool = False  # never send temperature frames (periodic or RTR)
+    mute_status: bool = False  # never answer a status request (nor stream status)
+    mute_fingers: frozenset[int] = frozenset()  # never send these fingers' position frames
     counts: collections.Counter = field(default_factory=collections.Counter)
 
 
@@ -140,7 +152,8 @@ class AllegroEmulator:
         self._q = np.clip(q0, self.lower, self.upper)
         self._dq = np.zeros(NUM_JOINTS)
         self.dynamics: JointDynamics = dynamics or PwmJointDynamics(
-            self._q, self.lower, self.upper, cfg.accel_per_pwm, cfg.damping, cfg.physics_dt_s)
+            self._q, self.lower, self.upper, cfg.accel_per_pwm, cfg.damping, cfg.physics_dt_s,
+            cfg.max_speed)
         self._pwm = np.zeros(NUM_JOINTS)
         self._last_torque = -np.inf
         self._last_tick: float | None = None
@@ -229,8 +242,10 @@ class AllegroEmulator:
 
     def _corrupt(self, msg: can.Message) -> can.Message:
         kind = CORRUPTIONS[self._rng.integers(len(CORRUPTIONS))]
-        self.inject.counts[f"corrupt_{kind}"] += 1
         arb, data = msg.arbitration_id, bytes(msg.data)
+        if kind == "range" and not Msg.POSITION <= arb >> 2 < Msg.POSITION + NUM_FINGERS:
+            kind = "dlc"  # only a position has an invalid range (any int8 is a temperature)
+        self.inject.counts[f"corrupt_{kind}"] += 1
         if kind == "dlc":
             data = data[: int(self._rng.integers(len(data)))]
         elif kind == "device":
@@ -257,9 +272,11 @@ class AllegroEmulator:
             case Msg.SERIAL:
                 self._send(Serial(self.config.serial))
             case Msg.STATUS:
-                self._send(Status(self.status_bits()))
+                if not self.inject.mute_status:
+                    self._send(Status(self.status_bits()))
             case Msg.POSITION:
-                self._send(self._position(req.finger))
+                if req.finger not in self.inject.mute_fingers:
+                    self._send(self._position(req.finger))
             case Msg.TEMPERATURE:
                 if not self.inject.mute_temperature:
                     self._send(Temperature(req.finger, self._temperatures(req.finger)))
@@ -334,13 +351,14 @@ class AllegroEmulator:
                 continue
             if name == "position":
                 for f in range(NUM_FINGERS):
-                    self._send(self._position(f), periodic=True)
+                    if f not in self.inject.mute_fingers:
+                        self._send(self._position(f), periodic=True)
                 self.position_batches += 1
                 self._torque_fingers.clear()
             elif name == "temperature" and not self.inject.mute_temperature:
                 for f in range(NUM_FINGERS):
                     self._send(Temperature(f, self._temperatures(f)), periodic=True)
-            else:
+            elif name == "status" and not self.inject.mute_status:
                 self._send(Status(self.status_bits()), periodic=True)
 
     def poll(self, now: float, timeout: float = 0.0) -> None:

@@ -24,6 +24,13 @@ from dexdrake.errors import DexdrakeError
 
 Clock = Callable[[], float]
 
+# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault:
+# targets may move at the limit itself and tracking overshoots them (Z1 emulator, steps at
+# pi rad/s: peaks +31 %); a speed from frame times is noisy (Allegro emulator capped at its
+# limit, 15 % of frames lost: +15 %)
+OVERSPEED_TOLERANCE = 0.5
+MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder temperature reading is a broken sensor: a fault
+
 
 class HardwareError(DexdrakeError):
     """A hardware driver or device problem a user can act on."""
@@ -212,28 +219,43 @@ class FaultLatch:
 @contextmanager
 def safe_stop_on_exit(stop: Callable[[], None],
                       signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Run the body; on any exit (normal, exception, Ctrl-C, SIGTERM) call `stop()` once.
+    """Run the body; on any exit (normal, exception, Ctrl-C, SIGTERM) call `stop()` once,
+    to its end, whatever signals come meanwhile.
 
-    In the main thread SIGINT/SIGTERM handlers are installed for the duration: they raise
-    KeyboardInterrupt inside the body, so the stop runs before the process unwinds. The
-    previous handlers are restored afterwards. Exceptions are re-raised after the stop.
+    In the main thread SIGINT/SIGTERM handlers are installed for the duration. The first
+    signal raises KeyboardInterrupt inside the body; every later one is only counted, so
+    no signal (any number, any spacing) can abort the stop. A signal that came only while
+    the stop ran raises KeyboardInterrupt after it. The previous handlers are restored
+    afterwards; exceptions are re-raised after the stop.
     """
+    armed = [True]  # the handler raises at most once, and never once the stop has begun
+    received: list[int] = []
 
-    def _raise(signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+    def _handler(signum: int, _frame: object) -> None:
+        received.append(signum)
+        if armed[0]:
+            armed[0] = False
+            raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
     previous: dict[int, object] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in signals:
-            previous[sig] = signal.signal(sig, _raise)
+            previous[sig] = signal.signal(sig, _handler)
+    interrupted = False
     try:
         yield
     finally:
         try:
-            stop()
+            try:
+                interrupted = not armed[0]  # a signal already raised in the body
+                armed[0] = False
+            finally:  # runs even if the one KeyboardInterrupt lands on the lines above
+                stop()
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+    if received and not interrupted:
+        raise KeyboardInterrupt(f"signal {signal.Signals(received[0]).name} during the safe stop")
 
 
 class SafeStopContext:

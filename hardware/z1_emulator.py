@@ -1,23 +1,28 @@
 """An emulated `z1_controller` on loopback UDP (for tests and hardware-in-loop).
 
-It binds the controller port (8071 by default) and answers every valid SendCmd with a
-RecvState (to the sender's address, or to a fixed reply port such as 8072). Like the vendor
-controller it silently drops (no reply; counted in `packet_errors`) every command that is
-not exactly 147 bytes or whose head is not FE FF, and anything else that does not parse.
-State machine: starts PASSIVE (joint damping only); LOWCMD is entered only from PASSIVE and
-left only to PASSIVE; JOINTCTRL is entered from PASSIVE and follows the commanded positions
-only while `track` is set (else it holds), with the controller's default gains and its own
-gravity compensation; other states are not emulated and are refused. Silence in
-LOWCMD/JOINTCTRL for `command_timeout_s` drops the arm to PASSIVE. The joints move with a
-pluggable `ArmDynamics` model stepped every tick with the controller's current
-`ArmCommand`; the default, `SimpleArmDynamics`, integrates
-I * ddq = clip(tau, +-effort) - g(q) - b * dq inside hard joint stops, where g is the
-gravity load of the arm and its payload from the model (the real arm is not gravity
-compensated in LOWCMD: the client must feed it forward), with
-LOWCMD tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff (PASSIVE: damping only).
+From the spec (specs/z1.md): it binds the controller port (8071 by default) and sends
+each RecvState to the client's fixed port (`client_port`, the SDK's 8072 by default),
+never to the command's source address; it silently drops (no reply; counted in
+`packet_errors`) every command that is not exactly 147 bytes or whose head is not FE FF,
+and anything else that does not parse; LOWCMD is entered only from PASSIVE, with the
+torque law tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff; the arm carries the
+weight of itself and its payload (the model's gravity), which LOWCMD does not compensate.
+Assumptions where the spec is silent, each the less convenient one for the client:
+  it never times out on its own: on command silence it keeps executing the last command
+    (a client that stops talking leaves the arm doing what it was last told);
+  it answers each valid command with one state and sends nothing unasked;
+  LOWCMD and JOINTCTRL are left only to PASSIVE; JOINTCTRL is entered from PASSIVE and
+    follows the commanded positions only while `track` is set (else it holds), with the
+    controller's default gains and its own gravity compensation; other states are refused;
+  PASSIVE is joint damping only (the arm sags under its weight).
+The joints move with a pluggable `ArmDynamics` model stepped every tick with the
+controller's current `ArmCommand`; the default, `SimpleArmDynamics`, integrates
+I * ddq = clip(tau, +-effort) - g(q) - b * dq inside hard joint stops.
 A hardware-in-the-loop world plugs its plant in instead (systems/hil_world.py).
 Run it in its own thread (`start()`), or `open()` it and call `poll(now)` from yours.
-Fault injection: stall replies, corrupt replies, report a motor error.
+Fault injection: stall replies, corrupt replies, report a motor error or a motor
+temperature, drop to PASSIVE and stay there a while (`force_passive`, as the
+controller's own protection or another program would).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE, NUM_ARM_JOINTS, z1_mo
 from dexdrake.hardware.z1_udp import (
     COMMAND_HEAD,
     CONTROLLER_PORT,
+    SDK_PORT,
     NUM_MOTOR_SLOTS,
     ArmFSMState,
     JointState,
@@ -139,12 +145,11 @@ class SimpleArmDynamics:
 class Z1EmulatorConfig:
     host: str = "127.0.0.1"
     port: int = CONTROLLER_PORT  # 0: an ephemeral port (tests)
-    reply_port: int | None = None  # None: reply to the sender's address
+    client_port: int = SDK_PORT  # every state goes to this port on `host`
     inertia: Sequence[float] = (0.15, 0.3, 0.15, 0.05, 0.03, 0.02)  # kg m^2, reflected
     damping: float = 0.5  # N m s / rad, always present
     passive_damping: float = 5.0  # N m s / rad, PASSIVE mode
     gravity: bool = True  # the arm and its payload weigh what the model says (else weightless)
-    command_timeout_s: float = 0.1
     physics_dt_s: float = 0.0005
     q0: Sequence[float] | None = None
     lower: Sequence[float] | None = None
@@ -186,11 +191,13 @@ class Z1Emulator:
         self._tau_ff = np.zeros(NUM_ARM_JOINTS)
         self._kp = np.zeros(NUM_ARM_JOINTS)
         self._kd = np.zeros(NUM_ARM_JOINTS)
-        self._last_cmd = -math.inf
         self.rejected_transitions: collections.Counter[str] = collections.Counter()
         self.packet_errors: collections.Counter[str] = collections.Counter()
         self.commands_received = 0
+        self.log: collections.deque[SendCmd] = collections.deque(maxlen=10000)  # valid commands
+        self.motor_temperature_c = 25  # what every motor reports (int8)
         self.stall_until = -math.inf
+        self.passive_until = -math.inf
         self.corrupt_replies = False
         self.motor_error: tuple[int, int] | None = None  # (joint index, flags)
         self._rng = np.random.default_rng(cfg.seed)
@@ -251,6 +258,13 @@ class Z1Emulator:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def force_passive(self, seconds: float) -> None:
+        """Drop to PASSIVE now and refuse every other state for `seconds`, as something
+        outside the client would (the controller's own protection, another program)."""
+        with self._lock:
+            self.fsm = ArmFSMState.PASSIVE
+            self.passive_until = self._clock() + seconds
+
     def stall(self, seconds: float) -> None:
         """Send no replies for `seconds` (commands are still read and obeyed)."""
         self.stall_until = self._clock() + seconds
@@ -261,7 +275,7 @@ class Z1Emulator:
             return
         if new == ArmFSMState.PASSIVE:
             self.fsm = new
-        elif new in self._ENTRY and self.fsm in self._ENTRY[new]:
+        elif new in self._ENTRY and self.fsm in self._ENTRY[new] and now >= self.passive_until:
             self.fsm = new
             self._q_d, self._dq_d = self._q.copy(), np.zeros(NUM_ARM_JOINTS)
             self._tau_ff = self._own_gravity(self._q_d)
@@ -288,13 +302,6 @@ class Z1Emulator:
                 self._dq_d = np.array([j.W for j in joints])
                 self._tau_ff = self._own_gravity(self._q_d)
             self._tau = self._torque()  # the reply reports the torque of the new command
-            self._last_cmd = now
-
-    @property
-    def last_command_time(self) -> float:
-        """When (emulator clock) the last valid command was applied; -inf before any."""
-        with self._lock:
-            return self._last_cmd
 
     def command(self) -> ArmCommand:
         """The command the controller is tracking now (a copy)."""
@@ -310,8 +317,6 @@ class Z1Emulator:
 
     def _integrate(self, dt: float, now: float) -> None:
         with self._lock:
-            if self.fsm != ArmFSMState.PASSIVE and now - self._last_cmd > self.config.command_timeout_s:
-                self.fsm = ArmFSMState.PASSIVE
             command = self._command()
         q, dq, tau = self.dynamics.step(command, dt)
         with self._lock:
@@ -322,9 +327,9 @@ class Z1Emulator:
             q, dq, tau, fsm = self._q.copy(), self._dq.copy(), self._tau.copy(), self.fsm
         joints = []
         for i in range(NUM_MOTOR_SLOTS):
-            motor = MotorState()
+            motor = MotorState(temperature=self.motor_temperature_c)
             if self.motor_error is not None and self.motor_error[0] == i:
-                motor = MotorState(error=self.motor_error[1])
+                motor = MotorState(self.motor_temperature_c, error=self.motor_error[1])
             if i < NUM_ARM_JOINTS:
                 joints.append(JointState(float(tau[i]), float(dq[i]), 0.0, float(q[i]), (motor, MotorState())))
             else:
@@ -355,7 +360,7 @@ class Z1Emulator:
             return
         while True:
             try:
-                data, addr = self._sock.recvfrom(4096)
+                data = self._sock.recv(4096)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
@@ -370,12 +375,12 @@ class Z1Emulator:
                 self.packet_errors["head"] += 1
                 continue
             self.commands_received += 1
+            self.log.append(cmd)
             self._apply(cmd, now)
             if now < self.stall_until:
                 continue
-            dest = addr if self.config.reply_port is None else (self.config.host, self.config.reply_port)
             with contextlib.suppress(OSError):
-                self._sock.sendto(self._reply_bytes(), dest)
+                self._sock.sendto(self._reply_bytes(), (self.config.host, self.config.client_port))
 
     def _run(self) -> None:
         while self._running.is_set():

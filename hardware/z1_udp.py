@@ -11,9 +11,12 @@ tau = kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff; tau_ff carries the gra
 feed-forward of the arm and its payload, from the model) and JOINTCTRL (joint targets,
 `track` set so that the controller follows them).
 Limits, gains and the payload come from the model file (hardware/z1_model.py); a config
-beyond them is refused. Safety: joint-limit clamps, a velocity limit on targets, torque
-clamped to the effort limits, a state watchdog and motor-error checks that latch a fault
-and command PASSIVE until `reset_fault()`.
+beyond them is refused. Safety: targets clamped `limit_margin_rad` inside the joint limits,
+a velocity limit on targets, torque clamped to the effort limits; a state watchdog, motor
+error flags, motor temperatures, joints reported beyond their velocity limit and the
+controller leaving the mode on its own (never re-armed: specs/z1.md) latch a fault and
+command PASSIVE until `reset_fault()`. `stop()` holds first, then commands PASSIVE.
+`probe()` checks the ports without sending anything (the protocol has no pure query).
 `OfficialZ1` wraps Unitree's own `unitree_arm_interface` binding when it is importable.
 """
 
@@ -35,6 +38,8 @@ import numpy as np
 
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, Z1Limits, z1_model
 from dexdrake.hardware.safety import (
+    MIN_PLAUSIBLE_TEMPERATURE_C,
+    OVERSPEED_TOLERANCE,
     FaultLatch,
     SafeStopContext,
     HardwareError,
@@ -239,7 +244,7 @@ class Z1Config:
     limit and joint limits may be lowered from there, never raised (`check_z1_config`)."""
 
     host: str = "127.0.0.1"
-    local_port: int = SDK_PORT  # 0: an ephemeral port (tests)
+    local_port: int = SDK_PORT  # the controller sends every state here (a real one: 8072 only)
     controller_port: int = CONTROLLER_PORT
     rate_hz: float = 500.0
     watchdog_timeout_s: float = 0.05
@@ -247,6 +252,11 @@ class Z1Config:
     kp: Sequence[float] | None = None  # raw LOWCMD gains
     kd: Sequence[float] | None = None
     max_velocity: float | None = None  # rad/s on targets, every joint
+    max_measured_velocity: float | None = None  # rad/s (x 1.5) a joint may reach; None: the model's
+    limit_margin_rad: float = 0.02  # targets stay this far inside the joint limits
+    # a motor reported hotter trips. Not in the spec (it names an over-heat flag, no
+    # temperature): an assumption, the Allegro's limit
+    max_motor_temperature_c: float = 70.0
     lower: Sequence[float] | None = None
     upper: Sequence[float] | None = None
     gravity_feedforward: bool = True  # LOWCMD: send the model's gravity torques as tau_ff
@@ -265,16 +275,19 @@ class Z1Settings:
 
     kp: np.ndarray
     kd: np.ndarray
-    max_velocity: float
-    lower: np.ndarray
+    max_velocity: float  # on targets
+    lower: np.ndarray  # the joint limits
     upper: np.ndarray
     effort: np.ndarray
+    target_lower: np.ndarray  # the limits less the margin: targets are clamped into these
+    target_upper: np.ndarray
+    max_measured_velocity: np.ndarray  # per joint: a joint reported faster trips
 
 
 def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings:
     """Resolve `cfg` against the model's `limits`; HardwareError naming the limit a value
     exceeds (gains above the vendor defaults, a velocity above the joints' limit, joint
-    limits outside the model's)."""
+    limits outside the model's, a margin that leaves no range)."""
     lim = limits or z1_model().limits
     src = lim.source
     if cfg.mode not in (ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL):
@@ -308,7 +321,42 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
     if np.any(lower < lim.lower - 1e-6) or np.any(upper > lim.upper + 1e-6):
         raise HardwareError(f"Z1 joint limits {lower.tolist()} .. {upper.tolist()} reach outside "
                             f"the model's {lim.lower.tolist()} .. {lim.upper.tolist()} ({src})")
-    return Z1Settings(kp, kd, velocity, lower, upper, lim.effort.copy())
+    if cfg.max_measured_velocity is None:
+        measured = lim.velocity.copy()
+    elif math.isfinite(cfg.max_measured_velocity) and 0 < cfg.max_measured_velocity <= vmax + 1e-9:
+        measured = np.full(NUM_ARM_JOINTS, float(cfg.max_measured_velocity))
+    else:
+        raise HardwareError(f"Z1 max_measured_velocity {cfg.max_measured_velocity:g} rad/s must be in "
+                            f"(0, {vmax:g}], the joints' velocity limit in {src}")
+    m = cfg.limit_margin_rad
+    if not (math.isfinite(m) and 0 <= m and np.all(upper - lower > 2 * m)):
+        raise HardwareError(f"Z1 limit_margin_rad {m:g} must be >= 0 and leave every joint a range "
+                            f"(narrowest {float(np.min(upper - lower)):g} rad)")
+    if not math.isfinite(cfg.max_motor_temperature_c):
+        raise HardwareError(f"Z1 max_motor_temperature_c must be finite, got {cfg.max_motor_temperature_c}")
+    return Z1Settings(kp, kd, velocity, lower, upper, lim.effort.copy(), lower + m, upper - m, measured)
+
+
+@dataclass(frozen=True)
+class Z1Probe:
+    """What `Z1Arm.probe()` found: whether the controller's port is bound on this machine
+    (None: not knowable, a remote host or no /proc/net/udp) and a state heard unasked."""
+
+    controller_bound: bool | None
+    state: RecvState | None
+
+
+def udp_port_bound(port: int) -> bool | None:
+    """Whether a local UDP socket (IPv4 or IPv6) is bound to `port`, read from the kernel's
+    /proc/net/udp tables (nothing is sent or bound); None where they cannot be read."""
+    found = None
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = open(table).read().splitlines()[1:]
+        except OSError:
+            continue
+        found = bool(found) or any(int(line.split()[1].rsplit(":", 1)[1], 16) == port for line in lines)
+    return found
 
 
 @dataclass(frozen=True)
@@ -336,13 +384,16 @@ class Z1Arm(SafeStopContext):
         self._clock = clock
         self.model = z1_model()
         self.settings = st = check_z1_config(cfg, self.model.limits)
-        self.limits = JointLimits(st.lower, st.upper)
+        self.limits = JointLimits(st.target_lower, st.target_upper)
         self.kp, self.kd, self.effort = st.kp, st.kd, st.effort
         self._rate = RateLimiter(st.max_velocity, initial=self.limits.last_safe)
         self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
         self._lock = threading.Lock()
         self._receiving = threading.Lock()  # one reader drains the socket at a time, in order
+        self._send_lock = threading.Lock()
+        self._halted = False  # set by stop(): the loop sends nothing from then on
+        self._in_mode = False  # the controller reached the mode since (re)start
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
@@ -374,6 +425,28 @@ class Z1Arm(SafeStopContext):
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    def probe(self, timeout_s: float = 0.3) -> Z1Probe:
+        """Check the link without sending anything: the Z1 protocol has no pure query (every
+        SendCmd names a state the controller enters, PASSIVE included: an arm another
+        program holds would go limp), so this binds the client port (HardwareError when it
+        is taken: another program is the controller's client), listens `timeout_s` for a
+        state sent unasked, and reads whether the controller's port is bound locally."""
+        if self._sock is not None:
+            raise HardwareError("Z1: probe() is for an arm that is not started")
+        cfg = self.config
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind((cfg.host, cfg.local_port))
+            except OSError as err:
+                raise HardwareError(f"Z1: cannot bind UDP {cfg.host}:{cfg.local_port}: {err} "
+                                    "(another program is the controller's client?)") from err
+            state = None
+            if select.select([sock], [], [], timeout_s)[0]:
+                with contextlib.suppress(PacketError):
+                    state = RecvState.unpack(sock.recv(4096))
+        local = cfg.host in ("127.0.0.1", "localhost", "::1")
+        return Z1Probe(udp_port_bound(cfg.controller_port) if local else None, state)
+
     def start(self) -> None:
         """Bind, start the loop (PASSIVE first, then the configured mode) and wait for it."""
         if self._thread is not None:
@@ -383,6 +456,7 @@ class Z1Arm(SafeStopContext):
         cfg = self.config
         with self._lock:
             self._initialised, self._has_command, self._last = False, False, None
+            self._in_mode = self._halted = False
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((cfg.host, cfg.local_port))
@@ -409,9 +483,18 @@ class Z1Arm(SafeStopContext):
                             f"{cfg.host}:{cfg.controller_port}?)")
 
     def stop(self) -> None:
-        """Command PASSIVE, stop the loop and close the socket."""
+        """Safe stop: hold first (the mode's command at the measured position, zero velocity;
+        the loop sends nothing from then on), then the loop thread ends, then PASSIVE
+        (the state every mode may go to) and the socket closes. The controller keeps
+        executing the last command it got, so a stop cut short leaves the arm holding, not
+        tracking an old target. Run it to the end: `with arm:` shields it from signals."""
         self._running.clear()
         self.next_tick = math.inf
+        if self._sock is not None:
+            with self._send_lock:
+                self._halted = True
+            with contextlib.suppress(OSError):
+                self._send(self._hold())
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
@@ -480,10 +563,14 @@ class Z1Arm(SafeStopContext):
         return out
 
     # --------------------------------------------------------------- loop
-    def _send(self, cmd: SendCmd) -> None:
+    def _send(self, cmd: SendCmd, tick: bool = False) -> None:
+        """Send `cmd`; a loop `tick`'s command is dropped once stop() has begun."""
         assert self._sock is not None
-        self._sock.sendto(cmd.pack(), (self.config.host, self.config.controller_port))
-        self.commands_sent += 1
+        with self._send_lock:
+            if tick and self._halted:
+                return
+            self._sock.sendto(cmd.pack(), (self.config.host, self.config.controller_port))
+            self.commands_sent += 1
 
     def _receive_reply(self) -> None:
         """Receive; then, with `reply_wait_s`, wait that long at most for the reply to the
@@ -531,11 +618,36 @@ class Z1Arm(SafeStopContext):
             self._check_motors(st)
 
     def _check_motors(self, st: RecvState) -> None:
+        """Trip on a motor error flag or link fault, a motor temperature above the limit (or
+        below -40 C: a broken sensor), or a joint reported faster than its velocity limit
+        (times 1 + OVERSPEED_TOLERANCE)."""
+        cfg = self.config
         for i, joint in enumerate(st.joints[:NUM_ARM_JOINTS]):
             for m in joint.motors:
                 if m.error or m.link:
                     self.fault.trip(f"joint{i + 1} motor error {m.error:#04x} link {m.link}")
                     return
+                if m.temperature > cfg.max_motor_temperature_c:
+                    self.fault.trip(f"joint{i + 1} motor temperature {m.temperature} C "
+                                    f"(limit {cfg.max_motor_temperature_c:g} C)")
+                    return
+                if m.temperature < MIN_PLAUSIBLE_TEMPERATURE_C:
+                    self.fault.trip(f"joint{i + 1} motor temperature {m.temperature} C: a broken sensor")
+                    return
+            if abs(joint.W) > self.settings.max_measured_velocity[i] * (1 + OVERSPEED_TOLERANCE):
+                self.fault.trip(f"joint{i + 1} reported at {joint.W:.2f} rad/s "
+                                f"(limit {self.settings.max_measured_velocity[i]:g} rad/s)")
+                return
+
+    def _hold(self) -> SendCmd:
+        """The mode's command at the measured position with zero velocity (LOWCMD: the
+        configured gains and the gravity feed-forward); PASSIVE when there is nothing to hold
+        (a fault, no state yet, or the controller not in the mode)."""
+        st, mode = self._last, self.config.mode
+        if self.fault.tripped or st is None or st.state != mode:
+            return SendCmd(ArmFSMState.PASSIVE)
+        q = np.clip([j.Pos for j in st.joints[:NUM_ARM_JOINTS]], self.limits.lower, self.limits.upper)
+        return self._mode_command(q, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS))
 
     def _command(self, dt: float) -> SendCmd:
         """The command for this tick from the current state, target and safety status."""
@@ -543,6 +655,11 @@ class Z1Arm(SafeStopContext):
         if self.fault.tripped or st is None:
             return SendCmd(ArmFSMState.PASSIVE)
         mode = self.config.mode
+        if st.state == mode:
+            self._in_mode = True
+        elif self._in_mode:  # only the client may take the arm out of the mode: never re-arm
+            self.fault.trip(f"controller left {mode.name} for {st.state.name} on its own")
+            return SendCmd(ArmFSMState.PASSIVE)
         q = np.array([j.Pos for j in st.joints[:NUM_ARM_JOINTS]])
         with self._lock:
             if not self._initialised:
@@ -568,8 +685,14 @@ class Z1Arm(SafeStopContext):
                 else:
                     dq_ref = np.zeros(NUM_ARM_JOINTS)
             tau = self._tau_ff
+        return self._mode_command(q_ref, dq_ref, tau)
+
+    def _mode_command(self, q_ref: np.ndarray, dq_ref: np.ndarray, tau_ff: np.ndarray) -> SendCmd:
+        """The configured mode's command for reference (q_ref, dq_ref): LOWCMD adds the
+        gravity feed-forward to tau_ff and clamps the sum to the effort limits."""
+        mode = self.config.mode
         if mode == ArmFSMState.LOWCMD:
-            kp, kd = self.kp, self.kd
+            kp, kd, tau = self.kp, self.kd, tau_ff
             if self.config.gravity_feedforward:
                 tau = tau + self.model.gravity(q_ref)
             clamped = np.clip(tau, -self.effort, self.effort)
@@ -602,13 +725,13 @@ class Z1Arm(SafeStopContext):
                 self._reset_request.clear()
                 with self._lock:
                     self.fault.reset()
-                    self._initialised, self._has_command = False, False
+                    self._initialised, self._has_command, self._in_mode = False, False, False
                 self._watchdog.reset()
             self._receive_reply()  # the command of this tick acts on the newest state
             if not self.fault.tripped and self._watchdog.expired(now):
                 self.fault.trip(f"no Z1 state for {self._watchdog.since_last(now) * 1e3:.0f} ms")
             try:
-                self._send(self._command(now - last_tick))
+                self._send(self._command(now - last_tick), tick=True)
             except OSError:
                 self.packet_errors["socket"] += 1
             last_tick = now
@@ -620,6 +743,14 @@ class Z1Arm(SafeStopContext):
             while self._running.is_set() and (left := next_tick - self._clock()) > 1e-9:
                 select.select([self._sock], [], [], left)
                 self._receive()
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port on `host` that is free now (bound and released): for a client and an
+    emulated controller that must agree on the client's port before either binds."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
 
 
 def _vec6(values: Sequence[float] | np.ndarray, name: str) -> np.ndarray:

@@ -49,7 +49,7 @@ from dexdrake.hardware.driver_process import (
 )
 from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_emulator, z1_emulator
 from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
-from dexdrake.hardware.z1_udp import Z1Arm, Z1Config
+from dexdrake.hardware.z1_udp import Z1Arm, Z1Config, free_udp_port
 from dexdrake.hardware.z1_udp import default_joint_limits as arm_limits
 
 CONTROL_PERIOD_S = 0.02
@@ -121,8 +121,8 @@ def stream_alone(priority: int, seconds: float, bus_args: dict) -> Run:
     return run
 
 
-def _drivers(mode: str, priority: int, bus_args: dict, z1_port: int, stack: contextlib.ExitStack):
-    z1_cfg = Z1Config(local_port=0, controller_port=z1_port)
+def _drivers(mode: str, priority: int, bus_args: dict, z1_ports: tuple[int, int], stack: contextlib.ExitStack):
+    z1_cfg = Z1Config(local_port=z1_ports[1], controller_port=z1_ports[0])
     if mode != "in":
         cfg = ProcessConfig(realtime_priority=priority if mode == "rt" else 0)
         hand = DriverProcess(functools.partial(allegro_on_bus, bus_args, 0, AllegroConfig()), cfg, "Allegro hand")
@@ -136,14 +136,14 @@ def _drivers(mode: str, priority: int, bus_args: dict, z1_port: int, stack: cont
     return hand, arm
 
 
-def run_mode(mode: str, priority: int, seconds: float, bus_args: dict, z1_port: int,
+def run_mode(mode: str, priority: int, seconds: float, bus_args: dict, z1_ports: tuple[int, int],
              cpu_thread: bool) -> Run:
     """Both drivers for `seconds` under the bench's load, commanded every control period."""
     run = Run(mode, MODES[mode])
     (hlo, hhi), (alo, ahi) = hand_limits(), arm_limits()
     stop = threading.Event()
     with contextlib.ExitStack() as stack:
-        hand, arm = _drivers(mode, priority, bus_args, z1_port, stack)
+        hand, arm = _drivers(mode, priority, bus_args, z1_ports, stack)
         if cpu_thread:
             burner = threading.Thread(target=_burn, args=(stop,), daemon=True)
             burner.start()
@@ -245,13 +245,14 @@ def main() -> None:
     try:
         (hlo, hhi), (alo, ahi) = hand_limits(), arm_limits()
         hand_emulator = functools.partial(allegro_emulator, bus_args, EmulatorConfig(lower=hlo, upper=hhi))
-        arm_emulator = functools.partial(z1_emulator, Z1EmulatorConfig(port=0, lower=alo, upper=ahi))
+        client = free_udp_port()  # the controller sends every state to the client's fixed port
+        arm_emulator = functools.partial(z1_emulator, Z1EmulatorConfig(port=0, client_port=client, lower=alo, upper=ahi))
         with EmulatorProcess(hand_emulator, args.emulator_priority), \
                 EmulatorProcess(arm_emulator, args.emulator_priority) as arm_process:
-            z1_port = arm_process.report
+            z1_ports = (arm_process.report, client)
             for mode in modes:
                 runs.append(stream_alone(args.priority, args.seconds, bus_args) if mode == "stream" else
-                            run_mode(mode, args.priority, args.seconds, bus_args, z1_port, not args.no_cpu_thread))
+                            run_mode(mode, args.priority, args.seconds, bus_args, z1_ports, not args.no_cpu_thread))
     finally:
         for proc in busy:
             proc.kill()

@@ -63,7 +63,9 @@ from dexdrake.hardware.z1_udp import (
     SendCmd,
     Z1Arm,
     Z1Config,
+    free_udp_port,
 )
+from dexdrake.hardware.safety import MIN_PLAUSIBLE_TEMPERATURE_C, OVERSPEED_TOLERANCE
 
 
 def _wait(cond, timeout: float) -> bool:
@@ -164,7 +166,8 @@ def classify_can(msg: can.Message, lower: np.ndarray, upper: np.ndarray, cfg: Al
             return "bad"
     if isinstance(frame, Status) and frame.bits & STATUS_FAULT_BITS:
         return "fault"
-    if isinstance(frame, Temperature) and max(frame.celsius) > cfg.max_temperature_c:
+    if isinstance(frame, Temperature) and (max(frame.celsius) > cfg.max_temperature_c
+                                           or min(frame.celsius) < MIN_PLAUSIBLE_TEMPERATURE_C):
         return "fault"
     return "ok"
 
@@ -228,7 +231,7 @@ def fuzz_can(frames: int, seed: int, batch: int = 200) -> dict:
 def _recv_state(rng: np.random.Generator) -> RecvState:
     joints = []
     for _ in range(7):
-        motors = tuple(MotorState(int(rng.integers(-128, 128)),
+        motors = tuple(MotorState(int(rng.integers(20, 60)) if rng.random() < 0.99 else int(rng.integers(-128, 128)),
                                   0 if rng.random() < 0.99 else int(rng.integers(256)),
                                   0 if rng.random() < 0.99 else int(rng.integers(256)))
                        for _ in range(2))
@@ -256,12 +259,18 @@ def datagram(rng: np.random.Generator, valid: bytes) -> bytes:
     return data
 
 
-def classify_state(data: bytes) -> str:
+def classify_state(data: bytes, cfg: Z1Config) -> str:
+    """'bad', 'fault' (what every state is checked for on arrival) or 'ok' (a state not in
+    the client's mode may or may not trip: that check runs on the newest state at a tick)."""
     try:
         st = RecvState.unpack(data)
     except PacketError:
         return "bad"
-    if any(m.error or m.link for j in st.joints[:6] for m in j.motors):
+    joints = st.joints[:6]
+    if any(m.error or m.link or not MIN_PLAUSIBLE_TEMPERATURE_C <= m.temperature <= cfg.max_motor_temperature_c
+           for j in joints for m in j.motors):
+        return "fault"
+    if any(abs(j.W) > np.pi * (1 + OVERSPEED_TOLERANCE) for j in joints):
         return "fault"
     return "ok"
 
@@ -277,7 +286,7 @@ def classify_command(data: bytes) -> str:
 def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
     """Half the datagrams to a live Z1Arm's port, half to the emulator's; counters."""
     rng = np.random.default_rng(seed)
-    emu = Z1Emulator(Z1EmulatorConfig(port=0))
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port()))
     fuzz = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     fuzz.bind(("127.0.0.1", 0))
     fuzz.setblocking(False)
@@ -285,7 +294,7 @@ def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
     faults: collections.Counter = collections.Counter()
     t0, cpu0 = time.perf_counter(), time.process_time()
     emu.start()
-    arm = Z1Arm(Z1Config(local_port=0, controller_port=emu.port, watchdog_timeout_s=0.5))
+    arm = Z1Arm(Z1Config(local_port=emu.config.client_port, controller_port=emu.port, watchdog_timeout_s=0.5))
     try:
         with arm:
             sent = 0
@@ -294,7 +303,7 @@ def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
                 n = min(batch, datagrams - sent)
                 if to_client:
                     data = [datagram(rng, _recv_state(rng).pack()) for _ in range(n)]
-                    kinds = [classify_state(d) for d in data]
+                    kinds = [classify_state(d, arm.config) for d in data]
                     counter = lambda: sum(arm.packet_errors.values())  # noqa: E731
                     dest = ("127.0.0.1", arm.local_port)
                 else:

@@ -68,7 +68,7 @@ from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
 from dexdrake.hardware.safety import HardwareError, period_stats
 from dexdrake.hardware.z1_emulator import ArmCommand, Z1Emulator, Z1EmulatorConfig
 from dexdrake.hardware.z1_model import z1_model
-from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config
+from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, free_udp_port
 from dexdrake.systems.scenario import Scenario
 
 
@@ -109,7 +109,7 @@ class HilWorld:
 
     `start()` / `stop()` or a context manager. `hand_emulator` answers on `hand_bus`;
     `arm_emulator` binds the scenario's controller port (0: a free port, see its `.port`
-    after `start()`). Give the drivers `clock=world.clock` so that they run on the same
+    after `start()`) and sends to `arm_client_port` (the scenario's, or a free one probed). Give the drivers `clock=world.clock` so that they run on the same
     simulated time (module doc)."""
 
     def __init__(self, scenario: Scenario, scene, hand_bus: can.BusABC, q0: np.ndarray, placement):
@@ -133,7 +133,10 @@ class HilWorld:
             hand_bus, h.device_id, EmulatorConfig(q0=tuple(q0[self.bus_perm]), seed=scenario.seed,
                                                   lower=h.lower, upper=h.upper),
             clock=self.clock, dynamics=self._fingers)
+        # the controller sends to the client's fixed port: 0 (or none given) probes a free one
+        self.arm_client_port = a.local_port or free_udp_port(a.host)
         self.arm_emulator = Z1Emulator(Z1EmulatorConfig(host=a.host, port=a.controller_port,
+                                                        client_port=self.arm_client_port,
                                                         q0=tuple(q0[: self.n_arm]), seed=scenario.seed),
                                        clock=self.clock, dynamics=self._arm)
         self._desired = np.zeros(2 * w.hand.num_actuators)

@@ -55,6 +55,7 @@ class HandDriver:
     lower: Optional[list[float]] = None  # rad
     upper: Optional[list[float]] = None
     max_target_rate: Optional[float] = None  # rad/s
+    limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     watchdog_timeout_s: Optional[float] = None
     # run the driver loop in its own process (hardware/driver_process.py); None: hardware
     # yes, emulated no (the simulated-clock HIL steps its drivers in lockstep in-process)
@@ -79,6 +80,7 @@ class ArmDriver:
     kp: Optional[list[float]] = None  # raw LOWCMD gains
     kd: Optional[list[float]] = None
     max_velocity: Optional[float] = None  # rad/s on targets
+    limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     velocity_feedforward: Optional[bool] = None  # send the reference's velocity (W) with it
     watchdog_timeout_s: Optional[float] = None
     process: Optional[bool] = None  # as HandDriver.process
@@ -106,6 +108,7 @@ class CameraDriver:
     # frames) to the present, by at most this (s): the frame's age; 0: the estimate as is
     predict_s: float = 0.1
     first_pose_timeout_s: float = 30.0  # no pose at all by then -> stop
+    max_pose_age_s: float = 2.0  # the last pose's frame older than this (s) -> stop
     max_consecutive_failures: int = 3  # then `on_failure` applies
     on_failure: str = "hold"  # hold: keep the last pose | stop: safe stop the station
 
@@ -208,10 +211,11 @@ def own_process(driver: HandDriver | ArmDriver) -> bool:
     return driver.kind == "hardware" if driver.process is None else driver.process
 
 
-def driver_configs(s: Scenario, arm_controller_port: int | None = None):
+def driver_configs(s: Scenario, arm_controller_port: int | None = None,
+                   arm_local_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
     drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
-    None keep the driver's default."""
+    None keep the driver's default; the ports given replace the scenario's."""
     from dexdrake.hardware.allegro_can import AllegroConfig, check_allegro_config
     from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, check_z1_config
 
@@ -220,13 +224,13 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None):
 
     h, a = s.drivers.hand, s.drivers.arm
     hand = AllegroConfig(**given(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
-                                 max_target_rate=h.max_target_rate,
+                                 max_target_rate=h.max_target_rate, limit_margin_rad=h.limit_margin_rad,
                                  watchdog_timeout_s=h.watchdog_timeout_s))
-    arm = Z1Config(**given(host=a.host, local_port=a.local_port,
+    arm = Z1Config(**given(host=a.host, local_port=a.local_port if arm_local_port is None else arm_local_port,
                            controller_port=a.controller_port if arm_controller_port is None
                            else arm_controller_port,
                            watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode],
-                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity,
+                           kp=a.kp, kd=a.kd, max_velocity=a.max_velocity, limit_margin_rad=a.limit_margin_rad,
                            velocity_feedforward=a.velocity_feedforward))
     check_allegro_config(hand)
     check_z1_config(arm)
@@ -302,6 +306,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  source, "drivers.camera.period_s, .first_pose_timeout_s must be > 0 and "
                  ".max_consecutive_failures >= 1")
         _require(c.predict_s >= 0, source, f"drivers.camera.predict_s must be >= 0 (s), got {c.predict_s}")
+        _require(c.max_pose_age_s >= c.period_s, source,
+                 f"drivers.camera.max_pose_age_s ({c.max_pose_age_s}) must be >= period_s ({c.period_s}): "
+                 "a pose is at least one period old when the next one comes")
         _require(c.on_failure in PERCEPTION_FAILURE_POLICIES, source,
                  f"drivers.camera.on_failure {c.on_failure!r} is not one of "
                  f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")

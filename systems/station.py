@@ -33,7 +33,8 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
 - Perception failures (a failed camera read, lost tracking that global registration cannot
   recover, a crashed worker) hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
-  at all within `first_pose_timeout_s` raises StationFault.
+  at all within `first_pose_timeout_s`, or a pose whose frame is older than
+  `max_pose_age_s` (a registration or a worker that does not finish), raises StationFault.
 """
 
 from __future__ import annotations
@@ -243,6 +244,7 @@ class PerceptionSystem(LeafSystem):
         self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])  # the last estimate
         self._now = 0.0  # the clock's time at the last poll (simulated or wall)
         self._frame_time = 0.0  # the clock's time of the pending frame
+        self._pose_time = 0.0  # the clock's time of the last pose's frame
         self._motion: list[tuple[float, RigidTransform]] = []  # the last 2 estimates of one track
         state = self.DeclareDiscreteState(self.pose)
         self.DeclareStateOutputPort("object_pose", state)
@@ -283,6 +285,8 @@ class PerceptionSystem(LeafSystem):
             self._record(result, self._pending_frame, sim_time)
         if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
             raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
+        if self.has_pose and now - self._pose_time > cam.max_pose_age_s:
+            raise StationFault(f"object pose {now - self._pose_time:.2f} s old (limit {cam.max_pose_age_s} s)")
         if self._future is None and now >= self._next_request - 1e-9:
             self._next_request = self._due = now + cam.period_s
             try:
@@ -306,6 +310,7 @@ class PerceptionSystem(LeafSystem):
             log.successes += 1
             log.consecutive_failures = 0
             self.has_pose = True
+            self._pose_time = self._frame_time
             X = RigidTransform(result["X_WO"])
             self.pose = pose_vector(X)
             tracked = result.get("method") == "track"  # a global registration starts a new track
@@ -605,13 +610,13 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand = load_hand(scenario.hand)
     devices: dict = {}
     world = None
-    arm_port = None
+    arm_port = arm_local_port = None
     clock = time.monotonic
     if scenario.mode == "hil":  # every device runs on the world's simulated clock
         world = _start_world(scenario, stack, hand)
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
-        arm_port, clock = world.arm_emulator.port, world.clock
-    hand_cfg, arm_cfg = driver_configs(scenario, arm_port)
+        arm_port, arm_local_port, clock = world.arm_emulator.port, world.arm_client_port, world.clock
+    hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
     if world is not None:  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm

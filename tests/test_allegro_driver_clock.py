@@ -42,7 +42,8 @@ def bench():
     spare = can.Bus(interface="virtual", channel=channel)
     clock = FakeClock()
     hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER, watchdog_timeout_s=0.2,
-                                                  temperature_timeout_s=0.5), clock=clock)
+                                                  temperature_timeout_s=0.5, limit_margin_rad=0.0),
+                       clock=clock)  # no margin: targets clamp onto the limits, as computed below
     yield hand, spare, clock
     host.shutdown()
     spare.shutdown()
@@ -250,3 +251,93 @@ def test_waiting_for_a_reply_still_checks_faults_and_ranges():
     finally:
         host.shutdown()
         spare.shutdown()
+
+
+def alive(hand: AllegroHand) -> None:
+    """Every finger's temperatures and a status reply reaching the driver now."""
+    for f in range(4):
+        hand._handle(Temperature(f, (30, 30, 30, 30)))
+    hand._handle(Status(0))
+
+
+@pytest.mark.parametrize("how", ["missing", "out of range"])
+def test_a_finger_without_valid_positions_trips_on_its_own(bench, how):
+    """Each finger's position stream has its own watchdog: three fingers streaming do not
+    cover a fourth whose frames stopped coming or are refused; the stop is sent."""
+    hand, spare, clock = bench
+    q = on_counts(LOWER + 0.5 * (UPPER - LOWER))
+    bad = q.copy()
+    bad[9] = UPPER[9] + 0.5  # finger 2, beyond limit + margin
+    for k in range(81):  # 240 ms of batches; finger 2 valid only in the first
+        clock.t = 1.0 + k * PERIOD
+        alive(hand)
+        for f in range(4):
+            if f != 2 or k == 0:
+                finger(hand, f, q)
+            elif how == "out of range":
+                finger(hand, f, bad)
+    assert hand.stats()["cycles"] > 40 and hand.state().fault is None  # the others kept cycling
+    frames(spare)
+    hand._iterate(clock.t)
+    assert hand.state().fault == "finger 2 position stream silent for 240 ms"
+    assert frames(spare) == [Torque(f, (0, 0, 0, 0)) for f in range(4)] + [ServoOff()]
+
+
+def test_every_finger_silent_is_the_stream_silent(bench):
+    hand, spare, clock = bench
+    clock.t = 1.0
+    alive(hand)
+    positions(hand, on_counts(LOWER + 0.5 * (UPPER - LOWER)))
+    clock.t = 1.25
+    hand._iterate(clock.t)
+    assert hand.state().fault == "position stream silent for 250 ms"
+
+
+@pytest.mark.parametrize("celsius, fault", [
+    (127, "finger 1 joint temperature 127 C"),
+    (-128, "finger 1 joint temperature -128 C: a broken sensor"),
+])
+def test_an_extreme_temperature_reading_trips_at_once(bench, celsius, fault):
+    """127 C (the int8's top) is an over-temperature, not a frame to drop; -128 C a broken
+    sensor: both stop the hand on the frame that carries them."""
+    hand, spare, clock = bench
+    spare.send(encode(Temperature(1, (20, celsius, 20, 20))))
+    hand._handle(hand._recv(1.0))
+    assert hand.state().fault == fault
+    assert frames(spare) == [Torque(f, (0, 0, 0, 0)) for f in range(4)] + [ServoOff()]
+
+
+def test_status_replies_not_heard_trip(bench):
+    hand, spare, clock = bench
+    q = on_counts(LOWER + 0.5 * (UPPER - LOWER))
+    clock.t = 1.0
+    alive(hand)
+    for k in range(1, 201):  # positions and temperatures keep coming, the status does not
+        clock.t = 1.0 + k * PERIOD
+        positions(hand, q)
+        for f in range(4):
+            hand._handle(Temperature(f, (30, 30, 30, 30)))
+    hand._iterate(clock.t)
+    assert hand.state().fault == "status not heard for 600 ms"
+
+
+def test_a_joint_measured_beyond_its_velocity_limit_trips(bench):
+    """The mean speed over >= 100 ms against 7 rad/s + 50 %: 10 rad/s passes, also through
+    frames read late (a burst at one host time, then on time again); 11 rad/s on one joint
+    trips with its name."""
+    hand, spare, clock = bench
+    q0 = on_counts(LOWER + 0.02 * (UPPER - LOWER))
+    alive(hand)
+    t_host = 1.0
+    for k in range(50):  # the device's sample k at 10 rad/s on joint 5
+        if not 20 <= k < 40:  # samples 20..39 are read together, with sample 40
+            t_host = 1.0 + k * PERIOD
+        clock.t = t_host
+        positions(hand, on_counts(q0 + np.r_[np.zeros(5), 10.0 * k * PERIOD, np.zeros(10)]))
+    assert hand.state().fault is None and hand.stats()["cycles"] == 50
+    q1 = on_counts(q0 + np.r_[np.zeros(5), 10.0 * 49 * PERIOD, np.zeros(10)])
+    for k in range(1, 45):
+        clock.t += PERIOD
+        positions(hand, on_counts(q1 - np.r_[np.zeros(5), 11.0 * k * PERIOD, np.zeros(10)]))
+    assert hand.state().fault is not None
+    assert hand.state().fault.startswith("joint 5 measured at 11.0 rad/s (limit 7 rad/s)")

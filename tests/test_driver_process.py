@@ -28,7 +28,7 @@ from dexdrake.hardware.driver_process import (
 )
 from dexdrake.hardware.safety import HardwareError
 from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
-from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, Z1State
+from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, Z1State, free_udp_port
 
 from waiting import wait_for
 
@@ -38,8 +38,9 @@ HAND = AllegroConfig(watchdog_timeout_s=1.0, temperature_timeout_s=3.0, reply_ti
 PROC = ProcessConfig(heartbeat_timeout_s=5.0)
 
 
-def _z1(port: int) -> Z1Config:
-    return Z1Config(local_port=0, controller_port=port, watchdog_timeout_s=1.0, mode_timeout_s=5.0)
+def _z1(emu: Z1Emulator) -> Z1Config:
+    return Z1Config(local_port=emu.config.client_port, controller_port=emu.port, watchdog_timeout_s=1.0,
+                    mode_timeout_s=5.0)
 
 
 def _free_udp_port() -> int:
@@ -57,7 +58,7 @@ def _multicast_bus_args() -> dict:
 
 @pytest.fixture
 def z1_emulator():
-    with Z1Emulator(Z1EmulatorConfig(port=0)) as emu:
+    with Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port())) as emu:
         yield emu
 
 
@@ -92,7 +93,7 @@ def test_state_codec_round_trips_a_driver_state():
 
 def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
     emu = z1_emulator
-    arm = DriverProcess(functools.partial(z1_client, _z1(emu.port)), PROC, "Z1 arm")
+    arm = DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm")
     with arm:
         pid = arm.pid
         assert arm.running and arm.state().fault is None
@@ -122,7 +123,7 @@ def _may_run_realtime() -> bool:
 
 def test_a_realtime_priority_is_set_in_the_child_or_refused_at_start(z1_emulator):
     cfg = ProcessConfig(heartbeat_timeout_s=5.0, realtime_priority=20)
-    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)), cfg, "Z1 arm")
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator)), cfg, "Z1 arm")
     if not _may_run_realtime():
         with pytest.raises(HardwareError, match="cannot run at SCHED_FIFO priority 20"):
             arm.start()
@@ -136,7 +137,7 @@ def test_a_realtime_priority_is_set_in_the_child_or_refused_at_start(z1_emulator
 
 def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
     emu = z1_emulator
-    with DriverProcess(functools.partial(z1_client, _z1(emu.port)), PROC, "Z1 arm") as arm:
+    with DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm") as arm:
         assert arm.state().fault is None
         emu.stall(5.0)
         assert wait_for(lambda: arm.state().fault is not None, 10.0)
@@ -221,7 +222,7 @@ def test_a_parent_that_stops_in_the_middle_of_a_command_write_is_still_lost(z1_e
     beating: the child neither spins on the half-written target nor keeps the arm going."""
     from dexdrake.hardware import driver_process as dp
 
-    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)),
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator)),
                         ProcessConfig(heartbeat_timeout_s=0.3), "Z1 arm")
     with arm:
         arm._beating.clear()  # the parent's heartbeat stops ...
@@ -267,7 +268,7 @@ def test_a_failing_supervision_ends_in_the_safe_stop_and_is_reported(tmp_path):
 
 
 def test_a_killed_driver_process_is_a_fault_and_stop_still_cleans_up(z1_emulator):
-    with DriverProcess(functools.partial(z1_client, _z1(z1_emulator.port)), PROC, "Z1 arm") as arm:
+    with DriverProcess(functools.partial(z1_client, _z1(z1_emulator)), PROC, "Z1 arm") as arm:
         os.kill(arm.pid, signal.SIGKILL)
         assert wait_for(lambda: arm.state().fault is not None, 10.0)
         assert "exited with code -9" in arm.state().fault and not arm.running

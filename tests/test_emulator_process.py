@@ -13,7 +13,7 @@ from dexdrake.hardware.driver_process import DriverProcess, ProcessConfig, alleg
 from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_emulator, z1_emulator
 from dexdrake.hardware.safety import HardwareError
 from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
-from dexdrake.hardware.z1_udp import Z1Config
+from dexdrake.hardware.z1_udp import Z1Config, free_udp_port
 
 from test_driver_process import _multicast_bus_args
 from waiting import wait_for
@@ -26,10 +26,11 @@ def test_drivers_in_their_processes_follow_targets_against_emulator_processes():
     lo, hi = default_joint_limits()
     hand_target = lo + 0.4 * (hi - lo)
     arm_target = np.array([0.0, 0.3, -0.3, 0.0, 0.0, 0.0])
+    client = free_udp_port()
     with EmulatorProcess(functools.partial(allegro_emulator, bus, EmulatorConfig())), \
-            EmulatorProcess(functools.partial(z1_emulator, Z1EmulatorConfig(port=0))) as arm_emulator:
+            EmulatorProcess(functools.partial(z1_emulator, Z1EmulatorConfig(port=0, client_port=client))) as arm_emulator:
         hand_cfg = AllegroConfig(watchdog_timeout_s=1.0, temperature_timeout_s=3.0, reply_timeout_s=2.0)
-        arm_cfg = Z1Config(local_port=0, controller_port=arm_emulator.report, watchdog_timeout_s=1.0,
+        arm_cfg = Z1Config(local_port=client, controller_port=arm_emulator.report, watchdog_timeout_s=1.0,
                            mode_timeout_s=5.0)
         with DriverProcess(functools.partial(allegro_on_bus, bus, 0, hand_cfg), PROC, "Allegro hand") as hand, \
                 DriverProcess(functools.partial(z1_client, arm_cfg), PROC, "Z1 arm") as arm:

@@ -3,6 +3,7 @@
 import math
 import os
 import signal
+import time
 import warnings
 
 import numpy as np
@@ -327,3 +328,28 @@ def test_rate_limiter_and_watchdog_messages_and_counts():
 def test_period_stats_of_two_stamps():
     s = period_stats([0.0, 0.002])
     assert s["cycles"] == 2 and s["rate_hz"] == pytest.approx(500.0) and s["max_ms"] == pytest.approx(2.0)
+
+
+def test_signals_during_the_safe_stop_never_cut_it_short():
+    """Ctrl-C in the body raises once; any number of signals during the stop are only
+    counted (the stop runs to its end); a signal that came only during the stop raises
+    KeyboardInterrupt after it."""
+    before = signal.getsignal(signal.SIGINT)
+    calls = []
+
+    def stop():
+        calls.append("begin")
+        for _ in range(5):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.001)
+        calls.append("end")
+
+    with pytest.raises(KeyboardInterrupt, match="signal SIGINT$"):
+        with safe_stop_on_exit(stop):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+    assert calls == ["begin", "end"] and signal.getsignal(signal.SIGINT) is before
+    with pytest.raises(KeyboardInterrupt, match="during the safe stop"):
+        with safe_stop_on_exit(stop):
+            pass
+    assert calls == ["begin", "end"] * 2 and signal.getsignal(signal.SIGINT) is before

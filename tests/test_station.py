@@ -50,6 +50,10 @@ def test_shipped_scenarios_load():
      "camera: {kind: k4a}}", "drivers.hand.realtime_priority 50: 1..99, for a driver in its own process"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, realtime_priority: 100}, camera: {kind: k4a}}",
      "drivers.arm.realtime_priority 100"),
+    ("drivers: {hand: {kind: emulated, limit_margin_rad: 0.5}, arm: {kind: emulated}}",
+     r"Allegro limit_margin_rad 0.5 must be >= 0 and leave every joint a range"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: emulated, limit_margin_rad: -0.1}}",
+     r"Z1 limit_margin_rad -0.1 must be >= 0"),
     ("object: no_such_object", "unknown object"),
     ("hand: adroit\ndrivers: {hand: {kind: emulated}, arm: {kind: emulated}}", "no Allegro-on-Z1"),
     ("control_period: 0.001", "must be >= time_step"),
@@ -62,6 +66,22 @@ def test_shipped_scenarios_load():
 def test_bad_scenarios_are_refused_with_a_clear_message(text, message):
     with pytest.raises(ScenarioError, match=message):
         parse_scenario(text, source="bad.yaml")
+
+
+def test_joint_margins_come_from_the_scenario():
+    """drivers.*.limit_margin_rad reaches the drivers: targets clamp that far inside the
+    joint limits (default 0.02 rad), never onto them."""
+    from dexdrake.hardware.allegro_can import check_allegro_config
+    from dexdrake.hardware.z1_udp import check_z1_config
+    from dexdrake.systems.scenario import driver_configs
+
+    text = "drivers: {hand: {kind: emulated, limit_margin_rad: 0.05}, arm: {kind: emulated, limit_margin_rad: 0.1}}"
+    hand, arm = driver_configs(parse_scenario(text))
+    hs, zs = check_allegro_config(hand), check_z1_config(arm)
+    np.testing.assert_allclose(hs.target_upper, hs.upper - 0.05)
+    np.testing.assert_allclose(zs.target_lower, zs.lower + 0.1)
+    hand, arm = driver_configs(parse_scenario("drivers: {hand: {kind: emulated}, arm: {kind: emulated}}"))
+    assert hand.limit_margin_rad == arm.limit_margin_rad == 0.02
 
 
 def test_missing_scenario_file():
@@ -381,6 +401,37 @@ def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
         _drain(_perception([None, None, None], on_failure="hold"), 5)
 
 
+def test_a_pose_older_than_its_limit_stops_the_station():
+    """A worker that does not finish: the last pose keeps its frame's age, and past the
+    camera's max_pose_age_s the station stops instead of feeding it on."""
+    import threading
+
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import PerceptionSystem, StationFault
+
+    hang = threading.Event()
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
+        if track:  # every estimate after the first hangs
+            hang.wait(5.0)
+        return {"success": True, "reason": "", "X_WO": np.eye(4), "fitness": 1.0}
+
+    camera = CameraDriver(kind="rendered", period_s=0.05, max_pose_age_s=0.3)
+    system = PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate)
+    try:
+        system.poll()
+        cf.wait([system._future])
+        system.poll()
+        assert system.has_pose
+        t0 = time.monotonic()
+        with pytest.raises(StationFault, match=r"object pose 0\.3\d s old \(limit 0\.3 s\)"):
+            while time.monotonic() - t0 < 2.0:
+                system.poll()
+                time.sleep(0.01)
+    finally:
+        hang.set()
+
+
 def test_perception_moves_the_tracked_pose_on_to_the_present():
     """The pose the controller gets is the last estimate moved on at its track's velocity
     (between the last two frames) by the estimate's age, at most predict_s; the first pose
@@ -544,7 +595,7 @@ def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
         parse_scenario("policy: {checkpoint: ''}")
 
 
-def _real_config(tmp_path, can_channel: str, arm_port: int, policy: str) -> str:
+def _real_config(tmp_path, can_channel: str, arm_port: int, policy: str, local: int | None = None) -> str:
     """configs/real.yaml on a virtual CAN channel, a loopback Z1 port and a recorded frame."""
     import socket
 
@@ -553,10 +604,11 @@ def _real_config(tmp_path, can_channel: str, arm_port: int, policy: str) -> str:
     frame = RgbdFrame(np.zeros((36, 64, 3), np.uint8), np.full((36, 64), 500, np.uint16),
                       CameraIntrinsics(64, 36, 50.0, 50.0, 31.5, 17.5), 0.0)
     save_frame(frame, tmp_path / "frame_000000.npz")
-    free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    free.bind(("127.0.0.1", 0))
-    local = free.getsockname()[1]
-    free.close()
+    if local is None:
+        free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        free.bind(("127.0.0.1", 0))
+        local = free.getsockname()[1]
+        free.close()
     text = (CONFIGS / "real.yaml").read_text()
     text = (text.replace("interface: socketcan", "interface: virtual")
             .replace("channel: can0", f"channel: {can_channel}")
@@ -597,7 +649,8 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
         assert code == 2 and "policy refused" in err and "all devices answered" not in out
         return
     assert code == 0, out + err
-    for line in ("CAN virtual", "Z1 127.0.0.1", "state PASSIVE", "camera recorded: OK",
+    for line in ("CAN virtual", "Z1 127.0.0.1", "controller port bound",
+                 "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
                  "diagram (built, not run): station (real: command_to_devices, z1_driver, allegro_driver, "
                  "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
@@ -605,9 +658,9 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
         assert line in out, out
     assert "lift 0.17" not in out
     # the whole diagram was built around the drivers, yet nothing moved: the hand's servo never
-    # came on and got no torque, the arm got the dry run's one PASSIVE and nothing else
+    # came on and got no torque, the arm got nothing at all (not even a PASSIVE)
     assert not hand.servo_on and hand.answered_batches == 0
-    assert arm_commands == 1 and arm_mode.name == "PASSIVE"
+    assert arm_commands == 0 and arm_mode.name == "PASSIVE"
 
 
 def test_a_station_built_without_starting_never_runs(tmp_path):
@@ -621,7 +674,7 @@ def test_a_station_built_without_starting_never_runs(tmp_path):
     from dexdrake.errors import DexdrakeError
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import build_diagram, scenario_diagram
-    from dexdrake.systems.station import StationFault, make_station
+    from dexdrake.systems.station import make_station
 
     with pytest.raises(DexdrakeError, match="only a real station is built without starting"):
         make_station(hil_scenario(), start=False)
@@ -924,6 +977,7 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
     from dexdrake.hardware.driver_process import DriverProcess
     from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
+    from dexdrake.hardware.z1_udp import free_udp_port
     from dexdrake.systems.station import make_station
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as free:
@@ -932,8 +986,9 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
     group = UdpMulticastBus.DEFAULT_GROUP_IPv4
     bus = can.Bus(interface="udp_multicast", channel=group, port=port, receive_own_messages=False)
     try:
-        with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0)) as arm:
-            path = _real_config(tmp_path, group, arm.port, "x.pt")
+        client = free_udp_port()
+        with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0, client_port=client)) as arm:
+            path = _real_config(tmp_path, group, arm.port, "x.pt", local=client)
             Path(path).write_text(Path(path).read_text().replace(  # normal scheduling: no privilege
                 "interface: virtual", f"interface: udp_multicast\n    port: {port}").replace(
                 "realtime_priority: 50", "realtime_priority: null").replace(  # a loaded host

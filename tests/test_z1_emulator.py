@@ -109,12 +109,13 @@ class Link:
 
     def __init__(self, **kw):
         self.now = 0.0
-        kw.setdefault("port", 0)
-        self.emu = Z1Emulator(Z1EmulatorConfig(lower=LOWER, upper=UPPER, **kw), clock=lambda: self.now)
-        self.emu.open()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
+        self.sock.bind(("127.0.0.1", 0))  # the client's port, given to the emulator
         self.sock.settimeout(0.5)
+        kw.setdefault("port", 0)
+        self.emu = Z1Emulator(Z1EmulatorConfig(lower=LOWER, upper=UPPER, client_port=self.sock.getsockname()[1],
+                                               **kw), clock=lambda: self.now)
+        self.emu.open()
 
     def send(self, cmd: SendCmd, at: float, reply: bool = True) -> RecvState | None:
         self.now = at
@@ -136,14 +137,35 @@ def link():
     link.close()
 
 
-def test_silence_drops_to_passive_after_the_command_timeout(link):
+def test_silence_changes_nothing_the_last_command_goes_on(link):
+    """specs/z1.md documents no command timeout: the controller keeps executing the last
+    command, whatever the silence (the less convenient assumption for the client)."""
     for mode in (ArmFSMState.LOWCMD, ArmFSMState.JOINTCTRL):
         assert link.send(SendCmd(mode), at=link.now + 1.0).state == mode
-        t = link.now
-        link.emu.poll(t + 0.099)
-        assert link.emu.fsm == mode
-        link.emu.poll(t + 0.101)
-        assert link.emu.fsm == ArmFSMState.PASSIVE
+        before = link.emu.command()
+        for k in range(1, 40):
+            link.emu.poll(link.now + 0.05 * k)
+        assert link.emu.fsm == mode and link.emu.command().fsm == before.fsm
+        np.testing.assert_array_equal(link.emu.command().q_d, before.q_d)
+        link.send(SendCmd(ArmFSMState.PASSIVE), at=link.now + 3.0)
+
+
+def test_replies_go_to_the_client_port_only():
+    """The controller sends to the client's fixed port, never to a command's source."""
+    link = Link()
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger.bind(("127.0.0.1", 0))
+    stranger.settimeout(0.1)
+    try:
+        stranger.sendto(SendCmd(ArmFSMState.PASSIVE).pack(), ("127.0.0.1", link.emu.port))
+        link.emu.poll(1.0, timeout=0.5)
+        assert link.emu.commands_received == 1
+        with pytest.raises(socket.timeout):
+            stranger.recv(4096)
+        assert RecvState.unpack(link.sock.recv(4096)).state == ArmFSMState.PASSIVE
+    finally:
+        stranger.close()
+        link.close()
 
 
 def test_entering_jointctrl_holds_the_current_position_with_the_default_gains():
@@ -202,7 +224,7 @@ def test_weightless_config_and_gravity_direction():
 
 
 def test_a_tick_steps_at_most_50_ms():
-    link = Link(command_timeout_s=100.0)
+    link = Link()
     try:
         link.send(SendCmd(ArmFSMState.LOWCMD, (JointCmd(T=2.0),) * 6 + (JointCmd(),)), at=0.0)
         link.emu.poll(10.0)  # a 10 s stall of the caller: one 50 ms step, not 10 s of motion
@@ -215,11 +237,9 @@ def test_a_tick_steps_at_most_50_ms():
         link.close()
 
 
-def test_replies_go_to_the_reply_port_and_stall_keeps_obeying():
-    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    listener.bind(("127.0.0.1", 0))
-    listener.settimeout(0.5)
-    link = Link(reply_port=listener.getsockname()[1])
+def test_a_stall_keeps_obeying():
+    link = Link()
+    listener = link.sock
     try:
         link.send(SendCmd(ArmFSMState.LOWCMD), at=1.0, reply=False)
         assert RecvState.unpack(listener.recv(4096)).state == ArmFSMState.LOWCMD
@@ -233,7 +253,6 @@ def test_replies_go_to_the_reply_port_and_stall_keeps_obeying():
         link.send(SendCmd(ArmFSMState.PASSIVE), at=1.6, reply=False)
         assert RecvState.unpack(listener.recv(4096)).state == ArmFSMState.PASSIVE
     finally:
-        listener.close()
         link.close()
 
 
@@ -284,9 +303,10 @@ def test_socket_life_cycle_errors():
 
 def test_thread_start_stop_and_context_manager():
     """In its own thread: answers while running; stop() joins it and closes the socket."""
-    with Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER)) as emu:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    with Z1Emulator(Z1EmulatorConfig(port=0, client_port=sock.getsockname()[1], lower=LOWER, upper=UPPER)) as emu:
         assert emu._thread is not None and emu._thread.is_alive()
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.settimeout(1.0)
         try:
             sock.sendto(SendCmd(ArmFSMState.LOWCMD).pack(), ("127.0.0.1", emu.port))

@@ -26,6 +26,7 @@ from dexdrake.hardware.z1_udp import (
     Z1Arm,
     Z1Config,
     default_joint_limits,
+    free_udp_port,
 )
 from waiting import wait_for
 
@@ -35,9 +36,16 @@ UPPER = np.array([2.6180, 2.9671, 0.0, 1.5184, 1.3439, 2.7925])
 TARGET = np.array([0.5, 1.0, -1.0, 0.3, -0.3, 0.5])
 
 
+def new_emulator(**kw) -> Z1Emulator:
+    """An emulator on a free port that sends to a free client port (probed: `client_port`)."""
+    kw.setdefault("lower", LOWER)
+    kw.setdefault("upper", UPPER)
+    return Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), **kw))
+
+
 @pytest.fixture
 def emulator():
-    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER))
+    emu = new_emulator()
     emu.start()
     yield emu
     emu.stop()
@@ -46,17 +54,18 @@ def emulator():
 def make_arm(emu: Z1Emulator, **kw) -> Z1Arm:
     # a watchdog generous enough for a loaded 2-core CI machine; stalls below are longer
     kw.setdefault("watchdog_timeout_s", 0.2)
-    return Z1Arm(Z1Config(local_port=0, controller_port=emu.port, lower=LOWER, upper=UPPER, **kw))
+    return Z1Arm(Z1Config(local_port=emu.config.client_port, controller_port=emu.port, lower=LOWER,
+                          upper=UPPER, **kw))
 
 
 class RawClient:
-    """A bare UDP socket speaking SendCmd/RecvState, for FSM tests."""
+    """A bare UDP socket on the emulator's client port speaking SendCmd/RecvState."""
 
-    def __init__(self, port: int):
+    def __init__(self, emu: Z1Emulator):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
+        self.sock.bind(("127.0.0.1", emu.config.client_port))
         self.sock.settimeout(0.5)
-        self.port = port
+        self.port = emu.port
 
     def send(self, cmd: SendCmd | bytes) -> RecvState:
         self.sock.sendto(cmd if isinstance(cmd, bytes) else cmd.pack(), ("127.0.0.1", self.port))
@@ -140,7 +149,7 @@ def test_default_limits_from_description():
 
 # ------------------------------------------------------------------ emulator FSM
 def test_emulator_fsm_rules(emulator):
-    c = RawClient(emulator.port)
+    c = RawClient(emulator)
     try:
         assert c.send(SendCmd(ArmFSMState.PASSIVE)).state == ArmFSMState.PASSIVE
         assert c.send(SendCmd(ArmFSMState.MOVEJ)).state == ArmFSMState.PASSIVE  # not emulated
@@ -151,8 +160,9 @@ def test_emulator_fsm_rules(emulator):
         assert c.send(SendCmd(ArmFSMState.JOINTCTRL)).state == ArmFSMState.LOWCMD  # only to PASSIVE
         assert emulator.rejected_transitions == {"PASSIVE->MOVEJ": 1, "JOINTCTRL->LOWCMD": 1,
                                                  "LOWCMD->JOINTCTRL": 1}
-        # silence in LOWCMD drops the arm to PASSIVE
-        assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
+        # silence in LOWCMD changes nothing: the controller keeps executing the last command
+        time.sleep(0.3)
+        assert emulator.fsm == ArmFSMState.LOWCMD
         # garbage is counted, not answered
         c.sock.sendto(b"\x01\x02\x03", ("127.0.0.1", emulator.port))
         assert wait_for(lambda: emulator.packet_errors["size"] == 1, 1.0)
@@ -164,7 +174,7 @@ def test_emulator_lowcmd_torque_law(emulator):
     """The reported torque equals kp*25.6*(q_d - q) + kd*0.0128*(dq_d - dq) + tau_ff, each
     term large enough that dropping it (or a wrong scale) fails: kp term about 5 N*m, kd
     term about 1.3 N*m, tau_ff 0.5 N*m, all under the 30 N*m effort limit."""
-    c = RawClient(emulator.port)
+    c = RawClient(emulator)
     try:
         c.send(SendCmd(ArmFSMState.LOWCMD))
         q_d, dq_d, kp, kd, tau_ff = 0.2, 1.0, 1.0, 100.0, 0.5
@@ -193,9 +203,10 @@ def test_emulator_dynamics_hook_gets_the_command_and_reports_its_state():
             return TARGET.copy(), np.full(6, 0.25), np.full(6, -1.5)
 
     dynamics = Fixed()
-    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER), dynamics=dynamics)
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), lower=LOWER, upper=UPPER),
+                     dynamics=dynamics)
     emu.start()
-    c = RawClient(emu.port)
+    c = RawClient(emu)
     try:
         c.send(SendCmd(ArmFSMState.LOWCMD))
         cmd = SendCmd(ArmFSMState.LOWCMD, (JointCmd(T=0.5, W=0.1, Pos=0.2, K_P=3.0, K_W=40.0),) * 6
@@ -241,7 +252,7 @@ def test_state_reports_the_measured_joints_and_posture(emulator):
     assert st.fsm == ArmFSMState.INVALID and math.isnan(st.t) and st.fault is None
     for v, n in ((st.q, 6), (st.dq, 6), (st.tau, 6), (st.posture, 6)):
         assert v.shape == (n,) and np.all(np.isnan(v))
-    np.testing.assert_array_equal(st.q_target, np.zeros(6))
+    np.testing.assert_array_equal(st.q_target, np.clip(0.0, LOWER + 0.02, UPPER - 0.02))  # the margin
     stats = arm.stats()
     assert stats["packets_received"] == 0 and stats["cycles"] == 0 and stats["packet_errors"] == {}
     with arm:
@@ -282,11 +293,11 @@ def test_nan_and_out_of_range_targets(emulator):
     with arm:
         np.testing.assert_allclose(arm.command_positions(TARGET), TARGET)
         np.testing.assert_allclose(arm.command_positions([math.nan] * 6), TARGET)
-        np.testing.assert_allclose(arm.command_positions(np.full(6, 9.0)), UPPER)
+        np.testing.assert_allclose(arm.command_positions(np.full(6, 9.0)), UPPER - 0.02)  # the margin
         assert arm.stats()["rejected_commands"] == 1 and arm.stats()["clamped_commands"] == 1
         with pytest.raises(HardwareError):
             arm.command_positions(np.zeros(5))
-        assert wait_for(lambda: np.max(np.abs(emulator.q - UPPER)) < 0.01, 4.0)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - UPPER + 0.02)) < 0.01, 4.0)
 
 
 def test_watchdog_latches_passive_until_reset(emulator):
@@ -349,8 +360,8 @@ def test_restart_holds_where_the_arm_is_not_the_old_target(emulator):
 
 
 def quiet_emulator() -> Z1Emulator:
-    """An emulator that never drops to PASSIVE on its own: what it does, the client asked."""
-    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, command_timeout_s=30.0))
+    """A running emulator (it never drops to PASSIVE on its own: what it does, the client asked)."""
+    emu = new_emulator()
     emu.start()
     return emu
 
@@ -361,7 +372,7 @@ def test_stop_commands_passive_and_closes_the_socket():
         arm = make_arm(emu)
         with arm:
             assert emu.fsm == ArmFSMState.LOWCMD
-        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)  # told, not timed out (30 s)
+        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 0.5)  # told: it never times out
         with pytest.raises(HardwareError, match="Z1: not started"):
             arm.local_port
     finally:
@@ -411,13 +422,13 @@ def test_reset_after_a_fault_holds_where_the_arm_fell(emulator):
 def test_commands_stay_inside_the_configured_limits_when_the_arm_starts_outside():
     """The arm rests beyond a lowered limit: the reference starts clamped into the limits
     and no command ever leaves them."""
-    emu = Z1Emulator(Z1EmulatorConfig(port=0, lower=LOWER, upper=UPPER, gravity=False,
-                                      q0=[1.0, 0.5, -0.5, 0.0, 0.0, 0.0]))
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), lower=LOWER, upper=UPPER, gravity=False,
+                                      q0=[0.55, 0.95, -0.95, 0.0, 0.0, 0.0]))
     emu.start()
     lower, upper = LOWER.copy(), UPPER.copy()
     upper[0], lower[1], upper[2] = 0.5, 1.0, -1.0
     try:
-        arm = Z1Arm(Z1Config(local_port=0, controller_port=emu.port, lower=lower, upper=upper,
+        arm = Z1Arm(Z1Config(local_port=emu.config.client_port, controller_port=emu.port, lower=lower, upper=upper,
                              watchdog_timeout_s=0.2))
         seen = []
         with arm:
@@ -585,7 +596,7 @@ def test_default_ports_and_head_follow_the_vendor():
     from dexdrake.hardware.z1_udp import COMMAND_HEAD
 
     assert (Z1Config().local_port, Z1Config().controller_port) == (8072, 8071)
-    assert Z1EmulatorConfig().port == 8071
+    assert (Z1EmulatorConfig().port, Z1EmulatorConfig().client_port) == (8071, 8072)
     assert COMMAND_HEAD == (0xFE, 0xFF) and SendCmd(ArmFSMState.PASSIVE).pack()[:2] == b"\xfe\xff"
 
 
@@ -595,7 +606,7 @@ def test_default_ports_and_head_follow_the_vendor():
     (SendCmd(ArmFSMState.PASSIVE).pack() + b"\x00", "size"),
 ])
 def test_emulator_drops_what_the_controller_drops_without_a_reply(emulator, raw, kind):
-    c = RawClient(emulator.port)
+    c = RawClient(emulator)
     c.sock.settimeout(0.2)
     try:
         with pytest.raises(socket.timeout):
@@ -607,7 +618,7 @@ def test_emulator_drops_what_the_controller_drops_without_a_reply(emulator, raw,
 
 
 def test_emulator_jointctrl_follows_targets_only_with_track(emulator):
-    c = RawClient(emulator.port)
+    c = RawClient(emulator)
     try:
         c.send(SendCmd(ArmFSMState.JOINTCTRL))
         target = (JointCmd(Pos=0.4),) * 6 + (JointCmd(),)
@@ -751,7 +762,8 @@ def test_config_at_the_model_limits_and_zero_gains_is_accepted():
     arm = Z1Arm(Z1Config(local_port=0, kp=(0,) * 6, kd=(0,) * 6, max_velocity=math.pi, lower=LOWER, upper=UPPER))
     np.testing.assert_array_equal(arm.kp, 0.0)
     assert arm.settings.max_velocity == math.pi
-    np.testing.assert_array_equal(arm.limits.upper, UPPER)
+    np.testing.assert_array_equal(arm.settings.upper, UPPER)
+    np.testing.assert_array_equal(arm.limits.upper, UPPER - 0.02)  # targets: the default margin inside
     with pytest.raises(HardwareError, match="Z1: not started"):
         arm.local_port
 
@@ -759,7 +771,7 @@ def test_config_at_the_model_limits_and_zero_gains_is_accepted():
 def test_the_injected_clock_drives_the_loop_watchdog_and_time_stamps(emulator):
     """A clock 1000 s ahead of time.monotonic(): the watchdog and the state's time stamp use
     it too (a watchdog on another clock would trip at once)."""
-    arm = Z1Arm(Z1Config(local_port=0, controller_port=emulator.port, lower=LOWER, upper=UPPER,
+    arm = Z1Arm(Z1Config(local_port=emulator.config.client_port, controller_port=emulator.port, lower=LOWER, upper=UPPER,
                          watchdog_timeout_s=0.2), clock=lambda: time.monotonic() + 1000.0)
     with arm:
         time.sleep(0.3)
@@ -773,3 +785,99 @@ def test_non_numeric_target_raises_the_drivers_error(emulator):
     with arm:
         with pytest.raises(HardwareError, match="numbers"):
             arm.command_positions(["up"] * 6)
+
+
+def test_spontaneous_passive_is_a_fault_never_re_armed(emulator):
+    """specs/z1.md: PASSIVE reported while the client streams its mode means something outside
+    changed the arm's state: a fault; the client keeps commanding PASSIVE, never the mode."""
+    arm = make_arm(emulator)
+    with arm:
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 1.0)
+        emulator.force_passive(0.3)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        assert arm.state().fault == "controller left LOWCMD for PASSIVE on its own"
+        n = len(emulator.log)
+        time.sleep(0.5)  # the forced PASSIVE is over: still PASSIVE, nothing asked otherwise
+        assert emulator.fsm == ArmFSMState.PASSIVE
+        assert all(c.state == ArmFSMState.PASSIVE for c in list(emulator.log)[n:])
+
+
+@pytest.mark.parametrize("inject, fault", [
+    (lambda emu: setattr(emu, "motor_temperature_c", 71), "joint1 motor temperature 71 C (limit 70 C)"),
+    (lambda emu: setattr(emu, "motor_temperature_c", -60), "joint1 motor temperature -60 C: a broken sensor"),
+])
+def test_motor_temperature_trips(emulator, inject, fault):
+    arm = make_arm(emulator)
+    with arm:
+        inject(emulator)
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        assert arm.state().fault == fault
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.PASSIVE, 1.0)
+
+
+def test_a_joint_reported_beyond_its_velocity_limit_trips():
+    """The controller reports each joint's velocity: beyond pi rad/s (the model) + 50 % trips."""
+
+    class Spinning:
+        def __init__(self):
+            self.w = 0.0
+
+        def step(self, command, dt):
+            return np.full(6, 0.5) * [1, 1, -1, 0, 0, 0], np.r_[self.w, np.zeros(5)], np.zeros(6)
+
+    spin = Spinning()
+    emu = Z1Emulator(Z1EmulatorConfig(port=0, client_port=free_udp_port(), lower=LOWER, upper=UPPER),
+                     dynamics=spin)
+    emu.start()
+    try:
+        arm = make_arm(emu)
+        with arm:
+            spin.w = 1.4 * math.pi
+            time.sleep(0.2)
+            assert arm.state().fault is None
+            spin.w = -1.6 * math.pi
+            assert wait_for(lambda: arm.state().fault is not None, 1.0)
+            assert arm.state().fault == "joint1 reported at -5.03 rad/s (limit 3.14159 rad/s)"
+    finally:
+        emu.stop()
+
+
+def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop():
+    """SIGINT 200 times ~1 ms apart while moving: one KeyboardInterrupt, and the stop runs
+    to its end: a hold at the measured position (zero velocity) first, nothing else of the
+    mode after it, then PASSIVE; the socket closed."""
+    import os
+    import signal
+    import threading
+
+    emu = quiet_emulator()
+    counted = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
+
+    def storm():
+        for _ in range(200):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.001)
+
+    sender = threading.Thread(target=storm)
+    arm = make_arm(emu)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with arm:
+                arm.command_positions(UPPER)  # 0.8 s of ramp at pi rad/s: every command moving
+                time.sleep(0.2)
+                n = len(emu.log)
+                sender.start()
+                time.sleep(5.0)
+        sender.join()
+        assert not arm.running
+        assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 1.0)
+        after = list(emu.log)[n:]
+        hold = next(i for i, c in enumerate(after) if c.state == ArmFSMState.LOWCMD
+                    and all(j.W == 0.0 for j in c.joints))
+        assert after[hold + 1:] and all(c.state == ArmFSMState.PASSIVE for c in after[hold + 1:])
+        with pytest.raises(HardwareError, match="Z1: not started"):
+            arm.local_port
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        emu.stop()

@@ -5,7 +5,6 @@ drivers that are never started; moves nothing)."""
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
@@ -95,10 +94,10 @@ def dry_run(scenario) -> int:
     """Connectivity checks; prints limits, the plan and the diagram (built, never run);
     commands nothing."""
     from dexdrake.hands.description import load_hand
-    from dexdrake.hardware.allegro_can import Info, Msg, Request, Serial, check_allegro_config, decode, encode
+    from dexdrake.hardware.allegro_can import AllegroHand, check_allegro_config
     from dexdrake.hardware.safety import HardwareError
     from dexdrake.hardware.z1_model import NUM_ARM_JOINTS, z1_model
-    from dexdrake.hardware.z1_udp import ArmFSMState, RecvState, SendCmd, check_z1_config
+    from dexdrake.hardware.z1_udp import Z1Arm, check_z1_config
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import scenario_diagram
     from dexdrake.systems.scenario import driver_configs
@@ -109,9 +108,11 @@ def dry_run(scenario) -> int:
     hand_cfg, arm_cfg = driver_configs(scenario)
     hs, zs = check_allegro_config(hand_cfg), check_z1_config(arm_cfg)
     print(f"real dry run: {scenario.name} hand={scenario.hand} object={scenario.object}")
-    lower = np.concatenate([zs.lower, hs.lower])
-    upper = np.concatenate([zs.upper, hs.upper])
+    lower = np.concatenate([zs.target_lower, hs.target_lower])  # targets: the margin inside the limits
+    upper = np.concatenate([zs.target_upper, hs.target_upper])
     joints = list(hand.arm_joints) + list(hand.hardware_joints)
+    print(f"  target ranges: the joint limits less {arm_cfg.limit_margin_rad} rad (arm), "
+          f"{hand_cfg.limit_margin_rad} rad (hand)")
     for j, l, u in zip(joints, lower, upper):
         print(f"  limit {j:<11} [{l:+.3f}, {u:+.3f}] rad")
     print(f"  hand: max target rate {hand_cfg.max_target_rate} rad/s, watchdog "
@@ -136,53 +137,34 @@ def dry_run(scenario) -> int:
     except HardwareError as err:
         ok = False
         print(f"  diagram: FAILED: {err}")
-    # CAN: open the bus and ask for info + serial (RTR requests only: nothing moves)
+    # CAN: the driver's probe (RTR info and serial requests only: nothing moves)
     try:
         bus = open_can_bus(scenario)
         try:
-            replies = {}
-            for msg_id, kind in ((Msg.INFO, Info), (Msg.SERIAL, Serial)):
-                bus.send(encode(Request(msg_id), h.device_id))
-                deadline = time.monotonic() + 0.3
-                while time.monotonic() < deadline and kind not in replies:
-                    m = bus.recv(0.05)
-                    if m is not None:
-                        try:
-                            f = decode(m, h.device_id)
-                        except HardwareError:
-                            continue
-                        if isinstance(f, kind):
-                            replies[kind] = f
-            if Info in replies and Serial in replies:
-                print(f"  CAN {h.interface}:{h.channel}: OK, {replies[Info]} serial {replies[Serial].text!r}")
-            else:
-                ok = False
-                print(f"  CAN {h.interface}:{h.channel}: bus opens but the hand does not answer info/serial "
-                      "(powered? device id? bitrate 1 Mbit/s?)")
+            info = AllegroHand(bus, h.device_id, hand_cfg).probe()
+            print(f"  CAN {h.interface}:{h.channel}: OK, {info}")
         finally:
             bus.shutdown()
     except HardwareError as err:
         ok = False
-        print(f"  CAN: FAILED: {err}")
-    # Z1: listen for controller state on the SDK port, sending PASSIVE only (no motion)
-    import socket
-
+        print(f"  CAN {h.interface}:{h.channel}: FAILED: {err}")
+    # Z1: the driver's probe sends nothing (the protocol has no pure query)
     a = arm_cfg
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    where = f"Z1 {a.host}:{a.local_port} -> {a.controller_port}"
     try:
-        sock.bind((a.host, a.local_port))
-        sock.settimeout(0.3)
-        sock.sendto(SendCmd(ArmFSMState.PASSIVE).pack(), (a.host, a.controller_port))
-        data = sock.recv(4096)
-        st = RecvState.unpack(data)
-        print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: OK, state {st.state.name}, q = "
-              f"{np.round([j.Pos for j in st.joints[:NUM_ARM_JOINTS]], 3).tolist()}")
-    except (OSError, HardwareError) as err:
+        found = Z1Arm(a).probe()
+        heard = ("" if found.state is None else f", state {found.state.state.name} heard, q = "
+                 f"{np.round([j.Pos for j in found.state.joints[:NUM_ARM_JOINTS]], 3).tolist()}")
+        if found.controller_bound is False:
+            ok = False
+            print(f"  {where}: FAILED: nothing is bound to port {a.controller_port} (is z1_controller running?)")
+        else:
+            bound = {True: "controller port bound", None: "controller port not checked (remote host)"}
+            print(f"  {where}: OK, client port free, {bound[found.controller_bound]}{heard}; "
+                  "nothing sent (the protocol has no pure query)")
+    except HardwareError as err:
         ok = False
-        print(f"  Z1 {a.host}:{a.local_port} -> {a.controller_port}: FAILED: {err} "
-              "(is z1_controller running?)")
-    finally:
-        sock.close()
+        print(f"  {where}: FAILED: {err}")
     # camera: one frame
     try:
         from dexdrake.hardware.kinect import K4ADevice, RecordedSequence

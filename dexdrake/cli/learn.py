@@ -88,6 +88,9 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
     dapg.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per trajectory")
     dapg.add_argument("--workers", type=argtypes.count, default=2)
+    dapg.add_argument("--envs-per-worker", type=argtypes.count, default=None,
+                      help="environments each worker steps in lockstep, one policy call for all of them "
+                           "(default: dexdrake.learn.samplers.ENVS_PER_WORKER)")
     _add_backend_options(dapg)
     dapg.add_argument("--resume", action="store_true", help="continue the run in OUT (dapg_state.pt) where it stopped")
     dapg.add_argument("--seed", type=argtypes.seed, default=0)
@@ -206,9 +209,11 @@ def training_objects(spec: str) -> list[str]:
 def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.learn.dapg import DAPGConfig, load_demo_term, train_dapg
     from dexdrake.learn.policy import DEMO_STD_FRACTION, load_policy
-    from dexdrake.learn.samplers import make_sampler
+    from dexdrake.learn.samplers import ENVS_PER_WORKER, make_sampler
     from dexdrake.systems.env_factory import env_factory_for_policy
 
+    if args.envs_per_worker is None:
+        args.envs_per_worker = ENVS_PER_WORKER
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
     if args.demo_weight is None:
@@ -225,15 +230,15 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "demo-weight",
                                                       "reward", "out",
                                                       "iterations", "per-object", "objects", "horizon", "workers",
-                                                      "backend", "address", "resume", "seed"])
+                                                      "envs-per-worker", "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
             "init_sha256": hashlib.sha256(args.init.read_bytes()).hexdigest(),
             "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
             "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")}}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
-          f"{args.workers} worker(s)")
-    sampler = make_sampler(factory, args.backend, args.workers, args.address)
+          f"{args.workers} worker(s) x {args.envs_per_worker} env(s) in lockstep")
+    sampler = make_sampler(factory, args.backend, args.workers, args.address, args.envs_per_worker)
     try:
         result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
     finally:

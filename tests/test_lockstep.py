@@ -121,3 +121,38 @@ def test_sdf_grid_float32_gather_equals_float64_values():
     for a, b in zip(f32.trilinear_index(u, with_gradient=True), f64.trilinear_index(u, with_gradient=True)):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(f32.nearest_node_index_value(u), f64.nearest_node_index_value(u))
+
+
+def test_evaluation_episodes_do_not_depend_on_envs_per_worker():
+    from dexdrake.cli.demo import default_policy_path
+    from dexdrake.eval.evaluate import evaluate_policy
+    from dexdrake.systems.env_factory import env_factory_for_policy
+
+    def episodes(k: int) -> list[tuple]:
+        report = evaluate_policy(default_policy_path(), env_factory_for_policy, ["mug", "can_soda", "box_cube"],
+                                 episodes=2, seed=5, horizon=12, progress=False, envs_per_worker=k)
+        assert report.envs_per_worker == k
+        return [(e.object, e.seed, e.success, e.max_lift, e.steps, e.total_reward) for e in report.episodes]
+
+    one = episodes(1)
+    assert [(o, s) for o, s, *_ in one] == [(o, s) for o in ("mug", "can_soda", "box_cube") for s in (5, 6)]
+    assert episodes(3) == one
+
+
+def test_dagger_lockstep_labels_equal_one_episode_at_a_time():
+    from dexdrake.cli.demo import default_policy_path
+    from dexdrake.learn.dagger import labelled_episode, labelled_lockstep
+    from dexdrake.learn.policy import load_policy
+    from dexdrake.systems.env_factory import GraspEnvFactory
+    from dexdrake.systems.reactive_grasp import ReactiveGrasp
+
+    policy = load_policy(default_policy_path())[0]
+    factory = GraspEnvFactory("adroit", policy.config.feature_set, ("mug", "can_soda"), 15)
+    jobs = [("mug", 1), ("can_soda", 2), ("mug", 3)]
+    env = factory()
+    one = [labelled_episode(env, name, seed, policy, 0.0, ReactiveGrasp) for name, seed in jobs]
+    together = labelled_lockstep([factory() for _ in jobs], jobs, policy, 0.0, ReactiveGrasp)
+    for a, b in zip(one, together, strict=True):
+        assert a.objects == b.objects and a.seeds == b.seeds and a.success == b.success
+        for field in ("episode_starts", "states", "observations", "labels"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)

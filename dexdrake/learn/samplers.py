@@ -406,8 +406,8 @@ def _process_worker_main(conn: Connection, env_factory: EnvFactory) -> None:
 
 # Imported once by the forkserver (with the module of the env factory's class), before any
 # thread starts, so each worker starts in a fraction of a second instead of importing torch,
-# Drake and Open3D itself (~3 CPU-s).
-PRELOAD = ("torch", "pydrake.all", "open3d")
+# Drake, Open3D and the mesh stack the object geometry loads with itself (~3 CPU-s).
+PRELOAD = ("torch", "pydrake.all", "open3d", "trimesh", "scipy.spatial")
 
 
 class ProcessSampler(_WorkerPool):

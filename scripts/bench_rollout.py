@@ -17,6 +17,8 @@ in lockstep with one policy call per step for the K observations):
   contact detection = SceneGraph's point-pair query times the plant steps per control
   period), DexRep features, reward (fingertip distances and terms), expert label, policy
   inference (per env), env reset (per step), and Python overhead (the rest);
+- DAPG sampling (`samplers.rollout_lockstep`: the policy samples its actions, no expert) at
+  each K: env steps per CPU-second;
 - before and after in the same run: the reward's fingertip query of its own against the
   distances read from the features' query, and batch-1 torch inference (`no_grad`) against
   `act_batch` at K = 8 per env;
@@ -191,6 +193,22 @@ def breakdown(jobs, k: int, policy, factory) -> tuple[dict[str, float], int, flo
     return dict(sections.total), steps, cpu - split["sampling"], split
 
 
+def dapg_sampling(jobs, k: int, policy, factory) -> tuple[int, float]:
+    """(env steps, CPU seconds) of DAPG's stochastic rollouts of the seeds of `jobs`, k at a
+    time in lockstep (envs built and every object's scene made before timing)."""
+    from dexdrake.learn.samplers import rollout_lockstep
+
+    envs = [factory() for _ in range(k)]
+    for env in envs:
+        for name in dict.fromkeys(name for name, _ in jobs):
+            env.reset(0, object_name=name)
+    seeds = [seed * len(jobs) + i for i, (_, seed) in enumerate(jobs)]  # distinct; the object is drawn from the seed
+    steps, start = 0, time.process_time()
+    for i in range(0, len(seeds), k):
+        steps += sum(len(t.rewards) for t in rollout_lockstep(envs[:len(seeds[i:i + k])], policy, seeds[i:i + k]))
+    return steps, time.process_time() - start
+
+
 def print_breakdown(title: str, parts: dict[str, float], steps: int, cpu: float, split: dict) -> None:
     print(f"\n{title}: {steps} labelled steps in {cpu:.2f} CPU-s -> {1e3 * cpu / steps:.2f} ms per labelled step")
     rows = dict(parts)
@@ -322,6 +340,14 @@ def main() -> None:
         results[driver, k] = steps / cpu
         print_breakdown(f"{driver} DAgger collection, K={k} (fastest of {args.repeats})", parts, steps, cpu, split)
 
+    sampling: dict[int, float] = {}
+    for _ in range(args.repeats):
+        for k in ks:
+            steps, cpu = dapg_sampling(jobs, k, policy, factory)
+            sampling[k] = max(sampling.get(k, 0.0), steps / cpu)
+    print("\nDAPG sampling (stochastic policy rollouts, no expert; fastest of "
+          f"{args.repeats}): " + ", ".join(f"K={k} {rate:.0f} env steps per CPU-s ({1e3 / rate:.2f} ms per step)"
+                                           for k, rate in sampling.items()))
     before_after(policy, factory, objects)
     peer = mujoco_peer.measure_relocate()
     print()

@@ -4,14 +4,16 @@ evaluation, the scripted grasp in simulation, the demo, and the station (hil, re
 The loop runs an env of the learning protocol (learn/env_protocol.py): `reset(seed)`, then
 `step(act(observation))` until the env says done, its info carries a "fault", or `horizon`
 steps. `info` holds "success" (so far) and "lift" (m, NaN when the object's pose is not
-known); recorders hook in through `act`, `on_reset` and `on_step`.
+known); recorders hook in through `act`, `on_reset` and `on_step`. `run_lockstep` runs K
+envs this way side by side, one `act` call choosing the actions of all of them per step
+(`run_episode` is its K = 1 case).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,22 +42,66 @@ def run_episode(env, act: Callable[[np.ndarray], np.ndarray], seed: int, horizon
     """One episode of `env` from `reset(seed)` (on `object_name` when given), `act` choosing
     each action from the observation, for at most `horizon` steps (default env.horizon).
     `on_reset()` runs after the reset, `on_step(reward, info)` after every step."""
-    obs = env.reset(int(seed)) if object_name is None else env.reset(int(seed), object_name=object_name)
-    if on_reset is not None:
-        on_reset()
-    steps, total, success, max_lift, lift_known, fault = 0, 0.0, False, 0.0, False, None
-    start = time.perf_counter()
-    for steps in range(1, (env.horizon if horizon is None else horizon) + 1):
-        obs, reward, done, info = env.step(act(obs))
-        if on_step is not None:
-            on_step(reward, info)
-        total += float(reward)
-        success = success or bool(info["success"])
+    return run_lockstep([env], lambda observations, live: [act(observations[0])], [seed], horizon,
+                        None if object_name is None else [object_name],
+                        None if on_reset is None else lambda k: on_reset(),
+                        None if on_step is None else lambda k, reward, info: on_step(reward, info))[0]
+
+
+def run_lockstep(envs: Sequence[Any], act: Callable[[list[np.ndarray], list[int]], Sequence[np.ndarray]],
+                 seeds: Sequence[int], horizon: int | None = None, object_names: Sequence[str] | None = None,
+                 on_reset: Callable[[int], None] | None = None,
+                 on_step: Callable[[int, float, dict[str, Any]], None] | None = None) -> list[EpisodeResult]:
+    """Episodes of K envs in lockstep, env k from `reset(seeds[k])` (on object_names[k] when
+    given): each step, `act(observations, live)` returns the actions of the envs still running
+    (their indices `live`, ascending) in one call, e.g. one policy forward for all of them;
+    an env stops when it says done, its info carries a "fault", or after `horizon` steps
+    (default its own horizon). `on_reset(k)` runs after env k's reset, `on_step(k, reward,
+    info)` after each of its steps. Env k's episode is the one `run_episode` gives alone."""
+    tallies = []
+    for k, (env, seed) in enumerate(zip(envs, seeds, strict=True)):
+        name = None if object_names is None else object_names[k]
+        obs = env.reset(int(seed)) if name is None else env.reset(int(seed), object_name=name)
+        if on_reset is not None:
+            on_reset(k)
+        tallies.append(_Tally(env, int(seed), obs, env.horizon if horizon is None else horizon))
+    live = [k for k, t in enumerate(tallies) if t.horizon > 0]
+    while live:
+        actions = act([tallies[k].obs for k in live], live)
+        for k, action in zip(live, actions, strict=True):
+            reward, info = tallies[k].step(action)
+            if on_step is not None:
+                on_step(k, reward, info)
+        live = [k for k in live if not tallies[k].ended]
+    return [t.result() for t in tallies]
+
+
+class _Tally:
+    """One env's running episode in `run_lockstep`: its observation and what it has scored."""
+
+    def __init__(self, env: Any, seed: int, obs: np.ndarray, horizon: int):
+        self.env, self.seed, self.obs, self.horizon = env, seed, obs, horizon
+        self.steps, self.total, self.success, self.max_lift, self.lift_known = 0, 0.0, False, 0.0, False
+        self.fault: str | None = None
+        self.ended = False
+        self.start = time.perf_counter()
+        self.wall_s = 0.0
+
+    def step(self, action: np.ndarray) -> tuple[float, dict[str, Any]]:
+        self.obs, reward, done, info = self.env.step(action)
+        self.steps += 1
+        self.total += float(reward)
+        self.success = self.success or bool(info["success"])
         lift = float(info.get("lift", math.nan))
         if math.isfinite(lift):
-            max_lift, lift_known = max(max_lift, lift), True
-        fault = info.get("fault")
-        if done or fault is not None:
-            break
-    return EpisodeResult(getattr(env, "object_name", ""), int(seed), success, max_lift if lift_known else math.nan,
-                         steps, total, time.perf_counter() - start, fault)
+            self.max_lift, self.lift_known = max(self.max_lift, lift), True
+        self.fault = info.get("fault")
+        self.ended = done or self.fault is not None or self.steps >= self.horizon
+        if self.ended:
+            self.wall_s = time.perf_counter() - self.start
+        return reward, info
+
+    def result(self) -> EpisodeResult:
+        return EpisodeResult(getattr(self.env, "object_name", ""), self.seed, self.success,
+                             self.max_lift if self.lift_known else math.nan, self.steps, self.total, self.wall_s,
+                             self.fault)

@@ -1,26 +1,36 @@
 """Throughput of labelled grasp experience: rates, a per-step breakdown and MuJoCo's in the same run.
 
-    python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes 1]
-        [--horizon 100] [--bc-samples 8000] [--workers 1,2]
+    python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes 2]
+        [--horizon 100] [--envs 1,8] [--repeats 2] [--bc-samples 8000] [--workers 1,2]
 
-Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_episode`:
-Drake physics, DexRep features, the task's reward and the state-driven expert's label):
-- start-up: importing the stack and building the env for one object, in a fresh process;
+Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_lockstep`:
+Drake physics, DexRep features, the task's reward and the state-driven expert's label, K envs
+in lockstep with one policy call per step for the K observations):
+- start-up: importing the stack (what the sampler's forkserver imports once for all workers,
+  and the rest) and building the env for one object, in a fresh process;
 - expert-driven collection (the expert acts and labels) and policy-driven collection (the
-  shipped Adroit DexRep policy acts, the expert labels): labelled steps and simulated
-  seconds per CPU-second of this process;
-- the breakdown of one labelled step: plant advance (split, on sampled steps, into contact
+  shipped Adroit DexRep policy acts, the expert labels) at each K of `--envs`, on the same
+  episodes (`--episodes` seeds per object): labelled steps and simulated seconds per
+  CPU-second of this process, and MuJoCo's multiple;
+- the breakdown of one labelled step, each part against its budget: plant advance (split, on sampled steps, into contact
   work = the advance minus the same advance with the object out of reach, and the rest;
   contact detection = SceneGraph's point-pair query times the plant steps per control
-  period), DexRep features, reward (fingertip distances), expert label, policy inference,
-  env reset (per step), and Python overhead (the rest);
+  period), DexRep features, reward (fingertip distances and terms), expert label, policy
+  inference (per env), env reset (per step), and Python overhead (the rest);
+- DAPG sampling (`samplers.rollout_lockstep`: the policy samples its actions, no expert) at
+  each K: env steps per CPU-second;
+- before and after in the same run: the reward's fingertip query of its own against the
+  distances read from the features' query, and batch-1 torch inference (`no_grad`) against
+  `act_batch` at K = 8 per env;
 - MuJoCo stepping the paper's Adroit relocate scene (optional `bench` extra, see
   `mujoco_peer.py`) and our rate as a multiple of it;
 - DAgger collection with 1 and 2 workers, local processes and Ray (`bench_scaling.py`:
   labelled steps per wall and per worker CPU-second, parallel efficiency), policy inference
   and a behaviour-cloning epoch.
 Rates are per CPU-second (time.process_time): on a shared machine wall time is inflated by
-other processes; the load average is printed before and after.
+other processes, and CPU time too, less so (shared caches and cores); so every configuration
+runs `--repeats` times, the configurations interleaved, and the fastest run of each is
+printed. The load average is printed before and after.
 """
 
 from __future__ import annotations
@@ -32,7 +42,6 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
-from dataclasses import replace
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -40,13 +49,20 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 STARTUP_SNIPPET = """
-import time
+import time, importlib
 t0 = time.process_time()
+from dexdrake.learn.samplers import PRELOAD
+for name in PRELOAD:
+    importlib.import_module(name)
+t1 = time.process_time()
 from dexdrake.systems.env_factory import GraspEnvFactory
+import dexdrake.systems.grasp_env
+t2 = time.process_time()
 env = GraspEnvFactory("adroit", "DexRep", ({obj!r},), 10)()
 env.reset(0)
-print(time.process_time() - t0)
+print(t1 - t0, t2 - t1, time.process_time() - t2)
 """
+BUDGET_MS = {"DexRep features": 0.4, "reward": 0.1, "expert label": 0.5, "policy inference": 0.15}
 
 
 class Sections:
@@ -131,11 +147,12 @@ def instrument(sections: Sections, sample_every: int = 5):
         (grasp_env, "Simulator", TimedSimulator),
         (GraspEnv, "step_positions", step_positions),
         (GraspEnv, "observation", sections.wrap("DexRep features", GraspEnv.observation)),
-        (GraspEnv, "fingertip_distances", sections.wrap("reward (fingertip distances)", GraspEnv.fingertip_distances)),
+        (GraspEnv, "fingertip_distances", sections.wrap("reward", GraspEnv.fingertip_distances)),
+        (grasp_env, "reward_terms", sections.wrap("reward", grasp_env.reward_terms)),
         (GraspEnv, "reset", sections.wrap("env reset + expert plan", GraspEnv.reset)),
         (ReactiveGrasp, "__init__", sections.wrap("env reset + expert plan", ReactiveGrasp.__init__)),
         (ReactiveGrasp, "__call__", sections.wrap("expert label", ReactiveGrasp.__call__)),
-        (DexRepNetPolicy, "act", sections.wrap("policy inference", DexRepNetPolicy.act)),
+        (DexRepNetPolicy, "act_batch", sections.wrap("policy inference", DexRepNetPolicy.act_batch)),
     ]
     saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
     for obj, name, value in patches:
@@ -148,30 +165,48 @@ def instrument(sections: Sections, sample_every: int = 5):
     return split, undo
 
 
-def collect(env, objects, episodes: int, policy, seed0: int) -> tuple[int, float]:
-    """(labelled steps, CPU seconds) of DAgger episodes: the expert acts if `policy` is None."""
-    from dexdrake.learn.dagger import labelled_episode
+def collect(envs, jobs: list[tuple[str, int]], policy) -> tuple[int, float]:
+    """(labelled steps, CPU seconds) of DAgger episodes `jobs` (object, seed), len(envs) at a
+    time in lockstep: the expert acts if `policy` is None."""
+    from dexdrake.learn.dagger import labelled_lockstep
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
-    steps, start = 0, time.process_time()
-    for k in range(episodes):
-        for name in objects:
-            steps += len(labelled_episode(env, name, seed0 + k, policy, 0.0, ReactiveGrasp).labels)
+    steps, start, k = 0, time.process_time(), len(envs)
+    for i in range(0, len(jobs), k):
+        group = jobs[i:i + k]
+        steps += sum(len(d.labels) for d in labelled_lockstep(envs[:len(group)], group, policy, 0.0, ReactiveGrasp))
     return steps, time.process_time() - start
 
 
-def breakdown(objects, episodes: int, policy, factory, seed0: int) -> tuple[dict[str, float], int, float, dict]:
+def breakdown(jobs, k: int, policy, factory) -> tuple[dict[str, float], int, float, dict]:
     sections = Sections()
     split, undo = instrument(sections)
     try:
-        env = factory()
-        for name in objects:  # build every scene before timing (start-up is measured apart)
-            env.reset(0, object_name=name)
+        envs = [factory() for _ in range(k)]
+        for env in envs:  # build every scene before timing (start-up is measured apart)
+            for name in dict.fromkeys(name for name, _ in jobs):
+                env.reset(0, object_name=name)
         sections.total.clear()
-        steps, cpu = collect(env, objects, episodes, policy, seed0)
+        steps, cpu = collect(envs, jobs, policy)
     finally:
         undo()
     return dict(sections.total), steps, cpu - split["sampling"], split
+
+
+def dapg_sampling(jobs, k: int, policy, factory) -> tuple[int, float]:
+    """(env steps, CPU seconds) of DAPG's stochastic rollouts of the seeds of `jobs`, k at a
+    time in lockstep (envs built and every object's scene made before timing)."""
+    from dexdrake.learn.samplers import rollout_lockstep
+
+    envs = [factory() for _ in range(k)]
+    for env in envs:
+        for name in dict.fromkeys(name for name, _ in jobs):
+            env.reset(0, object_name=name)
+    seeds = [seed * len(jobs) + i for i, (_, seed) in enumerate(jobs)]  # distinct; the object is drawn from the seed
+    steps, start = 0, time.process_time()
+    for i in range(0, len(seeds), k):
+        steps += sum(len(t.rewards) for t in rollout_lockstep(envs[:len(seeds[i:i + k])], policy, seeds[i:i + k]))
+    return steps, time.process_time() - start
 
 
 def print_breakdown(title: str, parts: dict[str, float], steps: int, cpu: float, split: dict) -> None:
@@ -179,7 +214,8 @@ def print_breakdown(title: str, parts: dict[str, float], steps: int, cpu: float,
     rows = dict(parts)
     rows["python overhead + rest"] = cpu - sum(parts.values())
     for name, seconds in rows.items():
-        print(f"  {name:<32}{1e3 * seconds / steps:>8.3f} ms  {seconds / cpu:>6.1%}")
+        budget = f"  (budget {BUDGET_MS[name]:g} ms)" if name in BUDGET_MS else ""
+        print(f"  {name:<32}{1e3 * seconds / steps:>8.3f} ms  {seconds / cpu:>6.1%}{budget}")
     if split["full"] > 0:
         advance = parts.get("plant advance", 0.0) / steps
         contact = max(split["full"] - split["free"], 0.0) / split["full"]
@@ -188,11 +224,54 @@ def print_breakdown(title: str, parts: dict[str, float], steps: int, cpu: float,
               f"contact detection (SceneGraph point pairs) {1e3 * split['detect'] / split['full'] * advance:.3f} ms")
 
 
-def startup_cpu_s(obj: str) -> float:
-    """CPU seconds (including imports) to build a DexRep env and reset it, in a fresh process."""
+def startup_cpu_s(obj: str) -> tuple[float, float, float]:
+    """CPU seconds, in a fresh process, of (importing what the forkserver preloads for every
+    worker, importing the rest of the env's stack, building a DexRep env and resetting it)."""
     out = subprocess.run([sys.executable, "-c", STARTUP_SNIPPET.format(obj=obj)], capture_output=True, text=True,
                          check=True)
-    return float(out.stdout.strip().splitlines()[-1])
+    preload, rest, build = map(float, out.stdout.strip().splitlines()[-1].split())
+    return preload, rest, build
+
+
+def per_call_ms(fn, n: int, repeats: int = 3) -> float:
+    """The fastest of `repeats` means of n calls of fn(), in CPU ms."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.process_time()
+        for _ in range(n):
+            fn()
+        best = min(best, (time.process_time() - start) / n)
+    return 1e3 * best
+
+
+def before_after(policy, factory, objects: list[str]) -> None:
+    """The old and new implementations of the reward's fingertip distances and of policy
+    inference, timed side by side in this process."""
+    env = factory()
+    obs = env.reset(1000, object_name=objects[0])
+    for _ in range(40):  # the hand near the object
+        obs = env.step(policy.act(obs)[0])[0]
+    env.observation()
+
+    def own_query():
+        env._tips_at = None  # forget the distances read from the features' query
+        return env.fingertip_distances()
+
+    print("\nbefore -> after, same process (fastest of 3 means, CPU ms):")
+    print(f"  reward's fingertip distances: own closest-point query {per_call_ms(own_query, 300):.3f} -> read from "
+          f"the features' query {per_call_ms(env.fingertip_distances, 300):.3f}")
+    o32 = np.asarray(obs, dtype=np.float32)
+    batch = np.stack([o32] * 8)
+
+    def old_act():
+        with torch.no_grad():
+            return policy(torch.as_tensor(o32).unsqueeze(0))[0].numpy()
+
+    old = per_call_ms(old_act, 300)
+    one = per_call_ms(lambda: policy.act(o32), 300)
+    eight = per_call_ms(lambda: policy.act_batch(batch, [None] * 8), 100) / 8
+    print(f"  policy inference per env: batch 1 no_grad forward {old:.3f} -> act_batch K=1 {one:.3f}, "
+          f"K=8 {eight:.3f} (budget {BUDGET_MS['policy inference']:g})")
 
 
 def bench_bc_epoch(config, samples: int, epochs: int = 2) -> float:
@@ -224,12 +303,15 @@ def shipped_policy_env(objects: list[str], horizon: int):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="mug,can_soda,box_cube,bottle_wine")
-    parser.add_argument("--episodes", type=int, default=1, help="expert episodes per object")
+    parser.add_argument("--episodes", type=int, default=2, help="episodes (seeds) per object")
     parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--envs", default="1,8", help="envs in lockstep (K) to measure")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each configuration (the fastest is kept)")
     parser.add_argument("--bc-samples", type=int, default=8000)
     parser.add_argument("--workers", default="1,2", help="worker counts for the scaling table ('' to skip)")
     args = parser.parse_args()
     objects = args.objects.split(",")
+    ks = [int(k) for k in args.envs.split(",")]
 
     import mujoco_peer
 
@@ -238,21 +320,41 @@ def main() -> None:
     torch.set_num_threads(1)
     policy, factory = shipped_policy_env(objects, args.horizon)
     dt, period = SceneConfig().time_step, SceneConfig().control_period
-    print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}")
+    jobs = [(name, 1000 + k) for k in range(args.episodes) for name in objects]
+    print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}; "
+          f"{len(jobs)} episodes per measurement")
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
-    print(f"start-up (fresh process: imports, one DexRep env built and reset): {startup_cpu_s(objects[0]):.1f} CPU-s")
+    preload, rest, build = startup_cpu_s(objects[0])
+    print(f"start-up (fresh process): {preload + rest + build:.1f} CPU-s = imports the forkserver preloads once for "
+          f"all workers {preload:.1f} + other imports {rest:.1f} + one DexRep env built and reset {build:.2f}")
+    runs: dict[tuple[str, int], tuple] = {}
+    for _ in range(args.repeats):
+        for k in ks:
+            for driver, pol in (("expert-driven", None), ("policy-driven", policy)):
+                run = breakdown(jobs, k, pol, factory)  # (parts, steps, cpu, split)
+                if (driver, k) not in runs or run[2] / run[1] < runs[driver, k][2] / runs[driver, k][1]:
+                    runs[driver, k] = run
     results = {}
-    for driver, pol in (("expert-driven", None), ("policy-driven", policy)):
-        parts, steps, cpu, split = breakdown(objects, args.episodes, pol, factory, 1000)
-        results[driver] = steps / cpu
-        print_breakdown(f"{driver} DAgger collection", parts, steps, cpu, split)
+    for (driver, k), (parts, steps, cpu, split) in runs.items():
+        results[driver, k] = steps / cpu
+        print_breakdown(f"{driver} DAgger collection, K={k} (fastest of {args.repeats})", parts, steps, cpu, split)
 
+    sampling: dict[int, float] = {}
+    for _ in range(args.repeats):
+        for k in ks:
+            steps, cpu = dapg_sampling(jobs, k, policy, factory)
+            sampling[k] = max(sampling.get(k, 0.0), steps / cpu)
+    print("\nDAPG sampling (stochastic policy rollouts, no expert; fastest of "
+          f"{args.repeats}): " + ", ".join(f"K={k} {rate:.0f} env steps per CPU-s ({1e3 / rate:.2f} ms per step)"
+                                           for k, rate in sampling.items()))
+    before_after(policy, factory, objects)
     peer = mujoco_peer.measure_relocate()
     print()
-    for driver, rate in results.items():
+    for (driver, k), rate in results.items():
         sim_rate = rate * period
-        line = f"{driver}: {rate:.0f} labelled steps per CPU-s = {sim_rate:.2f} simulated s per CPU-s"
+        line = (f"{driver}, K={k}: {rate:.0f} labelled steps per CPU-s ({1e3 / rate:.2f} ms per step) = "
+                f"{sim_rate:.2f} simulated s per CPU-s")
         if peer is not None:
             line += f" = {sim_rate / peer.sim_s_per_cpu_s:.3f}x MuJoCo"
         print(line)
@@ -273,14 +375,8 @@ def main() -> None:
                       f"python scripts/bench_scaling.py --objects {','.join(objects)} --episodes {episodes} "
                       f"--horizon {args.horizon} --backends process,ray --workers {args.workers}")
 
-    obs = factory().reset(0).astype(np.float32)
-    start, n = time.process_time(), 300
-    for _ in range(n):
-        policy.act(obs)
-    inference = (time.process_time() - start) / n
-    print(f"\npolicy inference (batch 1, one thread): {1e3 * inference:.2f} ms per step")
     epoch = bench_bc_epoch(policy.config, args.bc_samples)
-    print(f"BC epoch ({args.bc_samples} samples of {policy.config.obs_dim}-d, batch 64, 1 thread): {epoch:.2f} s")
+    print(f"\nBC epoch ({args.bc_samples} samples of {policy.config.obs_dim}-d, batch 64, 1 thread): {epoch:.2f} s")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 

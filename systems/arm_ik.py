@@ -24,12 +24,20 @@ class ArmIK:
         lo, hi = hand.joint_limits()
         self.lo, self.hi = lo[: self.n_arm], hi[: self.n_arm]
         self.orientation_weight, self.damping = orientation_weight, damping
+        self._w = np.r_[np.full(3, orientation_weight), np.ones(3)]  # `step`'s weights: rotation (m per rad), position
+        self._damped_eye = damping**2 * np.eye(self.n_arm)
+        self._q_arm: np.ndarray | None = None  # the arm positions the private context holds
 
     def _set_arm(self, q_arm: np.ndarray):
-        """Puts the arm of the private context at q_arm; returns the palm body's pose in the world."""
-        q = self.plant.GetPositions(self.ctx)
-        q[self.index] = q_arm
-        self.plant.SetPositions(self.ctx, q)
+        """Puts the arm of the private context at q_arm; returns the palm body's pose in the world.
+        Positions equal to those it holds are not set again, so the context's kinematics stay
+        cached (a residual and its Jacobian, or the label's palm pose and the lift's first step,
+        evaluate them once)."""
+        if self._q_arm is None or not np.array_equal(self._q_arm, q_arm):
+            q = self.plant.GetPositions(self.ctx)
+            q[self.index] = q_arm
+            self.plant.SetPositions(self.ctx, q)
+            self._q_arm = np.array(q_arm, dtype=float)
         return self.palm_frame.CalcPoseInWorld(self.ctx)
 
     def palm_pose(self, q_arm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,19 +119,19 @@ class ArmIK:
         """`solve` near q_arm, cheaply: a fixed number of damped least-squares steps on the
         grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
         push past a limit stay on it and the others take the step."""
-        w = np.r_[np.full(3, self.orientation_weight), np.ones(3)]  # rotation (m per rad), position
-        lo, hi, n = self.lo, self.hi, self.n_arm
+        w, lo, hi, n = self._w, self.lo, self.hi, self.n_arm
         q = np.clip(q_arm, lo, hi)
         for _ in range(steps):
             X = self._set_arm(q)
             rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
-            error = w * np.r_[rotation.angle() * rotation.axis(), target - X.multiply(self.centre)]
+            error = w * np.concatenate([rotation.angle() * rotation.axis(), target - X.multiply(self.centre)])
             J = w[:, None] * np.vstack(self._jacobian())
             free, dq = np.ones(n, dtype=bool), np.zeros(n)
             while free.any():
                 Jf = J[:, free]
                 dq[:] = 0.0
-                dq[free] = np.linalg.solve(Jf.T @ Jf + self.damping**2 * np.eye(int(free.sum())), Jf.T @ error)
+                damped = self._damped_eye if free.all() else self.damping**2 * np.eye(int(free.sum()))
+                dq[free] = np.linalg.solve(Jf.T @ Jf + damped, Jf.T @ error)
                 blocked = free & ((q + dq < lo) | (q + dq > hi))
                 if not blocked.any():
                     break

@@ -65,6 +65,7 @@ class GraspEnv:
         self._tip_bodies = [self.scene.plant.GetBodyByName(p.body, self.scene.hand_instance)
                             for p in self.scene.hand.fingertips]
         self._tip_offsets = np.array([[*p.offset, 1.0] for p in self.scene.hand.fingertips])
+        self._tip_rows = _rows_of(self.scene.hand.fingertips, self.scene.hand.dexrep_points)
         self._tips_at: np.ndarray | None = None  # the plant positions _tips belongs to
 
     # -- protocol -----------------------------------------------------------------------
@@ -131,12 +132,12 @@ class GraspEnv:
             return self._end_diverged(str(err))
         if not np.all(np.isfinite(self.scene.plant.GetPositions(self.plant_context))):
             return self._end_diverged("non-finite plant positions")
+        self._observation = self.observation()
         p_obj = self.object_position()
         terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
         success = self.tracker.update(p_obj)
         done = self.steps >= self.horizon
         info = {"success": success, "lift": float(p_obj[2] - self.p_start[2]), "terms": terms}
-        self._observation = self.observation()
         return self._observation, terms.total, done, info
 
     def _end_diverged(self, why: str) -> tuple[np.ndarray, float, bool, dict]:
@@ -150,12 +151,17 @@ class GraspEnv:
     def observation(self) -> np.ndarray:
         """The features of the diagram's DexRepSystem (its "features" output), or the hand
         state without a feature set. Its extractor runs on the plant's own context, whose
-        kinematics the reward has already evaluated: reading the port would evaluate them
-        again on the system's private context, about 6 % more CPU per step
-        (scripts/bench_features_port.py)."""
+        kinematics the reward then reuses: reading the port would evaluate them again on the
+        system's private context, about 6 % more CPU per step (scripts/bench_features_port.py).
+        On the fast path its closest-point query also gives the fingertip distances (the
+        fingertips are DexRep points), so the reward makes no query of its own."""
         if self._features is None:
             return self.hand_state()
-        return self._features(self.plant_context, self.scene.object_pose(self.plant_context))
+        features, closest = self._features.with_closest(self.plant_context, self.scene.object_pose(self.plant_context))
+        if closest is not None and self._tip_rows is not None and self._features.path == "fast":
+            self._tips = np.maximum(closest.distance[self._tip_rows], 0.0)
+            self._tips_at = self.scene.plant.GetPositions(self.plant_context)
+        return features
 
     @property
     def object_name(self) -> str:
@@ -209,6 +215,15 @@ class GraspEnv:
             return self.normalise(controller(self))
 
         return run_episode(self, act, seed, **({} if logger is None else logger.hooks(self)))
+
+
+def _rows_of(points, among) -> np.ndarray | None:
+    """Indices in `among` of each of `points` (same body and offset), or None if one is missing."""
+    keys = [(p.body, tuple(p.offset)) for p in among]
+    try:
+        return np.array([keys.index((p.body, tuple(p.offset))) for p in points])
+    except ValueError:
+        return None
 
 
 def _diverged(message: str) -> bool:

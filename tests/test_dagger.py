@@ -321,5 +321,5 @@ def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(loa
     """The throughput benchmark's policy-driven collection (it once built DexRep envs for a DexRep+Vel policy)."""
     bench = load_script("bench_rollout")
     policy, factory = bench.shipped_policy_env(["sphere_small"], 3)
-    parts, steps, cpu, _ = bench.breakdown(["sphere_small"], 1, policy, factory, 1000)
-    assert steps == 3 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0
+    parts, steps, cpu, _ = bench.breakdown([("sphere_small", 1000), ("sphere_small", 1001)], 2, policy, factory)
+    assert steps == 6 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0

@@ -158,6 +158,25 @@ def test_ik_jacobian_is_the_residual_derivative_and_solves_reach(can_env):
     np.testing.assert_allclose(ik.palm_pose(q)[0], grasp.plan.grasp, atol=1e-4)
 
 
+def test_ik_palm_pose_follows_every_change_of_the_arm_positions(can_env):
+    """The IK keeps its context's kinematics while the arm positions are unchanged; a new
+    position, or a caller's array changed in place, is evaluated afresh."""
+    from dexdrake.systems.arm_ik import ArmIK
+
+    can_env.reset(0)
+    ik, fresh = ScriptedGrasp(can_env).ik, lambda q: ArmIK(can_env.scene).palm_pose(q)
+    rng = np.random.default_rng(1)
+    q1, q2 = (rng.uniform(ik.lo, ik.hi) for _ in range(2))
+    for q in (q1, q1, q2, q1):
+        for a, b in zip(ik.palm_pose(q), fresh(q)):
+            np.testing.assert_array_equal(a, b)
+    q = q1.copy()
+    ik.palm_pose(q2)
+    ik.palm_pose(q)
+    q[0] = q2[0]  # the caller's array changed in place
+    np.testing.assert_array_equal(ik.palm_pose(q)[0], fresh(q)[0])
+
+
 def test_named_grasp_pose_sets_its_joints_and_leaves_the_closing_rule_to_the_others():
     from dexdrake.errors import DexdrakeError
     from dexdrake.hands.description import load_hand

@@ -99,7 +99,7 @@ def _node_and_rollout(env, policy, seed):
 def test_work_lands_on_both_nodes(ray_sampler, policy):
     nodes = [node for node, _ in ray_sampler.map(_node_and_rollout, policy, [0, 1, 2, 3])]
     assert set(nodes) == {n["NodeID"] for n in ray.nodes() if n["Alive"]} and len(set(nodes)) == 2
-    assert ray_sampler.describe() == "RaySampler with 2 worker(s) on 2 node(s)"
+    assert ray_sampler.describe() == "RaySampler with 2 worker(s) x 1 env(s) on 2 node(s)"
 
 
 def _exit_on_seed(doomed: int, env, policy, seed: int):

@@ -39,6 +39,18 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
                         "default: a local Ray instance); see configs/ray_cluster.md")
 
 
+def _add_envs_per_worker(parser: argparse.ArgumentParser, what: str, note: str = "") -> None:
+    parser.add_argument("--envs-per-worker", type=argtypes.count, default=None,
+                        help=f"{what} whose episodes a worker steps in lockstep, one policy call for all of them "
+                             f"(default: dexdrake.learn.samplers.ENVS_PER_WORKER{note})")
+
+
+def _envs_per_worker(args: argparse.Namespace) -> int:
+    from dexdrake.learn.samplers import ENVS_PER_WORKER
+
+    return args.envs_per_worker or ENVS_PER_WORKER
+
+
 TRAINING_OBJECTS_HELP = ("'train', 'train+augmented' (with the scaled copies and shapes of `dexdrake objects augment`) or "
                          "comma-separated object names")
 
@@ -88,6 +100,7 @@ def add_parser(subparsers) -> None:
     dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
     dapg.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per trajectory")
     dapg.add_argument("--workers", type=argtypes.count, default=2)
+    _add_envs_per_worker(dapg, "environments")
     _add_backend_options(dapg)
     dapg.add_argument("--resume", action="store_true", help="continue the run in OUT (dapg_state.pt) where it stopped")
     dapg.add_argument("--seed", type=argtypes.seed, default=0)
@@ -119,6 +132,7 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--residual-arm", action="store_true",
                         help="a new network's arm actions are added to the arm's current position (it learns the lead)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
+    _add_envs_per_worker(dagger, "policy-driven environments")
     _add_backend_options(dagger)
     dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
     dagger.add_argument("--seed", type=argtypes.seed, default=0)
@@ -143,6 +157,7 @@ def add_parser(subparsers) -> None:
                     help="first episode seed S; seeds must lie in the range reserved for evaluation "
                          f"[{EVALUATION_SEEDS.start}, {EVALUATION_SEEDS.stop}), disjoint from every training seed")
     ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
+    _add_envs_per_worker(ev, "objects (one environment each)", "; 1 with --rrd")
     ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
     ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
@@ -208,6 +223,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.objects.library import training_objects
     from dexdrake.systems.env_factory import env_factory_for_policy
 
+    args.envs_per_worker = _envs_per_worker(args)
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
     if args.demo_weight is None:
@@ -224,15 +240,15 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     command = command_line(["train", "dapg"], args, ["init", "demos", "demo-samples", "demo-std-fraction", "demo-weight",
                                                       "reward", "out",
                                                       "iterations", "per-object", "objects", "horizon", "workers",
-                                                      "backend", "address", "resume", "seed"])
+                                                      "envs-per-worker", "backend", "address", "resume", "seed"])
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
             "init_sha256": hashlib.sha256(args.init.read_bytes()).hexdigest(),
             "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
             "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")}}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
-          f"{args.workers} worker(s)")
-    sampler = make_sampler(factory, args.backend, args.workers, args.address)
+          f"{args.workers} worker(s) x {args.envs_per_worker} env(s) in lockstep")
+    sampler = make_sampler(factory, args.backend, args.workers, args.address, args.envs_per_worker)
     try:
         result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
     finally:
@@ -262,13 +278,15 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
                           epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, obs_noise=args.obs_noise,
                           arm_weight=args.arm_weight,
-                          workers=args.workers, backend=args.backend, seed=args.seed,
+                          workers=args.workers, envs_per_worker=_envs_per_worker(args), backend=args.backend,
+                          seed=args.seed,
                           probe_per_object=args.probe_per_object, init=str(args.init or ""), prior=tuple(map(str, args.prior)),
                           residual_arm=args.residual_arm)
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "weight-decay", "obs-noise",
                                                         "arm-weight", "probe-per-object",
-                                                        "init", "prior", "residual-arm", "workers", "backend", "address", "threads", "seed"])
+                                                        "init", "prior", "residual-arm", "workers", "envs-per-worker", "backend", "address",
+                                                        "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []
@@ -297,8 +315,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     try:
         report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers,
                                  args.horizon, label=label, record=None if logger is None else logger.hooks,
+                                 envs_per_worker=_envs_per_worker(args),
                                  command=command_line(["eval"], args, ["policy", "objects", "episodes", "seed",
-                                                                       "workers", "horizon", "out", "label", "rrd"]))
+                                                                       "workers", "envs-per-worker", "horizon", "out",
+                                                                       "label", "rrd"]))
     finally:
         if logger is not None:
             logger.close()

@@ -148,6 +148,12 @@ class FeatureExtractor:
 
     def __call__(self, plant_context, X_WO, query_object=None) -> np.ndarray:
         """The feature vector (blocks concatenated in `observation_blocks` order)."""
+        return self.with_closest(plant_context, X_WO, query_object)[0]
+
+    def with_closest(self, plant_context, X_WO, query_object=None) -> tuple[np.ndarray, ClosestPoints | None]:
+        """(the feature vector, the closest object points of the hand's DexRep points in the
+        object frame, or None when the feature set needs none): one query serves the features
+        and any caller that wants distances of those points (the reward's fingertips)."""
         if self.path == "scenegraph" and query_object is None:
             raise DexdrakeError("the scenegraph path needs a query_object")
         X_WO = F.as_matrix(X_WO)
@@ -177,7 +183,7 @@ class FeatureExtractor:
         out = np.concatenate(parts, dtype=np.float64)
         if not np.isfinite(out.sum()):
             raise DexdrakeError("feature vector has NaN/Inf (check the object pose and hand state)")
-        return out
+        return out, cp_O
 
     def _closest_points(self, p_W: np.ndarray, X_WO: np.ndarray, query_object) -> ClosestPoints:
         """Closest object points in the object frame (normals too)."""

@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from dexdrake.dexrep.pointnet import NUM_POINTS, PointNetEncoder, encode_cloud, load_encoder
+from dexdrake.dexrep.pointnet import NUM_POINTS, PointNetEncoder, default_encoder_path, encode_cloud, load_encoder
 from dexdrake.errors import DexdrakeError
 from dexdrake.objects.meshfile import check_mesh
 from dexdrake.paths import cache_dir
@@ -53,7 +53,7 @@ class SdfGrid:
         np.maximum(i0, 0, out=i0)
         np.minimum(i0, self._max_index, out=i0)
         f = u - i0
-        c = self._flat[(i0 @ self._strides)[:, None] + self._corner_offsets]
+        c = self._flat[(i0 @ self._strides)[:, None] + self._corner_offsets].astype(np.float64)
         fx, fy, fz = f[:, 0], f[:, 1:2], f[:, 2:3]
         # corners ordered (x, y, z) bits: 000 001 010 011 100 101 110 111
         dz = c[:, 1::2] - c[:, 0::2]  # (m, 4): 00 01 10 11
@@ -76,11 +76,12 @@ class SdfGrid:
         i = (u + 0.5).astype(np.intp)
         np.maximum(i, 0, out=i)
         np.minimum(i, self._max_index + 1, out=i)
-        return self._flat[i @ self._strides]
+        return self._flat[i @ self._strides].astype(np.float64)
 
     @cached_property
     def _flat(self) -> np.ndarray:
-        return np.ascontiguousarray(self.values, dtype=np.float64).ravel()
+        """The values as stored (float32: half the memory a gather touches), cast after it."""
+        return np.ascontiguousarray(self.values).ravel()
 
     @cached_property
     def _strides(self) -> np.ndarray:
@@ -242,22 +243,35 @@ def compute_object_geometry(mesh: trimesh.Trimesh, encoder: PointNetEncoder, key
     )
 
 
+def _shipped_encoder_digest() -> str:
+    """`_encoder_digest` of the shipped encoder, read once per process while its file is unchanged."""
+    path = default_encoder_path()
+    if not path.is_file():
+        load_encoder(path)  # its error names the missing weights
+    stat = path.stat()
+    return _file_encoder_digest(str(path), stat.st_mtime_ns, stat.st_size)
+
+
+@cache
+def _file_encoder_digest(path: str, mtime_ns: int, size: int) -> str:
+    return _encoder_digest(load_encoder(Path(path)))
+
+
 def load_object_geometry(mesh_path: Path | str, encoder: PointNetEncoder | None = None, *,
                          num_samples: int = NUM_POINTS, seed: int = 0, grid_spacing: float = 0.002,
                          use_cache: bool = True) -> ObjectGeometry:
     """The ObjectGeometry of a mesh file, from the disk cache when present.
 
-    `encoder` defaults to the shipped frozen PointNet encoder; its weights are part of the
-    cache key, as are the mesh bytes and the parameters.
+    `encoder` defaults to the shipped frozen PointNet encoder (loaded only to compute a
+    geometry); its weights are part of the cache key, as are the mesh bytes and the parameters.
     """
     mesh_path = Path(mesh_path)
     mesh = load_checked_mesh(mesh_path)
-    encoder = encoder if encoder is not None else load_encoder()
     params = dict(v=CACHE_VERSION, n=num_samples, seed=seed, spacing=grid_spacing, pad=SDF_PAD,
                   max_nodes=MAX_GRID_NODES)
     h = hashlib.sha256(mesh_path.read_bytes())
     h.update(json.dumps(params, sort_keys=True).encode())
-    h.update(_encoder_digest(encoder).encode())
+    h.update((_encoder_digest(encoder) if encoder is not None else _shipped_encoder_digest()).encode())
     key = h.hexdigest()[:32]
     path = cache_dir() / "dexrep" / f"{key}.npz"
     if use_cache and path.exists():
@@ -268,7 +282,8 @@ def load_object_geometry(mesh_path: Path | str, encoder: PointNetEncoder | None 
                 global_feature=z["global_feature"],
                 sdf=SdfGrid(z["sdf_origin"], float(z["sdf_spacing"]), z["sdf_values"]),
             )
-    geom = compute_object_geometry(mesh, encoder, key, num_samples, seed, grid_spacing)
+    geom = compute_object_geometry(mesh, encoder if encoder is not None else load_encoder(), key, num_samples, seed,
+                                   grid_spacing)
     if use_cache:
         path.parent.mkdir(parents=True, exist_ok=True)
         buf = io.BytesIO()

@@ -6,7 +6,9 @@ evaluation (`eval.seeds.EVALUATION_SEEDS`, disjoint from every training seed; th
 says when they are not), deterministic mean actions and the paper's evaluation length of
 100 control steps. The hand and feature set come from the policy. Rates carry 95 % Wilson
 intervals. Episodes run in worker processes (spawn/forkserver: a script calling
-`evaluate_policy` with workers > 1 needs a `if __name__ == "__main__":` guard).
+`evaluate_policy` with workers > 1 needs a `if __name__ == "__main__":` guard), each stepping
+the episodes of up to `envs_per_worker` objects in lockstep with one policy call per step
+(one env per object, as with one episode at a time).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from dexdrake.episode import EpisodeResult, run_episode
+from dexdrake.episode import EpisodeResult, run_episode, run_lockstep
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.paper import PAPER_AVERAGE
 from dexdrake.eval.seeds import evaluation_seeds_reserved
@@ -57,6 +59,7 @@ class EvalReport:
     command: str = ""
     wall_s: float = 0.0
     workers: int = 1
+    envs_per_worker: int = 1
     hand: str = ""  # from the policy
     feature_set: str = ""  # from the policy
     episodes: list[EpisodeResult] = field(default_factory=list)
@@ -127,16 +130,25 @@ class _EpisodeRunner:
         self.record = record
         self._envs: dict[str, Any] = {}
 
-    def __call__(self, name: str, seed: int) -> EpisodeResult:
+    def env(self, name: str) -> Any:
         if name not in self._envs:
             from dexdrake.learn.samplers import check_env_matches
 
             env = self.env_factory_for(self.policy.config, [name], self.horizon)()
             check_env_matches(env, self.policy)
             self._envs[name] = env
-        env = self._envs[name]
-        hooks = {} if self.record is None else self.record(env)
-        return run_episode(env, mean_actor(self.policy), seed, self.horizon, **hooks)
+        return self._envs[name]
+
+    def __call__(self, group: tuple[tuple[str, int], ...]) -> list[EpisodeResult]:
+        """The episodes of `group` ((object, seed) pairs of distinct objects), in lockstep."""
+        if self.record is not None:
+            return [run_episode(self.env(name), mean_actor(self.policy), seed, self.horizon,
+                                **self.record(self.env(name))) for name, seed in group]
+
+        def act(observations: list[np.ndarray], live: list[int]) -> np.ndarray:
+            return self.policy.act_batch(np.asarray(observations, dtype=np.float32), [None] * len(live))[0]
+
+        return run_lockstep([self.env(name) for name, _ in group], act, [seed for _, seed in group], self.horizon)
 
 
 _RUNNER: _EpisodeRunner | None = None
@@ -147,10 +159,10 @@ def _init_worker(policy_path: str, horizon: int, env_factory_for: PolicyEnvFacto
     _RUNNER = _EpisodeRunner(policy_path, horizon, env_factory_for)
 
 
-def _run_in_worker(name: str, seed: int) -> EpisodeResult:
+def _run_in_worker(group: tuple[tuple[str, int], ...]) -> list[EpisodeResult]:
     if _RUNNER is None:
         raise DexdrakeError("evaluation worker was not initialised")
-    return _RUNNER(name, seed)
+    return _RUNNER(group)
 
 
 def evaluate_policy(
@@ -165,40 +177,48 @@ def evaluate_policy(
     command: str = "",
     progress: bool = True,
     record: Callable[[Any], dict[str, Callable]] | None = None,
+    envs_per_worker: int = 1,
 ) -> EvalReport:
     """Run `episodes` seeded episodes per object (seeds seed..seed+episodes-1) of a checkpoint,
-    in envs from `env_factory_for` (picklable: worker processes call it too). `record(env)`
-    returns the `on_reset`/`on_step` hooks of `run_episode` that log the env's episodes
-    (e.g. RerunLogger.hooks; one worker only)."""
+    in envs from `env_factory_for` (picklable: worker processes call it too), the same seed's
+    episodes of up to `envs_per_worker` objects in lockstep (results do not depend on it).
+    `record(env)` returns the `on_reset`/`on_step` hooks of `run_episode` that log the env's
+    episodes (e.g. RerunLogger.hooks; one worker, one episode at a time)."""
     from dexdrake.learn.policy import load_policy
 
     if episodes < 1 or workers < 1 or horizon < 1:
         raise DexdrakeError(f"episodes, workers and horizon must be >= 1 (got {episodes}, {workers}, {horizon})")
     if not objects:
         raise DexdrakeError("no objects to evaluate")
+    if envs_per_worker < 1:
+        raise DexdrakeError(f"envs_per_worker must be >= 1 (got {envs_per_worker})")
     if record is not None and workers > 1:
         raise DexdrakeError("a recorded evaluation runs in one process: use --workers 1 with --rrd")
     policy, _ = load_policy(policy_path)  # fail early, in this process, on a bad checkpoint
     env_factory_for(policy.config, objects, horizon)
     jobs = [(name, seed + i) for name in objects for i in range(episodes)]
+    k = 1 if record is not None else min(envs_per_worker, len(objects))
+    by_seed = [(name, seed + i) for i in range(episodes) for name in objects]  # k in a row: distinct objects
+    groups = [tuple(by_seed[i:i + k]) for i in range(0, len(by_seed), k)]
     report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers,
-                        hand=policy.config.hand, feature_set=policy.config.feature_set)
+                        envs_per_worker=k, hand=policy.config.hand, feature_set=policy.config.feature_set)
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
     if workers == 1:
         runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for, record)
-        for name, s in jobs:
-            report.episodes.append(runner(name, s))
-            bar.update()
+        for group in groups:
+            report.episodes.extend(runner(group))
+            bar.update(len(group))
     else:
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         with ProcessPoolExecutor(workers, mp.get_context(method), initializer=_init_worker,
                                  initargs=(str(policy_path), horizon, env_factory_for)) as pool:
-            futures = [pool.submit(_run_in_worker, name, s) for name, s in jobs]
+            futures = [pool.submit(_run_in_worker, group) for group in groups]
             try:
                 for fut in as_completed(futures):
-                    report.episodes.append(fut.result())
-                    bar.update()
+                    results = fut.result()
+                    report.episodes.extend(results)
+                    bar.update(len(results))
             except BrokenProcessPool as exc:
                 raise DexdrakeError("an evaluation worker died; rerun with --workers 1 to see the error") from exc
     bar.close()

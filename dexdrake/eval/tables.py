@@ -90,7 +90,7 @@ def markdown_table(report: EvalReport) -> str:
         "- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
         f"- average {report.average_pct():.1f} % over {len(report.objects)} objects, 95 % Wilson interval "
         f"{low:.1f}-{high:.1f} % ({len(report.episodes)} episodes pooled)",
-        f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s)",
+        f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s) x {report.envs_per_worker} env(s) in lockstep",
         "",
         "| " + " | ".join(header for _, header in COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from dexdrake.dexrep.feature_sets import observation_blocks
-from dexdrake.episode import run_episode
+from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
@@ -42,7 +42,7 @@ from dexdrake.learn.curves import CsvLog, read_csv
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy, widened
-from dexdrake.learn.samplers import Sampler, check_backend, make_sampler
+from dexdrake.learn.samplers import ENVS_PER_WORKER, Sampler, check_backend, make_sampler
 
 DATA_FORMAT = "dexdrake.dagger/2"  # /1 kept plant positions only
 PROBE_SEEDS = 5000  # probe episode seeds start this far above the iteration's training seeds
@@ -63,6 +63,7 @@ class DaggerConfig:
     obs_noise: float = 0.0  # BCConfig.obs_noise of each fit
     batch_size: int = 64
     workers: int = 2
+    envs_per_worker: int = ENVS_PER_WORKER  # a policy's episodes each worker steps in lockstep
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
     seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k (probes: + PROBE_SEEDS + k)
     probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
@@ -211,27 +212,41 @@ def labelled_episode(env, name: str, seed: int, policy: DexRepNetPolicy | None, 
     """One episode on object `name` (the one episode loop, dexdrake/episode.py): the policy
     acts (the expert if `policy` is None, with OU noise of std `noise` seeded by `seed`), the
     expert labels every visited state."""
+    return labelled_lockstep([env], [(name, seed)], policy, noise, make_expert)[0]
+
+
+def labelled_lockstep(envs: list, jobs: list[tuple[str, int]], policy: DexRepNetPolicy | None, noise: float,
+                      make_expert: MakeExpert) -> list[DaggerData]:
+    """`labelled_episode` of each job (object, seed) on its own env, all in lockstep with one
+    policy call per step for the envs still running; each result is the one it gives alone."""
     from dexdrake.eval.action_noise import OUActionNoise
 
-    perturb = OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
-    states, observations, labels = [], [], []
-    expert = None
+    perturbs = [OUActionNoise(env.action_dim, noise, seed=seed) if noise > 0 else None
+                for env, (_, seed) in zip(envs, jobs, strict=True)]
+    experts: list = [None] * len(jobs)
+    states: list[list] = [[] for _ in jobs]
+    observations: list[list] = [[] for _ in jobs]
+    labels: list[list] = [[] for _ in jobs]
 
-    def act(obs: np.ndarray) -> np.ndarray:
-        nonlocal expert
-        expert = expert or make_expert(env)
-        states.append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
-        observations.append(obs)
-        label = np.clip(env.normalise(expert(env)), -1.0, 1.0)
-        labels.append(label)
-        action = label if policy is None else policy.act(obs)[0]
-        return action if perturb is None else action + perturb.sample()
+    def act(obs: list[np.ndarray], live: list[int]) -> list[np.ndarray]:
+        for k, o in zip(live, obs):
+            env = envs[k]
+            experts[k] = experts[k] or make_expert(env)
+            states[k].append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
+            observations[k].append(o)
+            labels[k].append(np.clip(env.normalise(experts[k](env)), -1.0, 1.0))
+        actions = ([labels[k][-1] for k in live] if policy is None
+                   else policy.act_batch(np.asarray(obs, dtype=np.float32), [None] * len(live))[0])
+        return [a if perturbs[k] is None else a + perturbs[k].sample() for k, a in zip(live, actions)]
 
-    result = run_episode(env, act, seed, object_name=name)
-    starts = np.zeros(len(labels), dtype=bool)
-    starts[0] = True
-    return DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(states),
-                      np.asarray(observations, dtype=np.float32), np.asarray(labels, dtype=np.float32))
+    results = run_lockstep(envs, act, [seed for _, seed in jobs], object_names=[name for name, _ in jobs])
+    out = []
+    for k, ((name, seed), result) in enumerate(zip(jobs, results)):
+        starts = np.zeros(len(labels[k]), dtype=bool)
+        starts[0] = True
+        out.append(DaggerData([name], np.array([seed]), np.array([result.success]), starts, np.asarray(states[k]),
+                              np.asarray(observations[k], dtype=np.float32), np.asarray(labels[k], dtype=np.float32)))
+    return out
 
 
 def relabel_job(make_expert: MakeExpert, env, policy: None, job: tuple[str, int, np.ndarray]) -> np.ndarray:
@@ -271,16 +286,25 @@ def dagger_job(make_expert: MakeExpert, noise: float, env, policy: DexRepNetPoli
     return labelled_episode(env, name, seed, policy, noise, make_expert)
 
 
+def dagger_lockstep_job(make_expert: MakeExpert, noise: float, envs: list, policy: DexRepNetPolicy | None,
+                        jobs: tuple[tuple[str, int], ...]) -> list[DaggerData]:
+    """`labelled_lockstep` as a sampler Lockstep episode, with the expert and `noise` bound first."""
+    return labelled_lockstep(envs, list(jobs), policy, noise, make_expert)
+
+
 def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[str, int]], noise: float,
             desc: str, make_expert: MakeExpert) -> DaggerData:
-    """Run `jobs` (object, seed) on the sampler's workers; results in job order (a job whose
-    worker died is left out, with a warning)."""
-    return DaggerData.concat(sampler.map(partial(dagger_job, make_expert, noise), policy, jobs, desc))
+    """Run `jobs` (object, seed) on the sampler's workers, a policy's episodes `envs_per_worker`
+    at a time in lockstep on each (the expert's one at a time: batching saves it nothing);
+    results in job order (a job whose worker died is left out, with a warning)."""
+    if policy is None:
+        return DaggerData.concat(sampler.map(partial(dagger_job, make_expert, noise), policy, jobs, desc))
+    return DaggerData.concat(sampler.map_lockstep(partial(dagger_lockstep_job, make_expert, noise), policy, jobs, desc))
 
 
 # DaggerConfig fields a resumed run may change: how later iterations collect and fit (the data
 # files and the log record each iteration's episodes and samples)
-RESUMABLE = ("iterations", "workers", "backend", "probe_per_object", "episodes_per_object", "epochs", "lr",
+RESUMABLE = ("iterations", "workers", "envs_per_worker", "backend", "probe_per_object", "episodes_per_object", "epochs", "lr",
              "batch_size", "arm_weight")
 
 
@@ -350,7 +374,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                             f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
-    with make_sampler(factory, config.backend, config.workers, address) as sampler:
+    with make_sampler(factory, config.backend, config.workers, address, config.envs_per_worker) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
         for k, source in enumerate(prior_files(config)):
             path = out_dir / f"prior_{k:02d}.npz"

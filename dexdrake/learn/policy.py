@@ -24,7 +24,7 @@ checkpoint carries everything needed to run the policy on raw env observations.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,7 @@ from dexdrake.learn.env_protocol import observation_dim
 CHECKPOINT_FORMAT = "dexdrake.policy/1"
 DEMO_STD_FRACTION = 0.5  # exploration std = this fraction of the demo actions' std, per dimension
 ENCODER_ACTIVATIONS = ("relu", "none")
+ACT_CHUNK = 8  # rows per network call in act_batch (see there)
 
 
 @dataclass(frozen=True)
@@ -162,19 +163,36 @@ class DexRepNetPolicy(nn.Module):
         z = (actions - mean) / torch.exp(log_std)
         return -0.5 * (z**2).sum(-1) - log_std.sum() - 0.5 * self.config.action_dim * math.log(2 * math.pi)
 
-    @torch.no_grad()
     def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, float]:
         """One action for one observation: the mean if `rng` is None, else a Gaussian sample.
 
-        Returns (action, log-probability of that action under the Gaussian).
+        Returns (action, log-probability of that action under the Gaussian); `act_batch` of one row.
         """
-        o = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
-        mean = self.forward(o)[0].numpy().astype(np.float64)
+        actions, log_probs = self.act_batch(np.asarray(obs)[None], [rng])
+        return actions[0], float(log_probs[0])
+
+    @torch.inference_mode()
+    def act_batch(self, obs: np.ndarray, rngs: Sequence[np.random.Generator | None]) -> tuple[np.ndarray, np.ndarray]:
+        """Actions (K, A) and their log-probabilities (K,) for K observations (K, obs_dim): row k
+        is the mean if rngs[k] is None, else a Gaussian sample drawn from rngs[k].
+
+        The network runs on chunks of exactly ACT_CHUNK rows (the last zero-padded): a GEMM
+        rounds by its row count, so a fixed count makes a row's action independent of K (1
+        included) wherever the layers round alike at every row position, as the DexRep
+        policies' do (tests/test_lockstep.py checks the shipped one); a tiny layer (a 2-wide
+        output) may round by position, within float32 precision."""
+        o = np.asarray(obs, dtype=np.float32)
+        k = len(o)
+        padded = np.zeros((-(-k // ACT_CHUNK) * ACT_CHUNK, o.shape[1]), dtype=np.float32)
+        padded[:k] = o
+        x = torch.from_numpy(padded)
+        mean = torch.cat([self.forward(c) for c in x.split(ACT_CHUNK)])[:k].numpy().astype(np.float64)
         log_std = self.clamped_log_std().numpy().astype(np.float64)
-        noise = np.zeros_like(mean) if rng is None else rng.standard_normal(mean.shape)
-        action = mean + np.exp(log_std) * noise
-        logp = -0.5 * float(noise @ noise) - float(log_std.sum()) - 0.5 * len(mean) * math.log(2 * math.pi)
-        return action, logp
+        noise = np.stack([np.zeros(mean.shape[1]) if r is None else r.standard_normal(mean.shape[1]) for r in rngs])
+        actions = mean + np.exp(log_std) * noise
+        log_probs = (-0.5 * np.einsum("ij,ij->i", noise, noise) - float(log_std.sum())
+                     - 0.5 * mean.shape[1] * math.log(2 * math.pi))
+        return actions, log_probs
 
     # ---------------------------------------------------------------- normalisation
     def set_obs_normalization(self, mean: np.ndarray, std: np.ndarray, min_std: float = 1e-3,

@@ -31,7 +31,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from multiprocessing.connection import Connection, wait
 from typing import Any
@@ -40,13 +40,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from dexdrake.episode import run_episode
+from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import Env, EnvFactory, observation_dim
 from dexdrake.learn.policy import DexRepNetPolicy, policy_from_payload, policy_payload
 from dexdrake.learn.trajectory import Trajectory
 
 BACKENDS = ("sequential", "process", "ray")
+# envs a worker steps in lockstep by default (scripts/bench_rollout.py measures K = 1 and 8)
+ENVS_PER_WORKER = 8
 
 Episode = Callable[[Env, DexRepNetPolicy | None, Any], Any]
 """episode(env, policy, job) -> result; must be picklable (a top-level function or a partial of one)."""
@@ -66,45 +68,79 @@ def check_env_matches(env: Env, policy: DexRepNetPolicy) -> None:
 def rollout(env: Env, policy: DexRepNetPolicy, seed: int, deterministic: bool = False) -> Trajectory:
     """Run one episode of at most env.horizon steps (the one episode loop, dexdrake/episode.py);
     seed drives env.reset and action noise."""
-    rng = None if deterministic else np.random.default_rng(seed)
+    return rollout_lockstep([env], policy, [seed], deterministic)[0]
+
+
+def rollout_lockstep(envs: Sequence[Env], policy: DexRepNetPolicy, seeds: Sequence[int],
+                     deterministic: bool = False) -> list[Trajectory]:
+    """One episode per (env, seed), all stepped in lockstep with one policy call per step for
+    the envs still running; each trajectory is the one `rollout(env, policy, seed)` gives."""
+    rngs = [None if deterministic else np.random.default_rng(seed) for seed in seeds]
     d = policy.config.obs_dim
-    observations, actions, rewards, log_probs = [], [], [], []
+    runs = [_Recording(int(seed)) for seed in seeds]
 
-    def act(obs: np.ndarray) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float32)
-        if obs.shape != (d,) or not np.all(np.isfinite(obs)):
-            raise DexdrakeError(
-                f"env returned a bad observation at step {len(actions)} of seed {seed}: shape {obs.shape} "
-                f"(expected ({d},)) or non-finite values"
-            )
-        action, logp = policy.act(obs, rng)
-        observations.append(obs)
-        actions.append(action)
-        log_probs.append(logp)
-        return action
+    def act(observations: list[np.ndarray], live: list[int]) -> np.ndarray:
+        obs = np.asarray(observations, dtype=np.float32)
+        for k, o in zip(live, obs):
+            if o.shape != (d,) or not np.all(np.isfinite(o)):
+                raise DexdrakeError(
+                    f"env returned a bad observation at step {len(runs[k].actions)} of seed {runs[k].seed}: shape "
+                    f"{o.shape} (expected ({d},)) or non-finite values"
+                )
+        actions, log_probs = policy.act_batch(obs, [rngs[k] for k in live])
+        for k, o, a, lp in zip(live, obs, actions, log_probs):
+            runs[k].observations.append(o)
+            runs[k].actions.append(a)
+            runs[k].log_probs.append(float(lp))
+        return actions
 
-    def record(reward: float, info: dict) -> None:
+    def record(k: int, reward: float, info: dict) -> None:
         if not math.isfinite(reward):
-            raise DexdrakeError(f"env returned a non-finite reward {reward} at step {len(rewards)} of seed {seed}")
-        rewards.append(float(reward))
+            raise DexdrakeError(f"env returned a non-finite reward {reward} at step {len(runs[k].rewards)} of seed "
+                                f"{runs[k].seed}")
+        runs[k].rewards.append(float(reward))
 
-    result = run_episode(env, act, seed, on_step=record)
-    return Trajectory(
-        seed=int(seed),
-        observations=np.asarray(observations, dtype=np.float32),
-        actions=np.asarray(actions, dtype=np.float32),
-        rewards=np.asarray(rewards, dtype=np.float64),
-        log_probs=np.asarray(log_probs, dtype=np.float64),
-        success=result.success,
-        terminated=result.steps < env.horizon,
-    )
+    results = run_lockstep(envs, act, seeds, on_step=record)
+    return [run.trajectory(result.success, result.steps < env.horizon)
+            for run, result, env in zip(runs, results, envs)]
 
 
-def rollout_job(deterministic: bool, env: Env, policy: DexRepNetPolicy | None, seed: int) -> Trajectory:
-    """`rollout` as an Episode (job = seed), with `deterministic` bound first."""
+@dataclass
+class _Recording:
+    """What `rollout_lockstep` records of one episode, step by step."""
+
+    seed: int
+    observations: list = field(default_factory=list)
+    actions: list = field(default_factory=list)
+    rewards: list = field(default_factory=list)
+    log_probs: list = field(default_factory=list)
+
+    def trajectory(self, success: bool, terminated: bool) -> Trajectory:
+        return Trajectory(
+            seed=self.seed,
+            observations=np.asarray(self.observations, dtype=np.float32),
+            actions=np.asarray(self.actions, dtype=np.float32),
+            rewards=np.asarray(self.rewards, dtype=np.float64),
+            log_probs=np.asarray(self.log_probs, dtype=np.float64),
+            success=success,
+            terminated=terminated,
+        )
+
+
+def rollout_job(deterministic: bool, envs: list[Env], policy: DexRepNetPolicy | None,
+                seeds: tuple[int, ...]) -> list[Trajectory]:
+    """`rollout_lockstep` as a Lockstep episode (jobs = seeds), with `deterministic` bound first."""
     if policy is None:
         raise DexdrakeError("a policy rollout needs a policy")
-    return rollout(env, policy, seed, deterministic)
+    return rollout_lockstep(envs, policy, seeds, deterministic)
+
+
+@dataclass(frozen=True)
+class Lockstep:
+    """A job of jobs: a worker runs them together on its first len(jobs) envs with one call
+    episode(envs, policy, jobs) -> one result per job (e.g. `rollout_job`)."""
+
+    jobs: tuple
 
 
 def policy_to_bytes(policy: DexRepNetPolicy) -> bytes:
@@ -121,15 +157,19 @@ class RolloutWorker:
         if single_thread:  # one torch thread per worker; the workers are the parallelism
             torch.set_num_threads(1)
         self._factory = env_factory
-        self._env: Env | None = None
+        self._envs: list[Env] = []
         self._policy_key: str | None = None
         self._policy: DexRepNetPolicy | None = None
 
     @property
     def env(self) -> Env:
-        if self._env is None:
-            self._env = self._factory()
-        return self._env
+        return self.envs(1)[0]
+
+    def envs(self, k: int) -> list[Env]:
+        """The worker's first k envs (built on first use, then kept)."""
+        while len(self._envs) < k:
+            self._envs.append(self._factory())
+        return self._envs[:k]
 
     def run(self, episode: Episode, job: Any, policy_key: str, policy_bytes: bytes | None) -> tuple[Any, float]:
         """(episode(env, policy, job), CPU seconds this process spent on it); the policy is
@@ -142,7 +182,10 @@ class RolloutWorker:
                 self._policy = policy_from_payload(payload).eval()
                 check_env_matches(self.env, self._policy)
             self._policy_key = policy_key
-        result = episode(self.env, self._policy, job)
+        if isinstance(job, Lockstep):
+            result = episode(self.envs(len(job.jobs)), self._policy, job.jobs)
+        else:
+            result = episode(self.env, self._policy, job)
         return result, time.process_time() - start
 
 
@@ -165,6 +208,7 @@ class Sampler(ABC):
     """
 
     num_workers: int
+    envs_per_worker: int = 1
     episode_cpu_s: float = 0.0
 
     @abstractmethod
@@ -173,13 +217,32 @@ class Sampler(ABC):
         """episode(env, policy, job) for every job, results in job order; a job whose worker died
         is left out (with a warning). `desc` labels a progress bar (none when None)."""
 
+    def map_lockstep(self, episode: Episode, policy: DexRepNetPolicy | None, jobs: Sequence[Any],
+                     desc: str | None = None) -> list[Any]:
+        """`map` for a Lockstep episode: the jobs in groups of at most `envs_per_worker`, each
+        group run together on one worker; as many groups as a multiple of the workers, of equal
+        sizes (within one), so the workers finish together; results flattened in job order (a
+        dead worker's group is lost). A job's result does not depend on its group."""
+        if not jobs:
+            return []
+        count = -(-len(jobs) // self.envs_per_worker)
+        count = -(-count // self.num_workers) * self.num_workers
+        bounds = np.linspace(0, len(jobs), min(count, len(jobs)) + 1).round().astype(int)
+        groups = [Lockstep(tuple(jobs[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
+        return [r for results in self.map(episode, policy, groups, desc) for r in results]
+
     def sample(self, policy: DexRepNetPolicy, seeds: Sequence[int], deterministic: bool = False) -> list[Trajectory]:
-        """One rollout of `policy` per seed."""
-        return self.map(partial(rollout_job, deterministic), policy, list(seeds))
+        """One rollout of `policy` per seed (`envs_per_worker` of them in lockstep per worker)."""
+        return self.map_lockstep(partial(rollout_job, deterministic), policy, list(seeds))
 
     def describe(self) -> str:
         """One line for logs: the backend and its workers."""
-        return f"{type(self).__name__} with {self.num_workers} worker(s)"
+        return f"{type(self).__name__} with {self.num_workers} worker(s) x {self.envs_per_worker} env(s)"
+
+    def _set_envs_per_worker(self, k: int) -> None:
+        if k < 1:
+            raise DexdrakeError(f"envs_per_worker must be >= 1, got {k}")
+        self.envs_per_worker = k
 
     def close(self) -> None:
         """Stop the workers."""
@@ -196,7 +259,8 @@ class SequentialSampler(Sampler):
 
     num_workers = 1
 
-    def __init__(self, env_factory: EnvFactory):
+    def __init__(self, env_factory: EnvFactory, envs_per_worker: int = 1):
+        self._set_envs_per_worker(envs_per_worker)
         self._factory = env_factory
         self._worker: RolloutWorker | None = None
 
@@ -205,11 +269,13 @@ class SequentialSampler(Sampler):
         if self._worker is None:
             self._worker = RolloutWorker(self._factory, single_thread=False)
         start = time.process_time()
-        env = self._worker.env
+        worker = self._worker
         if policy is not None:
-            check_env_matches(env, policy)
+            check_env_matches(worker.env, policy)
         with single_torch_thread():
-            results = [episode(env, policy, job) for job in tqdm(jobs, desc=desc, unit="episode", disable=desc is None)]
+            results = [episode(worker.envs(len(job.jobs)), policy, job.jobs) if isinstance(job, Lockstep)
+                       else episode(worker.env, policy, job)
+                       for job in tqdm(jobs, desc=desc, unit="episode", disable=desc is None)]
         self.episode_cpu_s += time.process_time() - start
         return results
 
@@ -232,9 +298,10 @@ class _WorkerPool(Sampler):
     """The scheduling shared by the process and Ray backends: one job per free worker, dead
     workers replaced. Subclasses start, stop and talk to workers."""
 
-    def __init__(self, num_workers: int):
+    def __init__(self, num_workers: int, envs_per_worker: int = 1):
         if num_workers < 1:
             raise DexdrakeError(f"num_workers must be >= 1, got {num_workers}")
+        self._set_envs_per_worker(envs_per_worker)
         self.num_workers = num_workers
         self._workers = self._start(num_workers)
 
@@ -339,14 +406,15 @@ def _process_worker_main(conn: Connection, env_factory: EnvFactory) -> None:
 
 # Imported once by the forkserver (with the module of the env factory's class), before any
 # thread starts, so each worker starts in a fraction of a second instead of importing torch,
-# Drake and Open3D itself (~3 CPU-s).
-PRELOAD = ("torch", "pydrake.all", "open3d")
+# Drake, Open3D and the mesh stack the object geometry loads with itself (~3 CPU-s).
+PRELOAD = ("torch", "pydrake.all", "open3d", "trimesh", "scipy.spatial")
 
 
 class ProcessSampler(_WorkerPool):
     """Episodes in `num_workers` local processes, each holding its own env."""
 
-    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, start_method: str | None = None):
+    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, start_method: str | None = None,
+                 envs_per_worker: int = 1):
         method = start_method or ("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
         if method not in ("forkserver", "spawn"):
             raise DexdrakeError(f"start_method must be 'forkserver' or 'spawn' (Drake and torch are not fork-safe), got {method!r}")
@@ -354,7 +422,7 @@ class ProcessSampler(_WorkerPool):
         if method == "forkserver":  # workers fork from a server that has imported the stack once
             self._ctx.set_forkserver_preload([*PRELOAD, type(env_factory).__module__])
         self._factory = env_factory
-        super().__init__(num_workers)
+        super().__init__(num_workers, envs_per_worker)
 
     def _start(self, n: int) -> list[_Worker]:
         workers = []
@@ -415,7 +483,8 @@ class RaySampler(_WorkerPool):
     "HEAD_IP:6379"), else starts a local one.
     """
 
-    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, address: str | None = None):
+    def __init__(self, env_factory: EnvFactory, num_workers: int = 2, address: str | None = None,
+                 envs_per_worker: int = 1):
         try:
             import ray
         except ImportError as exc:
@@ -433,7 +502,7 @@ class RaySampler(_WorkerPool):
             self.close()
             raise DexdrakeError(f"the Ray cluster has {cpus:g} CPUs; {num_workers} workers need one each")
         self._actor_cls = ray.remote(num_cpus=1)(_RayRolloutWorker)
-        super().__init__(num_workers)
+        super().__init__(num_workers, envs_per_worker)
 
     def _start(self, n: int) -> list[_Worker]:
         actors = [self._actor_cls.remote(self._factory) for _ in range(n)]
@@ -459,7 +528,8 @@ class RaySampler(_WorkerPool):
             raise WorkerDied(type(exc).__name__) from None
 
     def describe(self) -> str:
-        return f"RaySampler with {self.num_workers} worker(s) on {len({w.location for w in self._workers})} node(s)"
+        return (f"RaySampler with {self.num_workers} worker(s) x {self.envs_per_worker} env(s) on "
+                f"{len({w.location for w in self._workers})} node(s)")
 
     def close(self) -> None:
         super().close()
@@ -476,11 +546,12 @@ def check_backend(backend: str, address: str | None = None) -> None:
 
 
 def make_sampler(env_factory: EnvFactory, backend: str = "process", num_workers: int = 2,
-                 address: str | None = None) -> Sampler:
-    """A sampler for `backend` in BACKENDS; `address` (Ray only) joins an existing Ray cluster."""
+                 address: str | None = None, envs_per_worker: int = ENVS_PER_WORKER) -> Sampler:
+    """A sampler for `backend` in BACKENDS; `address` (Ray only) joins an existing Ray cluster;
+    each worker steps `envs_per_worker` envs in lockstep for Lockstep episodes."""
     check_backend(backend, address)
     if backend == "sequential":
-        return SequentialSampler(env_factory)
+        return SequentialSampler(env_factory, envs_per_worker)
     if backend == "process":
-        return ProcessSampler(env_factory, num_workers)
-    return RaySampler(env_factory, num_workers, address)
+        return ProcessSampler(env_factory, num_workers, envs_per_worker=envs_per_worker)
+    return RaySampler(env_factory, num_workers, address, envs_per_worker)

@@ -48,7 +48,7 @@ FILTER_ALPHA = 0.2  # dex-retargeting's Allegro teleop config
 def human_trajectory(frames: int, seed: int, noise: float = 0.002) -> np.ndarray:
     """(frames, 21, 3) keypoints: the synthetic hand moving between random grasp poses
     (power, pinch, open, per-finger flexion) while the wrist turns and moves, in a random
-    capture frame, with Gaussian tracker noise."""
+    capture frame, with Gaussian tracker noise (std `noise`, m)."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
@@ -69,6 +69,50 @@ def human_trajectory(frames: int, seed: int, noise: float = 0.002) -> np.ndarray
         R = R0 @ Rotation.from_rotvec(0.3 * np.sin([0.7 * s[t], 0.5 * s[t], 0.9 * s[t]])).as_matrix()
         out.append(hh.hand_keypoints(pose) @ R.T + [0.4, -1.1, 0.8] + 0.05 * np.sin(s[t]))
     return np.array(out) + rng.normal(0.0, noise, (frames, 21, 3))
+
+
+def object_demo_keypoints(seed: int) -> np.ndarray:
+    """(T, 21, 3): the synthetic grasp demos (approach, close, lift) of four library objects,
+    one after another, at 30 fps, noise-free."""
+    from dexdrake.demos.synthetic import synthesize_object_demos
+
+    demos = [d for name in ("mug", "banana", "can_soda", "box_cube")
+             for d in synthesize_object_demos(name, 2, seed, heading=None)]
+    return np.concatenate([d.keypoints[::2] for d in demos])
+
+
+PARENT = np.array([0, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19])
+
+
+def mediapipe_like(kp: np.ndarray, seed: int) -> np.ndarray:
+    """A noise-free (T, 21, 3) trajectory made to look like a monocular MediaPipe capture,
+    seeded: another person's hand (hand size x U(0.9, 1.1), each bone x N(1, 0.06)); slow,
+    temporally correlated errors (AR(1), 0.9 per frame) of 3 mm across and 8 mm along a
+    random camera depth axis; 1.5 mm white jitter; and tracker glitches (1 % of frames, one
+    finger's 4 keypoints off by 10-20 mm for 1-3 frames)."""
+    rng = np.random.default_rng(seed)
+    T = len(kp)
+    bones = kp[:, 1:] - kp[:, PARENT[1:]]
+    scale = rng.uniform(0.9, 1.1) * rng.normal(1.0, 0.06, 20)
+    out = np.zeros_like(kp)
+    out[:, 0] = kp[:, 0]
+    for j in range(1, 21):
+        out[:, j] = out[:, PARENT[j]] + scale[j - 1] * bones[:, j - 1]
+    depth = rng.normal(size=3)
+    depth /= np.linalg.norm(depth)
+    sigma = 0.003 * np.eye(3) + (0.008 - 0.003) * np.outer(depth, depth)  # per-axis std
+    drive = rng.normal(size=(T, 21, 3)) @ sigma.T * np.sqrt(1 - 0.9 ** 2)
+    slow = np.zeros_like(kp)
+    slow[0] = rng.normal(size=(21, 3)) @ sigma.T
+    for t in range(1, T):
+        slow[t] = 0.9 * slow[t - 1] + drive[t]
+    out += slow + rng.normal(0.0, 0.0015, kp.shape)
+    for t in np.flatnonzero(rng.random(T) < 0.01):
+        f = rng.integers(5)
+        off = rng.normal(size=3)
+        out[t:t + rng.integers(1, 4), 1 + 4 * f:5 + 4 * f] += \
+            rng.uniform(0.010, 0.020) * off / np.linalg.norm(off)
+    return out
 
 
 def peer_urdf(r: Retargeter, folder: Path) -> Path:
@@ -196,6 +240,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--motion", choices=("grasps", "demos"), default="grasps",
+                    help="synthetic motion: random grasp poses (--frames) or the object "
+                    "grasp demos of `dexdrake demos synth` (4 objects, 30 fps)")
+    ap.add_argument("--noise", choices=("gaussian", "mediapipe"), default="gaussian",
+                    help="2 mm white noise, or a MediaPipe-like capture (`mediapipe_like`)")
+    ap.add_argument("--save", type=Path, help="also write the synthetic keypoints (.npy)")
     ap.add_argument("--keypoints", type=Path, help="a keypoint file (.npy/.npz/.pkl/.json/.csv) "
                     "instead of the synthetic trajectory")
     args = ap.parse_args()
@@ -205,8 +255,18 @@ def main() -> None:
         raw = load_keypoint_array(args.keypoints).keypoints
         source = str(args.keypoints)
     else:
-        raw = human_trajectory(args.frames, args.seed)
-        source = f"synthetic hand, seed {args.seed}, 2 mm noise"
+        if args.motion == "grasps":
+            raw = human_trajectory(args.frames, args.seed,
+                                   0.002 if args.noise == "gaussian" else 0.0)
+        else:
+            raw = object_demo_keypoints(args.seed)
+        if args.noise == "mediapipe":
+            raw = mediapipe_like(raw, args.seed)
+        elif args.motion == "demos":
+            raw = raw + np.random.default_rng(args.seed).normal(0.0, 0.002, raw.shape)
+        source = f"synthetic {args.motion}, seed {args.seed}, {args.noise} noise"
+        if args.save:
+            np.save(args.save, raw.astype(np.float32))
     base = Retargeter("allegro", fixed_wrist=True)
     r = Retargeter("allegro", equal_terms_config(base), fixed_wrist=True)
     kp = r.place(raw)

@@ -85,6 +85,7 @@ class RetargetConfig:
     iterations: int = 10
     first_iterations: int = 80
     damping: float = 1e-6
+    huber: float = 0.0  # Huber delta (m) on key-vector errors; 0: squared errors
     filter: float = 1.0  # output low-pass alpha (1: none); see retargeter.low_pass
 
     def weight(self, key: str) -> float:
@@ -94,7 +95,7 @@ class RetargetConfig:
         return self.scales.get(key, "auto" if key != "object" else 1.0)
 
 
-_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
+_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "thumb": 1.0, "object": 1.0, "object_decay": 0.03,
                     "object_contact": 0.012, "object_depth": 0.0, "palm": 1.0,
                     "wrist_position": 0.05, "smooth": 4e-3}
 
@@ -148,6 +149,7 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
         iterations=int(s.get("iterations", 10)),
         first_iterations=int(s.get("first_iterations", 80)),
         damping=float(s.get("damping", 1e-6)),
+        huber=float(s.get("huber", 0.0)),
         filter=_alpha(hand, s.get("filter", 1.0)),
     )
 

@@ -129,6 +129,7 @@ class Retargeter:
         self._ff = np.flatnonzero(self._masks["finger-finger"])
         self._ff_pair = np.array([kv.fingers[i] for i in self._ff], int).reshape(-1, 2)
         self.scales = self._scales()
+        self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
         self._pinch = np.zeros(nf, bool)
 
     @property
@@ -226,6 +227,7 @@ class Retargeter:
              + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"])
              + cfg.weight("palm") * m["palm"])
         w[self._base] *= cfg.weight("base")
+        w[self._tf] *= cfg.weight("thumb")
         if has_obj:
             obj = m["object"]
             w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
@@ -279,43 +281,59 @@ class Retargeter:
         return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
 
     def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
-        lo, hi = self.lower, self.upper
-        sw = np.repeat(np.sqrt(w), 3)
+        """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed-wrist: the
+        fingers), minimising sum_i w_i h(||v_i(q) - t_i||) + smooth/2 ||q - q_ref||^2 with h
+        the Huber function (delta `solver.huber`; 0: h(e) = e^2 / 2), as iteratively
+        reweighted Gauss-Newton steps; a step is kept if it lowers that cost."""
+        act = self._active
+        lo, hi = self.lower[act], self.upper[act]
         t = T.reshape(-1)
-        n = self.num_joints
-
+        delta = self.config.huber
         self._a[:] = A.ravel()
-        eye = np.eye(n)
+        self._q[:] = q
+        x, x_ref = q[act].copy(), q_ref[act]
+        eye = np.eye(len(x))
 
-        def evaluate(qq):
-            self._q[:] = qq
+        def evaluate(xx):
+            self._q[act] = xx
             self._eval()
-            r = sw * (self._v - t)
-            dq = qq - q_ref
-            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dq @ dq)
+            e = (self._v - t).reshape(-1, 3)
+            norm = np.sqrt(np.einsum("ij,ij->i", e, e))
+            if delta > 0:
+                big = norm > delta
+                rho = np.where(big, delta / np.maximum(norm, 1e-12), 1.0)
+                h = np.where(big, delta * (norm - 0.5 * delta), 0.5 * norm * norm)
+            else:
+                rho, h = 1.0, 0.5 * norm * norm
+            sw = np.repeat(np.sqrt(w * rho), 3)
+            dx = xx - x_ref
+            return sw * e.reshape(-1), self._JT[act].T * sw[:, None], \
+                w @ h + 0.5 * smooth * dx @ dx
 
-        r, J, cost = evaluate(q)
+        r, J, cost = evaluate(x)
         mu = self.config.damping
         for _ in range(iterations):
-            g = J.T @ r + smooth * (q - q_ref)
+            g = J.T @ r + smooth * (x - x_ref)
             H = J.T @ J + (smooth + mu) * eye
-            free = ~(((q <= lo + 1e-9) & (g > 0)) | ((q >= hi - 1e-9) & (g < 0)))
-            step = np.zeros(n)
+            free = ~(((x <= lo + 1e-9) & (g > 0)) | ((x >= hi - 1e-9) & (g < 0)))
+            step = np.zeros(len(x))
             if free.all():
                 step = -np.linalg.solve(H, g)
             else:
                 step[free] = -np.linalg.solve(H[np.ix_(free, free)], g[free])
-            q_new = np.clip(q + step, lo, hi)
-            r_new, J_new, cost_new = evaluate(q_new)
+            x_new = np.clip(x + step, lo, hi)
+            r_new, J_new, cost_new = evaluate(x_new)
             if cost_new <= cost:
-                converged = np.max(np.abs(q_new - q)) < 1e-4
-                q, r, J, cost = q_new, r_new, J_new, cost_new
+                converged = np.max(np.abs(x_new - x)) < 1e-4
+                x, r, J, cost = x_new, r_new, J_new, cost_new
                 mu = max(mu * 0.3, 1e-9)
                 if converged:
                     break
             else:
                 mu = max(mu * 10, 1e-6)
-        return q
+        out = np.array(q, float)
+        out[act] = x
+        return out
 
     def robot_points(self, q: np.ndarray) -> np.ndarray:
         """World positions of the config's robot points [wrist, tips..., bases...]."""

@@ -110,11 +110,14 @@ class Retargeter:
         E = ca.vertcat(P, ca.reshape(a, 3, nf).T, ca.SX.zeros(1, 3))
         V = E[kv.b.tolist(), :] - E[kv.a.tolist(), :]
         v = ca.reshape(V.T, -1, 1)  # row-major flattening
-        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q))])
-        # zero-copy evaluation: inputs/outputs live in these numpy buffers
+        self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
+        q_act = ca.vertcat(*[q[int(i)] for i in self._active])
+        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q_act))])
+        # zero-copy evaluation: inputs/outputs live in these numpy buffers; _JT holds the
+        # Jacobian's transpose for the active joints only
         self._q, self._a = np.zeros(len(self.joint_names)), np.zeros(3 * nf)
-        self._v, self._JT = np.zeros(3 * len(kv.kind)), np.zeros((len(self.joint_names),
-                                                                  3 * len(kv.kind)))
+        self._v = np.zeros(3 * len(kv.kind))
+        self._JT = np.zeros((len(self._active), 3 * len(kv.kind)))
         self._buf, self._eval = vj.buffer()
         for i, arr in enumerate((self._q, self._a)):
             self._buf.set_arg(i, memoryview(arr))
@@ -129,7 +132,12 @@ class Retargeter:
         self._ff = np.flatnonzero(self._masks["finger-finger"])
         self._ff_pair = np.array([kv.fingers[i] for i in self._ff], int).reshape(-1, 2)
         self.scales = self._scales()
-        self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
+        m = self._masks
+        self._weights = (cfg.weight("wrist") * m["wrist"] + cfg.weight("finger") * (
+            m["thumb-finger"] | m["finger-finger"]) + cfg.weight("palm") * m["palm"]
+            + cfg.weight("wrist_position") * m["position"])  # object terms: per frame
+        self._weights[self._base] *= cfg.weight("base")
+        self._weights[self._tf] *= cfg.weight("thumb")
         self._pinch = np.zeros(nf, bool)
 
     @property
@@ -222,14 +230,9 @@ class Retargeter:
         vh = E[kv.b] - E[kv.a]
         T = vh * self.scales[:, None]
         d = np.linalg.norm(vh, axis=1)
-        m = self._masks
-        w = (cfg.weight("wrist") * m["wrist"] + cfg.weight("wrist_position") * m["position"]
-             + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"])
-             + cfg.weight("palm") * m["palm"])
-        w[self._base] *= cfg.weight("base")
-        w[self._tf] *= cfg.weight("thumb")
+        w = self._weights.copy()
         if has_obj:
-            obj = m["object"]
+            obj = self._masks["object"]
             w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
             T[obj] = self._squeeze(vh[obj], d[obj], normals)
         # DexPilot pinch projection with hysteresis (eps_enter to enter, eps_leave to leave)
@@ -281,7 +284,7 @@ class Retargeter:
         return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
 
     def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
-        """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed-wrist: the
+        """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed wrist: the
         fingers), minimising sum_i w_i h(||v_i(q) - t_i||) + smooth/2 ||q - q_ref||^2 with h
         the Huber function (delta `solver.huber`; 0: h(e) = e^2 / 2), as iteratively
         reweighted Gauss-Newton steps; a step is kept if it lowers that cost."""
@@ -289,26 +292,26 @@ class Retargeter:
         lo, hi = self.lower[act], self.upper[act]
         t = T.reshape(-1)
         delta = self.config.huber
+        sw = np.repeat(np.sqrt(w), 3)
         self._a[:] = A.ravel()
         self._q[:] = q
-        x, x_ref = q[act].copy(), q_ref[act]
+        x, x_ref = q[act], q_ref[act]
         eye = np.eye(len(x))
 
         def evaluate(xx):
             self._q[act] = xx
             self._eval()
-            e = (self._v - t).reshape(-1, 3)
-            norm = np.sqrt(np.einsum("ij,ij->i", e, e))
-            if delta > 0:
-                big = norm > delta
-                rho = np.where(big, delta / np.maximum(norm, 1e-12), 1.0)
-                h = np.where(big, delta * (norm - 0.5 * delta), 0.5 * norm * norm)
-            else:
-                rho, h = 1.0, 0.5 * norm * norm
-            sw = np.repeat(np.sqrt(w * rho), 3)
+            e = self._v - t
             dx = xx - x_ref
-            return sw * e.reshape(-1), self._JT[act].T * sw[:, None], \
-                w @ h + 0.5 * smooth * dx @ dx
+            if delta <= 0:
+                r = sw * e
+                return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
+            norm = np.sqrt(np.einsum("ij,ij->i", e.reshape(-1, 3), e.reshape(-1, 3)))
+            big = norm > delta
+            rho = np.where(big, delta / np.maximum(norm, 1e-12), 1.0)
+            h = np.where(big, delta * (norm - 0.5 * delta), 0.5 * norm * norm)
+            s = sw * np.repeat(np.sqrt(rho), 3)
+            return s * e, self._JT.T * s[:, None], w @ h + 0.5 * smooth * dx @ dx
 
         r, J, cost = evaluate(x)
         mu = self.config.damping

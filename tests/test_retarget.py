@@ -367,3 +367,41 @@ def test_output_filter_does_not_feed_back(toy):
     assert np.abs(np.diff(filtered, axis=0)).mean() < np.abs(np.diff(raw, axis=0)).mean()
     with pytest.raises(Exception, match="solver.filter"):
         Retargeter(hand, dict(config, solver={"filter": 0.0}))
+
+
+def _allegro_errors(weights: dict | None = None, seed: int = 3, T: int = 150):
+    """(wrist->tip mm, thumb->finger mm, jitter rad/frame) of the shipped fixed-wrist Allegro
+    config (scale 1.6, optional weight overrides) on a seeded MediaPipe-like capture of the
+    synthetic hand, measured as scripts/bench_retarget.py measures them."""
+    import yaml
+
+    from dexdrake.demos.captures import grasp_trajectory, mediapipe_like
+    from dexdrake.retarget.config import CONFIG_DIR
+
+    cfg = yaml.safe_load((CONFIG_DIR / "allegro.yaml").read_text())
+    cfg["scales"] = {"wrist": 1.6, "finger": 1.6}
+    cfg["weights"].update(weights or {})
+    r = Retargeter("allegro", cfg, fixed_wrist=True)
+    raw = mediapipe_like(grasp_trajectory(T, seed), seed)
+    Q = r.retarget_sequence(HumanDemo(raw, np.arange(T) / 30.0, "", np.zeros((T, 3)),
+                                      np.tile([1.0, 0, 0, 0], (T, 1)), DemoMeta()),
+                            progress=False)
+    kp = r.place(raw)
+    wt, tf = [], []
+    for q, k in zip(Q, kp):
+        P = r.robot_points(q)
+        tips, H = P[1:5], k[[HUMAN_TIP[f] for f in r.config.fingers]]
+        wt.append(np.linalg.norm((tips - P[0]) - 1.6 * (H - k[0]), axis=1).mean())
+        tf.append(np.linalg.norm((tips[1:] - tips[0]) - 1.6 * (H[1:] - H[0]), axis=1).mean())
+    n = len(r.hand.arm_joints)
+    return 1000 * np.mean(wt), 1000 * np.mean(tf), np.abs(np.diff(Q[:, n:], axis=0)).mean()
+
+
+def test_allegro_objective_accuracy_on_a_noisy_capture():
+    wrist, thumb, jitter = _allegro_errors()
+    # measured 43.4 mm, 48.8 mm, 0.0191 rad/frame (dex-retargeting's DexPilot with its
+    # filter is about 5 % and 12 % worse on these errors in scripts/bench_retarget.py)
+    assert wrist < 45.5 and thumb < 50.5 and jitter < 0.021, (wrist, thumb, jitter)
+    # the `thumb` weight trades wrist->tip error for thumb->finger error
+    wrist1, thumb1, _ = _allegro_errors({"thumb": 1.0})
+    assert thumb < thumb1 - 2.0 and wrist > wrist1, (wrist, thumb, wrist1, thumb1)

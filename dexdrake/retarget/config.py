@@ -9,9 +9,9 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
       index: {tip: {body: link_3.0_tip, offset: [0, 0, 0]}, base: {body: link_1.0}}
     palm: {out: 0.051, along: 0.72}                     # optional palm grasp-centre term
     scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
-    weights: {wrist: 1.0, base: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
-              object_contact: 0.012, object_depth: 0.0, palm: 1.0,
-              wrist_position: 0.05, smooth: 4.0e-3}
+    weights: {wrist: 1.0, base: 1.0, finger: 1.0, thumb: 1.0, object: 1.0,
+              object_decay: 0.03, object_contact: 0.012, object_depth: 0.0, palm: 1.0,
+              wrist_position: 0.05, smooth: 4.0e-3}   # base, thumb: x wrist, x finger
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
     solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6, filter: 1.0}
 
@@ -85,7 +85,6 @@ class RetargetConfig:
     iterations: int = 10
     first_iterations: int = 80
     damping: float = 1e-6
-    huber: float = 0.0  # Huber delta (m) on key-vector errors; 0: squared errors
     filter: float = 1.0  # output low-pass alpha (1: none); see retargeter.low_pass
 
     def weight(self, key: str) -> float:
@@ -149,7 +148,6 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
         iterations=int(s.get("iterations", 10)),
         first_iterations=int(s.get("first_iterations", 80)),
         damping=float(s.get("damping", 1e-6)),
-        huber=float(s.get("huber", 0.0)),
         filter=_alpha(hand, s.get("filter", 1.0)),
     )
 

@@ -1,16 +1,16 @@
 """Human keypoints -> robot joint angles, solved per frame with a bounded Levenberg-Marquardt
 on CasADi-generated key vectors and Jacobians.
 
-Objective per frame (DexRepNet, DexPilot-style), over all policy joints (the 6 virtual arm
-joints are the global hand pose M_g):
-    sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth || q - q_prev ||^2,   lo <= q <= hi
+Objective per frame (DexRepNet, DexPilot-style), over the policy joints that can move (the
+6 virtual arm joints are the global hand pose M_g; a fixed wrist solves the fingers only):
+    1/2 sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth/2 || q - q_prev ||^2,   lo <= q <= hi
 Key vectors v_i (robot) and their human counterparts v_i^H:
     wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
             the base vectors (weight x `base`) hold the palm's orientation
-    finger  thumb tip -> each tip, tip -> tip              t_i = k_f v_i^H, or DexPilot's pinch
-            projection: thumb-finger with human length < eps: t = eta1 * unit, w = s1;
-            finger-finger with both fingers pinching: t = eta2 * unit, w = s2
-            (eps hysteresis eps_enter / eps_leave)
+    finger  thumb tip -> each tip (weight x `thumb`), tip -> tip      t_i = k_f v_i^H, or
+            DexPilot's pinch projection: thumb-finger with human length < eps:
+            t = eta1 * unit, w = s1; finger-finger with both fingers pinching: t = eta2 * unit,
+            w = s2 (eps hysteresis eps_enter / eps_leave)
     object  fingertip -> object anchor (the object point closest to the human fingertip)
             t_i = v_i^H, w = w_obj / (1 + (d_i / decay)^2) with d_i the human tip's distance;
             within `object_contact` of the surface the human tip is replaced by a goal
@@ -20,6 +20,15 @@ Key vectors v_i (robot) and their human counterparts v_i^H:
             (`human_hand.palm_centre`; optional, config `palm`)
     position  world origin -> wrist point, t = human wrist (small weight: holds the global
             position when no object is given)
+
+What it trades: a robot hand whose proportions differ from the human's cannot match every
+vector at once, so the weights choose. `thumb` sets the wrist->tip error against the
+thumb->finger error (the thumb's opposition, which decides a grasp); the pinch terms trade
+both for closing the robot's tips when the human pinches (their targets are not the scaled
+human vectors); `w_smooth` and the output low-pass (`solver.filter`) trade lag, i.e. error on
+fast motion, for less jitter. The smoothness term is the cheaper of the two: it damps the
+joint directions that the key vectors hardly fix (where tracker noise moves q most) and
+leaves the well-fixed ones almost free, while the filter lags every joint alike.
 """
 
 from __future__ import annotations
@@ -285,13 +294,12 @@ class Retargeter:
 
     def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
         """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed wrist: the
-        fingers), minimising sum_i w_i h(||v_i(q) - t_i||) + smooth/2 ||q - q_ref||^2 with h
-        the Huber function (delta `solver.huber`; 0: h(e) = e^2 / 2), as iteratively
-        reweighted Gauss-Newton steps; a step is kept if it lowers that cost."""
+        fingers) for 1/2 sum_i w_i ||v_i(q) - t_i||^2 + smooth/2 ||q - q_ref||^2: Gauss-Newton
+        steps on the free set (joints at a bound that the gradient pushes out stay there),
+        each kept only if it lowers the cost (else the damping grows)."""
         act = self._active
         lo, hi = self.lower[act], self.upper[act]
         t = T.reshape(-1)
-        delta = self.config.huber
         sw = np.repeat(np.sqrt(w), 3)
         self._a[:] = A.ravel()
         self._q[:] = q
@@ -301,17 +309,9 @@ class Retargeter:
         def evaluate(xx):
             self._q[act] = xx
             self._eval()
-            e = self._v - t
+            r = sw * (self._v - t)
             dx = xx - x_ref
-            if delta <= 0:
-                r = sw * e
-                return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
-            norm = np.sqrt(np.einsum("ij,ij->i", e.reshape(-1, 3), e.reshape(-1, 3)))
-            big = norm > delta
-            rho = np.where(big, delta / np.maximum(norm, 1e-12), 1.0)
-            h = np.where(big, delta * (norm - 0.5 * delta), 0.5 * norm * norm)
-            s = sw * np.repeat(np.sqrt(rho), 3)
-            return s * e, self._JT.T * s[:, None], w @ h + 0.5 * smooth * dx @ dx
+            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
 
         r, J, cost = evaluate(x)
         mu = self.config.damping

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+from scipy.linalg.lapack import dposv as _posv  # Cholesky solve of H x = g, SPD H
 
 from dexdrake.demos.format import HumanDemo
 from dexdrake.errors import DexdrakeError
@@ -301,32 +302,39 @@ class Retargeter:
         lo, hi = self.lower[act], self.upper[act]
         t = T.reshape(-1)
         sw = np.repeat(np.sqrt(w), 3)
-        self._a[:] = A.ravel()
-        self._q[:] = q
         x, x_ref = q[act], q_ref[act]
         eye = np.eye(len(x))
 
         def evaluate(xx):
             self._q[act] = xx
             self._eval()
+            return residuals(xx)
+
+        def residuals(xx):  # from the buffers of the last evaluation
             r = sw * (self._v - t)
             dx = xx - x_ref
             return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
 
-        r, J, cost = evaluate(x)
+        a = A.ravel()
+        if np.array_equal(self._q, q) and np.array_equal(self._a, a):
+            r, J, cost = residuals(x)  # warm start where the last solve ended
+        else:
+            self._q[:], self._a[:] = q, a
+            r, J, cost = evaluate(x)
         mu = self.config.damping
         for _ in range(iterations):
             g = J.T @ r + smooth * (x - x_ref)
             H = J.T @ J + (smooth + mu) * eye
-            free = ~(((x <= lo + 1e-9) & (g > 0)) | ((x >= hi - 1e-9) & (g < 0)))
-            step = np.zeros(len(x))
-            if free.all():
-                step = -np.linalg.solve(H, g)
-            else:
-                step[free] = -np.linalg.solve(H[np.ix_(free, free)], g[free])
-            x_new = np.clip(x + step, lo, hi)
+            fixed = ((x <= lo + 1e-9) & (g > 0)) | ((x >= hi - 1e-9) & (g < 0))
+            if fixed.any():  # no step for those: zero their rows/columns, unit diagonal
+                H[fixed, :] = 0.0
+                H[:, fixed] = 0.0
+                H[fixed, fixed] = 1.0
+                g = np.where(fixed, 0.0, g)
+            _, step, info = _posv(H, g)
+            x_new = np.clip(x - step, lo, hi)
             r_new, J_new, cost_new = evaluate(x_new)
-            if cost_new <= cost:
+            if info == 0 and cost_new <= cost:
                 converged = np.max(np.abs(x_new - x)) < 1e-4
                 x, r, J, cost = x_new, r_new, J_new, cost_new
                 mu = max(mu * 0.3, 1e-9)
@@ -334,6 +342,8 @@ class Retargeter:
                     break
             else:
                 mu = max(mu * 10, 1e-6)
+        if not np.array_equal(self._q[act], x):  # leave the buffers at the solution
+            evaluate(x)
         out = np.array(q, float)
         out[act] = x
         return out

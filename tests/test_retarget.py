@@ -373,12 +373,9 @@ def _allegro_errors(weights: dict | None = None, seed: int = 3, T: int = 150):
     """(wrist->tip mm, thumb->finger mm, jitter rad/frame) of the shipped fixed-wrist Allegro
     config (scale 1.6, optional weight overrides) on a seeded MediaPipe-like capture of the
     synthetic hand, measured as scripts/bench_retarget.py measures them."""
-    import yaml
-
     from dexdrake.demos.captures import grasp_trajectory, mediapipe_like
-    from dexdrake.retarget.config import CONFIG_DIR
 
-    cfg = yaml.safe_load((CONFIG_DIR / "allegro.yaml").read_text())
+    cfg = _allegro_yaml()
     cfg["scales"] = {"wrist": 1.6, "finger": 1.6}
     cfg["weights"].update(weights or {})
     r = Retargeter("allegro", cfg, fixed_wrist=True)
@@ -399,9 +396,34 @@ def _allegro_errors(weights: dict | None = None, seed: int = 3, T: int = 150):
 
 def test_allegro_objective_accuracy_on_a_noisy_capture():
     wrist, thumb, jitter = _allegro_errors()
-    # measured 43.4 mm, 48.8 mm, 0.0191 rad/frame (dex-retargeting's DexPilot with its
-    # filter is about 5 % and 12 % worse on these errors in scripts/bench_retarget.py)
-    assert wrist < 45.5 and thumb < 50.5 and jitter < 0.021, (wrist, thumb, jitter)
-    # the `thumb` weight trades wrist->tip error for thumb->finger error
-    wrist1, thumb1, _ = _allegro_errors({"thumb": 1.0})
-    assert thumb < thumb1 - 2.0 and wrist > wrist1, (wrist, thumb, wrist1, thumb1)
+    # measured 43.0 mm, 50.0 mm, 0.0176 rad/frame (the former config: 48.2, 51.1, 0.0236;
+    # dex-retargeting's DexPilot with its filter is 5-15 % worse on such captures in
+    # scripts/bench_retarget.py)
+    assert wrist < 45.5 and thumb < 51.0 and jitter < 0.0195, (wrist, thumb, jitter)
+    # the `thumb` weight buys thumb->finger accuracy (measured 52.7 mm at 1)
+    _, thumb1, _ = _allegro_errors({"thumb": 1.0})
+    assert thumb < thumb1 - 2.0, (thumb, thumb1)
+
+
+def test_adaptive_low_pass():
+    from dexdrake.retarget.retargeter import low_pass
+
+    rng = np.random.default_rng(0)
+    still = rng.normal(0.0, 0.01, (200, 1))
+    ramp = np.linspace(0.0, 2.0, 200)[:, None]  # 0.01 rad/frame
+    plain = low_pass(ramp, 0.05)
+    adaptive = low_pass(ramp, 0.05, speed=0.005)
+    assert abs(adaptive[-1, 0] - 2.0) < 1e-3 < abs(plain[-1, 0] - 2.0) - 0.1  # no lag
+    np.testing.assert_allclose(low_pass(still, 0.05, speed=np.inf), low_pass(still, 0.05))
+    jitter = np.abs(np.diff(low_pass(still, 0.05, speed=0.08), axis=0)).mean()
+    assert jitter < 0.1 * np.abs(np.diff(still, axis=0)).mean()  # noise is smoothed
+    with pytest.raises(Exception, match="filter_speed"):
+        Retargeter("allegro", {**_allegro_yaml(), "solver": {"filter_speed": 0}})
+
+
+def _allegro_yaml() -> dict:
+    import yaml
+
+    from dexdrake.retarget.config import CONFIG_DIR
+
+    return yaml.safe_load((CONFIG_DIR / "allegro.yaml").read_text())

@@ -25,10 +25,11 @@ What it trades: a robot hand whose proportions differ from the human's cannot ma
 vector at once, so the weights choose. `thumb` sets the wrist->tip error against the
 thumb->finger error (the thumb's opposition, which decides a grasp); the pinch terms trade
 both for closing the robot's tips when the human pinches (their targets are not the scaled
-human vectors); `w_smooth` and the output low-pass (`solver.filter`) trade lag, i.e. error on
-fast motion, for less jitter. The smoothness term is the cheaper of the two: it damps the
-joint directions that the key vectors hardly fix (where tracker noise moves q most) and
-leaves the well-fixed ones almost free, while the filter lags every joint alike.
+human vectors); `w_smooth` and the output low-pass (`solver.filter`, `low_pass`) trade lag,
+i.e. error on moving frames, for less jitter. The smoothness term damps the joint directions
+that the key vectors hardly fix (where tracker noise moves q most) and leaves the well-fixed
+ones almost free; the low-pass, adaptive with `solver.filter_speed`, smooths still joints
+hard and follows moving ones closely.
 """
 
 from __future__ import annotations
@@ -407,18 +408,25 @@ class Retargeter:
                 anchors, normals = closest(self.human_tips(kp), t)
             q = self.retarget_frame(kp, anchors, q, normals)
             out[t] = q
-        return low_pass(out, self.config.filter)
+        return low_pass(out, self.config.filter, self.config.filter_speed)
 
 
-def low_pass(Q: np.ndarray, alpha: float) -> np.ndarray:
-    """Exponential low-pass of a (T, n) trajectory, y_t = alpha q_t + (1 - alpha) y_t-1
-    (alpha 1: unchanged). Applied to the output only: each frame's solve still starts from
-    the previous unfiltered solution, so the filter does not feed back into the fit."""
+def low_pass(Q: np.ndarray, alpha: float, speed: float = np.inf) -> np.ndarray:
+    """Adaptive exponential low-pass of a (T, n) trajectory (one-euro style), per joint:
+        y_t = y_t-1 + a_t (q_t - y_t-1),   a_t = alpha + (1 - alpha) min(1, |s_t| / speed)
+    with s_t = 0.3 (q_t - y_t-1) + 0.7 s_t-1 the smoothed step (rad/frame): a still joint is
+    smoothed with alpha (tracker noise), a moving one followed with less lag (speed = inf:
+    the plain exponential low-pass; alpha 1: unchanged). Applied to the output only: each
+    frame's solve still starts from the previous unfiltered solution, so the filter does
+    not feed back into the fit."""
     out = np.array(Q, float)
     if alpha >= 1.0:
         return out
+    step = np.zeros(out.shape[1:])
     for t in range(1, len(out)):
-        out[t] = alpha * out[t] + (1.0 - alpha) * out[t - 1]
+        d = out[t] - out[t - 1]
+        step = 0.3 * d + 0.7 * step
+        out[t] = out[t - 1] + (alpha + (1.0 - alpha) * np.minimum(1.0, np.abs(step) / speed)) * d
     return out
 
 

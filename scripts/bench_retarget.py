@@ -188,7 +188,8 @@ def main() -> None:
                     help="synthetic motion: random grasp poses (--frames) or the object "
                     "grasp demos of `dexdrake demos synth` (4 objects, 30 fps)")
     ap.add_argument("--noise", choices=("gaussian", "mediapipe"), default="gaussian",
-                    help="2 mm white noise, or a MediaPipe-like capture (`captures.mediapipe_like`)")
+                    help="2 mm white noise, or a MediaPipe-like capture "
+                    "(`captures.mediapipe_like`)")
     ap.add_argument("--save", type=Path, help="also write the synthetic keypoints (.npy)")
     ap.add_argument("--keypoints", type=Path, help="a keypoint file (.npy/.npz/.pkl/.json/.csv) "
                     "instead of the synthetic trajectory")

@@ -98,9 +98,9 @@ class RetargetConfig:
         return self.scales.get(key, "auto" if key != "object" else 1.0)
 
 
-_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "thumb": 1.0, "object": 1.0, "object_decay": 0.03,
-                    "object_contact": 0.012, "object_depth": 0.0, "palm": 1.0,
-                    "wrist_position": 0.05, "smooth": 4e-3}
+_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "thumb": 1.0, "object": 1.0,
+                    "object_decay": 0.03, "object_contact": 0.012, "object_depth": 0.0,
+                    "palm": 1.0, "wrist_position": 0.05, "smooth": 4e-3}
 
 
 def _point(hand: HandDescription, name: str, d: dict, human: int) -> RobotPoint:

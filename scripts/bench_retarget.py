@@ -13,13 +13,17 @@ One metric for both, on every frame, with dexdrake's FK:
     jitter        mean |q_t - q_t-1| over the 16 finger joints          (rad/frame)
     ms/frame      CPU time (time.process_time) per frame, one thread
 
-Data: a MediaPipe-like trajectory of the synthetic adult hand (dexdrake/demos/human_hand.py)
-in an arbitrary capture frame with 2 mm tracker noise (--frames, --seed), or a user's
-keypoint file (--keypoints FILE, read as `dexdrake demos import` reads it).
+Data (`dexdrake/demos/captures.py`): the synthetic adult hand moving between grasp poses
+(--motion grasps, --frames) or the object grasp demos of `dexdrake demos synth` (--motion
+demos), in an arbitrary capture frame, with 2 mm white noise (--noise gaussian) or the
+seeded errors of a monocular MediaPipe capture (--noise mediapipe: another hand's bone
+lengths, slow depth-heavy drift, jitter, glitches); --save writes them for --keypoints. Or a
+user's keypoint file (--keypoints FILE, read as `dexdrake demos import` reads it).
 
 Needs the `bench` extra: pip install -e '.[bench]'. Without it only our row is printed.
 
     OMP_NUM_THREADS=1 python scripts/bench_retarget.py [--frames 600] [--seed 0]
+        [--motion grasps|demos] [--noise gaussian|mediapipe] [--save F.npy] [--keypoints F]
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from dexdrake.demos import human_hand as hh  # noqa: E402
+from dexdrake.demos.captures import grasp_trajectory, mediapipe_like  # noqa: E402
 from dexdrake.demos.format import DemoMeta, HumanDemo  # noqa: E402
 from dexdrake.retarget.retargeter import Retargeter  # noqa: E402
 
@@ -45,30 +49,14 @@ TIPS = {"thumb": 4, "index": 8, "middle": 12, "ring": 16}
 FILTER_ALPHA = 0.2  # dex-retargeting's Allegro teleop config
 
 
-def human_trajectory(frames: int, seed: int, noise: float = 0.002) -> np.ndarray:
-    """(frames, 21, 3) keypoints: the synthetic hand moving between random grasp poses
-    (power, pinch, open, per-finger flexion) while the wrist turns and moves, in a random
-    capture frame, with Gaussian tracker noise."""
-    from scipy.spatial.transform import Rotation
+def object_demo_keypoints(seed: int) -> np.ndarray:
+    """(T, 21, 3): the synthetic grasp demos (approach, close, lift) of four library objects,
+    one after another, at 30 fps, noise-free."""
+    from dexdrake.demos.synthetic import synthesize_object_demos
 
-    rng = np.random.default_rng(seed)
-    closed = np.array([[-0.45, 0.95, 0.6, 0.7]] + [[0.0, 1.5, 1.7, 1.2]] * 4)
-    pinch = np.array([[-0.45, 0.45, 0.45, 0.5], [0.0, 1.0, 1.0, 0.6], [0.0, 1.1, 1.1, 0.6],
-                      [0.0, 1.5, 1.7, 1.2], [0.0, 1.5, 1.7, 1.2]])
-    keys = [hh.OPEN_POSE]
-    while len(keys) * 30 < frames + 30:
-        base = [hh.OPEN_POSE, closed, pinch][rng.integers(3)]
-        keys.append(hh.OPEN_POSE + rng.uniform(0.3, 1.0, (5, 1)) * (base - hh.OPEN_POSE))
-    s = np.arange(frames) / 30.0
-    i = np.minimum(s.astype(int), len(keys) - 2)
-    a = 0.5 - 0.5 * np.cos(np.pi * (s - i))  # smooth in and out of each key pose
-    R0 = Rotation.random(random_state=seed).as_matrix()
-    out = []
-    for t in range(frames):
-        pose = keys[i[t]] + a[t] * (keys[i[t] + 1] - keys[i[t]])
-        R = R0 @ Rotation.from_rotvec(0.3 * np.sin([0.7 * s[t], 0.5 * s[t], 0.9 * s[t]])).as_matrix()
-        out.append(hh.hand_keypoints(pose) @ R.T + [0.4, -1.1, 0.8] + 0.05 * np.sin(s[t]))
-    return np.array(out) + rng.normal(0.0, noise, (frames, 21, 3))
+    demos = [d for name in ("mug", "banana", "can_soda", "box_cube")
+             for d in synthesize_object_demos(name, 2, seed, heading=None)]
+    return np.concatenate([d.keypoints[::2] for d in demos])
 
 
 def peer_urdf(r: Retargeter, folder: Path) -> Path:
@@ -196,6 +184,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--motion", choices=("grasps", "demos"), default="grasps",
+                    help="synthetic motion: random grasp poses (--frames) or the object "
+                    "grasp demos of `dexdrake demos synth` (4 objects, 30 fps)")
+    ap.add_argument("--noise", choices=("gaussian", "mediapipe"), default="gaussian",
+                    help="2 mm white noise, or a MediaPipe-like capture "
+                    "(`captures.mediapipe_like`)")
+    ap.add_argument("--save", type=Path, help="also write the synthetic keypoints (.npy)")
     ap.add_argument("--keypoints", type=Path, help="a keypoint file (.npy/.npz/.pkl/.json/.csv) "
                     "instead of the synthetic trajectory")
     args = ap.parse_args()
@@ -205,8 +200,18 @@ def main() -> None:
         raw = load_keypoint_array(args.keypoints).keypoints
         source = str(args.keypoints)
     else:
-        raw = human_trajectory(args.frames, args.seed)
-        source = f"synthetic hand, seed {args.seed}, 2 mm noise"
+        if args.motion == "grasps":
+            raw = grasp_trajectory(args.frames, args.seed,
+                                   0.002 if args.noise == "gaussian" else 0.0)
+        else:
+            raw = object_demo_keypoints(args.seed)
+        if args.noise == "mediapipe":
+            raw = mediapipe_like(raw, args.seed)
+        elif args.motion == "demos":
+            raw = raw + np.random.default_rng(args.seed).normal(0.0, 0.002, raw.shape)
+        source = f"synthetic {args.motion}, seed {args.seed}, {args.noise} noise"
+        if args.save:
+            np.save(args.save, raw.astype(np.float32))
     base = Retargeter("allegro", fixed_wrist=True)
     r = Retargeter("allegro", equal_terms_config(base), fixed_wrist=True)
     kp = r.place(raw)

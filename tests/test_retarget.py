@@ -367,3 +367,63 @@ def test_output_filter_does_not_feed_back(toy):
     assert np.abs(np.diff(filtered, axis=0)).mean() < np.abs(np.diff(raw, axis=0)).mean()
     with pytest.raises(Exception, match="solver.filter"):
         Retargeter(hand, dict(config, solver={"filter": 0.0}))
+
+
+def _allegro_errors(weights: dict | None = None, seed: int = 3, T: int = 150):
+    """(wrist->tip mm, thumb->finger mm, jitter rad/frame) of the shipped fixed-wrist Allegro
+    config (scale 1.6, optional weight overrides) on a seeded MediaPipe-like capture of the
+    synthetic hand, measured as scripts/bench_retarget.py measures them."""
+    from dexdrake.demos.captures import grasp_trajectory, mediapipe_like
+
+    cfg = _allegro_yaml()
+    cfg["scales"] = {"wrist": 1.6, "finger": 1.6}
+    cfg["weights"].update(weights or {})
+    r = Retargeter("allegro", cfg, fixed_wrist=True)
+    raw = mediapipe_like(grasp_trajectory(T, seed), seed)
+    Q = r.retarget_sequence(HumanDemo(raw, np.arange(T) / 30.0, "", np.zeros((T, 3)),
+                                      np.tile([1.0, 0, 0, 0], (T, 1)), DemoMeta()),
+                            progress=False)
+    kp = r.place(raw)
+    wt, tf = [], []
+    for q, k in zip(Q, kp):
+        P = r.robot_points(q)
+        tips, H = P[1:5], k[[HUMAN_TIP[f] for f in r.config.fingers]]
+        wt.append(np.linalg.norm((tips - P[0]) - 1.6 * (H - k[0]), axis=1).mean())
+        tf.append(np.linalg.norm((tips[1:] - tips[0]) - 1.6 * (H[1:] - H[0]), axis=1).mean())
+    n = len(r.hand.arm_joints)
+    return 1000 * np.mean(wt), 1000 * np.mean(tf), np.abs(np.diff(Q[:, n:], axis=0)).mean()
+
+
+def test_allegro_objective_accuracy_on_a_noisy_capture():
+    wrist, thumb, jitter = _allegro_errors()
+    # measured 43.0 mm, 50.0 mm, 0.0176 rad/frame (the former config: 48.2, 51.1, 0.0236;
+    # dex-retargeting's DexPilot with its filter is 5-15 % worse on such captures in
+    # scripts/bench_retarget.py)
+    assert wrist < 45.5 and thumb < 51.0 and jitter < 0.0195, (wrist, thumb, jitter)
+    # the `thumb` weight buys thumb->finger accuracy (measured 52.7 mm at 1)
+    _, thumb1, _ = _allegro_errors({"thumb": 1.0})
+    assert thumb < thumb1 - 2.0, (thumb, thumb1)
+
+
+def test_adaptive_low_pass():
+    from dexdrake.retarget.retargeter import low_pass
+
+    rng = np.random.default_rng(0)
+    still = rng.normal(0.0, 0.01, (200, 1))
+    ramp = np.linspace(0.0, 2.0, 200)[:, None]  # 0.01 rad/frame
+    plain = low_pass(ramp, 0.05)
+    adaptive = low_pass(ramp, 0.05, speed=0.005)
+    assert abs(adaptive[-1, 0] - 2.0) < 1e-3 < abs(plain[-1, 0] - 2.0) - 0.1  # no lag
+    np.testing.assert_allclose(low_pass(still, 0.05, speed=np.inf), low_pass(still, 0.05))
+    jitter = np.abs(np.diff(low_pass(still, 0.05, speed=0.08), axis=0)).mean()
+    assert jitter < 0.1 * np.abs(np.diff(still, axis=0)).mean()  # noise is smoothed
+    with pytest.raises(Exception, match="filter_speed"):
+        Retargeter("allegro", {**_allegro_yaml(), "solver": {"filter_speed": 0}})
+
+
+def _allegro_yaml() -> dict:
+    import yaml
+
+    from dexdrake.retarget.config import CONFIG_DIR
+
+    return yaml.safe_load((CONFIG_DIR / "allegro.yaml").read_text())

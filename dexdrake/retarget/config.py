@@ -9,11 +9,12 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
       index: {tip: {body: link_3.0_tip, offset: [0, 0, 0]}, base: {body: link_1.0}}
     palm: {out: 0.051, along: 0.72}                     # optional palm grasp-centre term
     scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
-    weights: {wrist: 1.0, base: 1.0, finger: 1.0, object: 1.0, object_decay: 0.03,
-              object_contact: 0.012, object_depth: 0.0, palm: 1.0,
-              wrist_position: 0.05, smooth: 4.0e-3}
+    weights: {wrist: 1.0, base: 1.0, finger: 1.0, thumb: 1.0, object: 1.0,
+              object_decay: 0.03, object_contact: 0.012, object_depth: 0.0, palm: 1.0,
+              wrist_position: 0.05, smooth: 4.0e-3}   # base, thumb: x wrist, x finger
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
-    solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6, filter: 1.0}
+    solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6, filter: 1.0,
+             filter_speed: .inf}
 
 A point is `{fingertip: NAME}` (a fingertip of the hand description) or
 `{body: BODY, offset: [x, y, z]}`; `human:` overrides the human keypoint it matches
@@ -23,7 +24,9 @@ A point is `{fingertip: NAME}` (a fingertip of the hand description) or
 description's grasp centre; override with body/offset) where the human's palm centre is:
 `out` m out of the human palm plane (wrist, index and little MCPs) along its normal, at
 `along` of the way from the wrist to the middle MCP (see `human_hand.palm_centre`).
-`solver.filter` low-passes the output trajectory (alpha, 1 = off; `retargeter.low_pass`).
+`solver.filter` low-passes the output trajectory (alpha, 1 = off), adaptively when
+`solver.filter_speed` (rad/frame) is finite: joints moving that fast are not filtered
+(`retargeter.low_pass`).
 Finger-to-object targets move `object_depth` inside the object's surface when the human
 fingertip is within `object_contact` of it (fading out at twice that), so the position
 servos squeeze the object instead of stopping at its surface.
@@ -86,6 +89,7 @@ class RetargetConfig:
     first_iterations: int = 80
     damping: float = 1e-6
     filter: float = 1.0  # output low-pass alpha (1: none); see retargeter.low_pass
+    filter_speed: float = np.inf  # rad/frame at which the low-pass lets a joint through
 
     def weight(self, key: str) -> float:
         return float(self.weights.get(key, _DEFAULT_WEIGHTS[key]))
@@ -94,9 +98,9 @@ class RetargetConfig:
         return self.scales.get(key, "auto" if key != "object" else 1.0)
 
 
-_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "object": 1.0, "object_decay": 0.03,
-                    "object_contact": 0.012, "object_depth": 0.0, "palm": 1.0,
-                    "wrist_position": 0.05, "smooth": 4e-3}
+_DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "thumb": 1.0, "object": 1.0,
+                    "object_decay": 0.03, "object_contact": 0.012, "object_depth": 0.0,
+                    "palm": 1.0, "wrist_position": 0.05, "smooth": 4e-3}
 
 
 def _point(hand: HandDescription, name: str, d: dict, human: int) -> RobotPoint:
@@ -149,6 +153,7 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
         first_iterations=int(s.get("first_iterations", 80)),
         damping=float(s.get("damping", 1e-6)),
         filter=_alpha(hand, s.get("filter", 1.0)),
+        filter_speed=_speed(hand, s.get("filter_speed", np.inf)),
     )
 
 
@@ -158,6 +163,17 @@ def _alpha(hand: HandDescription, value) -> float:
         raise DexdrakeError(f"retarget config {hand.name}: solver.filter must be in (0, 1], "
                             f"got {value}")
     return alpha
+
+
+def _speed(hand: HandDescription, value) -> float:
+    try:
+        speed = float(value)
+    except (TypeError, ValueError):
+        speed = float("nan")
+    if not speed > 0.0:
+        raise DexdrakeError(f"retarget config {hand.name}: solver.filter_speed must be a "
+                            f"positive number of rad/frame, got {value}")
+    return speed
 
 
 def load_config(hand: HandDescription, config: str | Path | dict | None = None

@@ -1,16 +1,16 @@
 """Human keypoints -> robot joint angles, solved per frame with a bounded Levenberg-Marquardt
 on CasADi-generated key vectors and Jacobians.
 
-Objective per frame (DexRepNet, DexPilot-style), over all policy joints (the 6 virtual arm
-joints are the global hand pose M_g):
-    sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth || q - q_prev ||^2,   lo <= q <= hi
+Objective per frame (DexRepNet, DexPilot-style), over the policy joints that can move (the
+6 virtual arm joints are the global hand pose M_g; a fixed wrist solves the fingers only):
+    1/2 sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth/2 || q - q_prev ||^2,   lo <= q <= hi
 Key vectors v_i (robot) and their human counterparts v_i^H:
     wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
             the base vectors (weight x `base`) hold the palm's orientation
-    finger  thumb tip -> each tip, tip -> tip              t_i = k_f v_i^H, or DexPilot's pinch
-            projection: thumb-finger with human length < eps: t = eta1 * unit, w = s1;
-            finger-finger with both fingers pinching: t = eta2 * unit, w = s2
-            (eps hysteresis eps_enter / eps_leave)
+    finger  thumb tip -> each tip (weight x `thumb`), tip -> tip      t_i = k_f v_i^H, or
+            DexPilot's pinch projection: thumb-finger with human length < eps:
+            t = eta1 * unit, w = s1; finger-finger with both fingers pinching: t = eta2 * unit,
+            w = s2 (eps hysteresis eps_enter / eps_leave)
     object  fingertip -> object anchor (the object point closest to the human fingertip)
             t_i = v_i^H, w = w_obj / (1 + (d_i / decay)^2) with d_i the human tip's distance;
             within `object_contact` of the surface the human tip is replaced by a goal
@@ -20,6 +20,16 @@ Key vectors v_i (robot) and their human counterparts v_i^H:
             (`human_hand.palm_centre`; optional, config `palm`)
     position  world origin -> wrist point, t = human wrist (small weight: holds the global
             position when no object is given)
+
+What it trades: a robot hand whose proportions differ from the human's cannot match every
+vector at once, so the weights choose. `thumb` sets the wrist->tip error against the
+thumb->finger error (the thumb's opposition, which decides a grasp); the pinch terms trade
+both for closing the robot's tips when the human pinches (their targets are not the scaled
+human vectors); `w_smooth` and the output low-pass (`solver.filter`, `low_pass`) trade lag,
+i.e. error on moving frames, for less jitter. The smoothness term damps the joint directions
+that the key vectors hardly fix (where tracker noise moves q most) and leaves the well-fixed
+ones almost free; the low-pass, adaptive with `solver.filter_speed`, smooths still joints
+hard and follows moving ones closely.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+from scipy.linalg.lapack import dposv as _posv  # Cholesky solve of H x = g, SPD H
 
 from dexdrake.demos.format import HumanDemo
 from dexdrake.errors import DexdrakeError
@@ -110,11 +121,14 @@ class Retargeter:
         E = ca.vertcat(P, ca.reshape(a, 3, nf).T, ca.SX.zeros(1, 3))
         V = E[kv.b.tolist(), :] - E[kv.a.tolist(), :]
         v = ca.reshape(V.T, -1, 1)  # row-major flattening
-        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q))])
-        # zero-copy evaluation: inputs/outputs live in these numpy buffers
+        self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
+        q_act = ca.vertcat(*[q[int(i)] for i in self._active])
+        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q_act))])
+        # zero-copy evaluation: inputs/outputs live in these numpy buffers; _JT holds the
+        # Jacobian's transpose for the active joints only
         self._q, self._a = np.zeros(len(self.joint_names)), np.zeros(3 * nf)
-        self._v, self._JT = np.zeros(3 * len(kv.kind)), np.zeros((len(self.joint_names),
-                                                                  3 * len(kv.kind)))
+        self._v = np.zeros(3 * len(kv.kind))
+        self._JT = np.zeros((len(self._active), 3 * len(kv.kind)))
         self._buf, self._eval = vj.buffer()
         for i, arr in enumerate((self._q, self._a)):
             self._buf.set_arg(i, memoryview(arr))
@@ -129,6 +143,12 @@ class Retargeter:
         self._ff = np.flatnonzero(self._masks["finger-finger"])
         self._ff_pair = np.array([kv.fingers[i] for i in self._ff], int).reshape(-1, 2)
         self.scales = self._scales()
+        m = self._masks
+        self._weights = (cfg.weight("wrist") * m["wrist"] + cfg.weight("finger") * (
+            m["thumb-finger"] | m["finger-finger"]) + cfg.weight("palm") * m["palm"]
+            + cfg.weight("wrist_position") * m["position"])  # object terms: per frame
+        self._weights[self._base] *= cfg.weight("base")
+        self._weights[self._tf] *= cfg.weight("thumb")
         self._pinch = np.zeros(nf, bool)
 
     @property
@@ -221,13 +241,9 @@ class Retargeter:
         vh = E[kv.b] - E[kv.a]
         T = vh * self.scales[:, None]
         d = np.linalg.norm(vh, axis=1)
-        m = self._masks
-        w = (cfg.weight("wrist") * m["wrist"] + cfg.weight("wrist_position") * m["position"]
-             + cfg.weight("finger") * (m["thumb-finger"] | m["finger-finger"])
-             + cfg.weight("palm") * m["palm"])
-        w[self._base] *= cfg.weight("base")
+        w = self._weights.copy()
         if has_obj:
-            obj = m["object"]
+            obj = self._masks["object"]
             w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
             T[obj] = self._squeeze(vh[obj], d[obj], normals)
         # DexPilot pinch projection with hysteresis (eps_enter to enter, eps_leave to leave)
@@ -279,43 +295,59 @@ class Retargeter:
         return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
 
     def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
-        lo, hi = self.lower, self.upper
-        sw = np.repeat(np.sqrt(w), 3)
+        """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed wrist: the
+        fingers) for 1/2 sum_i w_i ||v_i(q) - t_i||^2 + smooth/2 ||q - q_ref||^2: Gauss-Newton
+        steps on the free set (joints at a bound that the gradient pushes out stay there),
+        each kept only if it lowers the cost (else the damping grows)."""
+        act = self._active
+        lo, hi = self.lower[act], self.upper[act]
         t = T.reshape(-1)
-        n = self.num_joints
+        sw = np.repeat(np.sqrt(w), 3)
+        x, x_ref = q[act], q_ref[act]
+        eye = np.eye(len(x))
 
-        self._a[:] = A.ravel()
-        eye = np.eye(n)
-
-        def evaluate(qq):
-            self._q[:] = qq
+        def evaluate(xx):
+            self._q[act] = xx
             self._eval()
-            r = sw * (self._v - t)
-            dq = qq - q_ref
-            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dq @ dq)
+            return residuals(xx)
 
-        r, J, cost = evaluate(q)
+        def residuals(xx):  # from the buffers of the last evaluation
+            r = sw * (self._v - t)
+            dx = xx - x_ref
+            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
+
+        a = A.ravel()
+        if np.array_equal(self._q, q) and np.array_equal(self._a, a):
+            r, J, cost = residuals(x)  # warm start where the last solve ended
+        else:
+            self._q[:], self._a[:] = q, a
+            r, J, cost = evaluate(x)
         mu = self.config.damping
         for _ in range(iterations):
-            g = J.T @ r + smooth * (q - q_ref)
+            g = J.T @ r + smooth * (x - x_ref)
             H = J.T @ J + (smooth + mu) * eye
-            free = ~(((q <= lo + 1e-9) & (g > 0)) | ((q >= hi - 1e-9) & (g < 0)))
-            step = np.zeros(n)
-            if free.all():
-                step = -np.linalg.solve(H, g)
-            else:
-                step[free] = -np.linalg.solve(H[np.ix_(free, free)], g[free])
-            q_new = np.clip(q + step, lo, hi)
-            r_new, J_new, cost_new = evaluate(q_new)
-            if cost_new <= cost:
-                converged = np.max(np.abs(q_new - q)) < 1e-4
-                q, r, J, cost = q_new, r_new, J_new, cost_new
+            fixed = ((x <= lo + 1e-9) & (g > 0)) | ((x >= hi - 1e-9) & (g < 0))
+            if fixed.any():  # no step for those: zero their rows/columns, unit diagonal
+                H[fixed, :] = 0.0
+                H[:, fixed] = 0.0
+                H[fixed, fixed] = 1.0
+                g = np.where(fixed, 0.0, g)
+            _, step, info = _posv(H, g)
+            x_new = np.clip(x - step, lo, hi)
+            r_new, J_new, cost_new = evaluate(x_new)
+            if info == 0 and cost_new <= cost:
+                converged = np.max(np.abs(x_new - x)) < 1e-4
+                x, r, J, cost = x_new, r_new, J_new, cost_new
                 mu = max(mu * 0.3, 1e-9)
                 if converged:
                     break
             else:
                 mu = max(mu * 10, 1e-6)
-        return q
+        if not np.array_equal(self._q[act], x):  # leave the buffers at the solution
+            evaluate(x)
+        out = np.array(q, float)
+        out[act] = x
+        return out
 
     def robot_points(self, q: np.ndarray) -> np.ndarray:
         """World positions of the config's robot points [wrist, tips..., bases...]."""
@@ -376,18 +408,25 @@ class Retargeter:
                 anchors, normals = closest(self.human_tips(kp), t)
             q = self.retarget_frame(kp, anchors, q, normals)
             out[t] = q
-        return low_pass(out, self.config.filter)
+        return low_pass(out, self.config.filter, self.config.filter_speed)
 
 
-def low_pass(Q: np.ndarray, alpha: float) -> np.ndarray:
-    """Exponential low-pass of a (T, n) trajectory, y_t = alpha q_t + (1 - alpha) y_t-1
-    (alpha 1: unchanged). Applied to the output only: each frame's solve still starts from
-    the previous unfiltered solution, so the filter does not feed back into the fit."""
+def low_pass(Q: np.ndarray, alpha: float, speed: float = np.inf) -> np.ndarray:
+    """Adaptive exponential low-pass of a (T, n) trajectory (one-euro style), per joint:
+        y_t = y_t-1 + a_t (q_t - y_t-1),   a_t = alpha + (1 - alpha) min(1, |s_t| / speed)
+    with s_t = 0.3 (q_t - y_t-1) + 0.7 s_t-1 the smoothed step (rad/frame): a still joint is
+    smoothed with alpha (tracker noise), a moving one followed with less lag (speed = inf:
+    the plain exponential low-pass; alpha 1: unchanged). Applied to the output only: each
+    frame's solve still starts from the previous unfiltered solution, so the filter does
+    not feed back into the fit."""
     out = np.array(Q, float)
     if alpha >= 1.0:
         return out
+    step = np.zeros(out.shape[1:])
     for t in range(1, len(out)):
-        out[t] = alpha * out[t] + (1.0 - alpha) * out[t - 1]
+        d = out[t] - out[t - 1]
+        step = 0.3 * d + 0.7 * step
+        out[t] = out[t - 1] + (alpha + (1.0 - alpha) * np.minimum(1.0, np.abs(step) / speed)) * d
     return out
 
 

@@ -29,14 +29,26 @@ class GraspEnvFactory:
         if self.horizon < 1:
             raise DexdrakeError(f"horizon must be >= 1, got {self.horizon}")
 
+    @property
+    def scenario(self):
+        """The sim Scenario the envs run (the defaults' plant step, control period and driver
+        limits for `hand`); what training records in its checkpoints (`scenario_record`)."""
+        return training_scenario(self.hand, self.objects[0])
+
     def __call__(self):
         from dexdrake.systems.grasp_env import GraspEnv
-        from dexdrake.systems.scene import SceneConfig
 
-        config = SceneConfig(hand=self.hand, object=self.objects[0])
-        env = GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
-                        objects=list(self.objects))
+        env = GraspEnv(self.scenario, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
+                       objects=list(self.objects))
         return ObjectFromSeed(env) if self.object_from_seed else env
+
+
+def training_scenario(hand: str, object_name: str | None = None):
+    """The sim Scenario of training, evaluation and the demo for `hand` and `object_name`
+    (None: the default object): the Scenario defaults (systems/scenario.py) for the rest."""
+    from dexdrake.systems.scenario import Scenario
+
+    return Scenario(name="training", hand=hand, **({} if object_name is None else {"object": object_name}))
 
 
 class ObjectFromSeed:

@@ -40,7 +40,8 @@ from dexdrake.dexrep.occupancy import occupied_voxels
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.grasp_env import GraspEnv
-from dexdrake.systems.scene import TABLE_SIZE, GraspScene, SceneConfig
+from dexdrake.systems.scenario import simulated
+from dexdrake.systems.scene import TABLE_SIZE, GraspScene
 from dexdrake.systems.station import pose_from_vector
 
 MODES = ("sim", "eval", "demo", "hil", "real")
@@ -174,7 +175,7 @@ class RerunLogger:
         self._series: dict[str, list[tuple[int, float, int, float]]] = {}  # scalars not yet sent
         self._time = (0, 0.0, 0)  # (step, sim_time, episode) of the current step
         if scenario is not None:  # built before the station starts its devices
-            self._mirror = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=1)
+            self._mirror = GraspEnv(simulated(scenario), horizon=1)
             self._image_every = max(1, round(IMAGE_PERIOD_S / scenario.drivers.camera.period_s))
 
     def attach(self, station) -> None:

@@ -7,13 +7,14 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
-from dexdrake.systems.scene import ObjectPlacement, SceneConfig
+from dexdrake.systems.env_factory import training_scenario
+from dexdrake.systems.scene import ObjectPlacement
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, plan_grasp
 
 
 @pytest.fixture(scope="module")
 def can_env():
-    return GraspEnv(SceneConfig(object="can_soda"), horizon=150)
+    return GraspEnv(training_scenario("adroit", "can_soda"), horizon=150)
 
 
 def test_plan_is_geometry_only_and_tall_objects_are_grasped_deeper(can_env):
@@ -226,7 +227,7 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
         monkeypatch.setenv("DEXDRAKE_DATA", str(tmp_path / "data"))
         (copy,) = build_augmented(1, 0, ["can_soda"])  # a scaled copy is grasped as the object it copies
-        copy_env = GraspEnv(SceneConfig(object=copy), horizon=5)
+        copy_env = GraspEnv(training_scenario("adroit", copy), horizon=5)
         copy_env.reset(0)
         assert (ReactiveGrasp(copy_env).script.closed_pose, ReactiveGrasp(copy_env).script.closure) == ("oppose", 0.7)
     finally:

@@ -37,6 +37,9 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import observation_dim
 
 CHECKPOINT_FORMAT = "dexdrake.policy/1"
+# The scenario a checkpoint without a record of its own (metadata "scenario") was trained
+# under: the shipped weights' plant step and control period (s), no driver target limits.
+UNRECORDED_SCENARIO = {"time_step": 0.005, "control_period": 0.02, "target_limits": None, "depth_noise": False}
 DEMO_STD_FRACTION = 0.5  # exploration std = this fraction of the demo actions' std, per dimension
 ENCODER_ACTIVATIONS = ("relu", "none")
 
@@ -299,7 +302,9 @@ def policy_from_payload(payload: Mapping[str, Any]) -> DexRepNetPolicy:
 
 def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
     """Rebuild a policy from a checkpoint file alone, or from a training state that holds one
-    under "policy" (DAPG's resumable states); returns (policy in eval mode, metadata)."""
+    under "policy" (DAPG's resumable states); returns (policy in eval mode, metadata). The
+    metadata's "scenario" is the one it was trained under (systems/scenario.scenario_record),
+    UNRECORDED_SCENARIO for a checkpoint that records none."""
     path = Path(path)
     if not path.is_file():
         raise DexdrakeError(f"policy checkpoint {path} does not exist")
@@ -315,5 +320,7 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
         payload = payload["policy"]
     policy = policy_from_payload(payload)
     policy.eval()
-    return policy, dict(payload.get("metadata", {}))
+    metadata = dict(payload.get("metadata", {}))
+    metadata.setdefault("scenario", dict(UNRECORDED_SCENARIO))
+    return policy, metadata
 

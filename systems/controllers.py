@@ -15,7 +15,6 @@ from pydrake.systems.primitives import AffineSystem, PassThrough
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.systems.diagram import joint_map
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
 from dexdrake.systems.scenario import Scenario, simulated
@@ -36,8 +35,7 @@ def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_
     feature set or action size, or under another plant step or control period (its
     recorded scenario, `check_policy_scenario`; `allow_scenario_mismatch` runs it anyway).
     Warning lines go to `warn`."""
-    from dexdrake.dexrep.feature_sets import observation_blocks
-    from dexdrake.learn.policy import load_policy
+    from dexdrake.learn.policy import check_policy_fits, load_policy
     from dexdrake.paths import resolve_model_path
     from dexdrake.systems.policy_system import PolicySystem
 
@@ -47,23 +45,14 @@ def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_
     except DexdrakeError as err:
         raise DexdrakeError(f"policy refused: {err}") from None
     cfg = policy.config
-    if cfg.hand != scenario.hand:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
-                            f"the scenario runs {scenario.hand!r}")
-    if cfg.feature_set != entry.feature_set:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
-                            f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
-    if cfg.action_dim != hand.num_actuators:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
-                            f"{scenario.hand!r} has {hand.num_actuators} joints")
-    size = sum(observation_blocks(hand, entry.feature_set).values())
-    if size != cfg.obs_dim:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
-                            f"feature set {entry.feature_set!r} gives {size}")
+    try:
+        check_policy_fits(cfg, scenario.hand, entry.feature_set, entry.checkpoint)
+    except DexdrakeError as err:
+        raise DexdrakeError(f"policy refused: {err}") from None
     for line in check_policy_scenario(metadata["scenario"], scenario, entry.checkpoint, allow_scenario_mismatch):
         warn(line)
     n = hand.num_actuators
-    mid, half = joint_map(hand)
+    mid, half = hand.action_map()
     builder = DiagramBuilder()
     system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period))
     to_command = builder.AddNamedSystem("action_to_command", AffineSystem(

@@ -34,19 +34,12 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from dexdrake.dexrep.feature_sets import FeaturePath
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
-from dexdrake.hands.description import HandDescription
 from dexdrake.hardware.safety import HardwareError
 from dexdrake.systems.dexrep_system import DexRepSystem
 from dexdrake.systems.scene import SimulationDiverged
 from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault
 
 SLOT_INPUTS = ("features", "hand_state", "object_pose")
-
-
-def joint_map(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
-    """(mid, half) of each joint's range: set-point = mid + action * half (policy order)."""
-    lo, hi = hand.joint_limits()
-    return (hi + lo) / 2, (hi - lo) / 2
 
 
 # ----------------------------------------------------------------------------- builder
@@ -72,7 +65,7 @@ class BuiltDiagram:
         policy = self.policy_system
         if policy is not None:
             q = self.diagram.GetOutputPort("hand_state").Eval(context)[: self.station.hand.num_actuators]
-            mid, half = joint_map(self.station.hand)
+            mid, half = self.station.hand.action_map()
             policy.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).SetFromVector(
                 np.clip((q - mid) / half, -1.0, 1.0))
 

@@ -67,13 +67,9 @@ class ObjectFromSeed:
 def env_factory_for_policy(
     policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec()
 ) -> GraspEnvFactory:
-    """The factory matching a policy's hand and feature set (both must be recorded)."""
-    from dexdrake.dexrep.feature_sets import FEATURE_SETS
-    from dexdrake.hands.description import hand_names
+    """The factory matching a policy's recorded hand and feature set (`check_policy_fits`)."""
+    from dexdrake.learn.policy import check_policy_fits
 
     hand, feature_set = policy_config.hand, policy_config.feature_set
-    if hand not in hand_names():
-        raise DexdrakeError(f"policy records hand {hand!r}, not one of {hand_names()}")
-    if feature_set not in FEATURE_SETS:
-        raise DexdrakeError(f"policy records feature set {feature_set!r}, not one of {list(FEATURE_SETS)}")
+    check_policy_fits(policy_config, hand, feature_set, "the policy")
     return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task)

@@ -47,9 +47,8 @@ class GraspEnv:
         self.objects = objects or [scenario.object]
         self._scenes: dict[str, tuple[BuiltDiagram, Simulator, ObjectGeometry]] = {}
         self._use(self.objects[0])
-        lo, hi = self.scene.hand.joint_limits()
-        self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
-        self.command_guard = CommandGuard(lo, hi)  # counts bad commands of the current episode
+        self._mid, self._half = self.scene.hand.action_map()
+        self.command_guard = CommandGuard(*self.scene.hand.joint_limits())  # counts bad commands of the current episode
         self.action_dim = self.scene.hand.num_actuators
         self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
 

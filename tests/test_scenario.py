@@ -110,3 +110,29 @@ def test_station_faults_end_an_episode_by_type_and_other_errors_propagate():
     assert run_station_episode(make_station(scenario), fault, 2).fault == "driver fault"
     with pytest.raises(RuntimeError, match="no default value"):
         run_station_episode(make_station(scenario), bug, 2)
+
+
+def test_the_envs_direct_features_equal_the_diagrams_features_port_step_by_step():
+    from dexdrake.systems.scripted_grasp import ScriptedGrasp
+
+    env = GraspEnvFactory("adroit", "DexRep", ("sphere_medium",), horizon=60)()
+    port = env.diagram.GetOutputPort("features")
+    compared = []
+
+    def compare() -> None:
+        direct, through_port = env.observation(), port.Eval(env.context)
+        np.testing.assert_allclose(direct, through_port, rtol=0, atol=1e-12)  # the pose's round trip
+        compared.append(np.abs(direct).sum())
+
+    env.rollout(ScriptedGrasp, 0, logger=_Hooks(compare))
+    assert len(compared) == 61 and len(set(compared)) > 30  # the reset, then every step, features changing
+
+
+class _Hooks:
+    """A logger stand-in for `GraspEnv.rollout`: `check` after the reset and every step."""
+
+    def __init__(self, check):
+        self.check = check
+
+    def hooks(self, env):
+        return {"on_reset": self.check, "on_step": lambda *args, **kwargs: self.check()}

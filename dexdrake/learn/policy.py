@@ -114,9 +114,9 @@ class DexRepNetPolicy(nn.Module):
         self.register_buffer("obs_std", torch.ones(obs_dim))
         self.register_buffer("encoders_frozen", torch.tensor(False))
         if config.residual_arm:
-            lo, hi = arm_limits(config)
-            self.register_buffer("arm_mid", torch.as_tensor((hi + lo) / 2, dtype=torch.float32))
-            self.register_buffer("arm_half", torch.as_tensor((hi - lo) / 2, dtype=torch.float32))
+            mid, half = arm_action_map(config)
+            self.register_buffer("arm_mid", torch.as_tensor(mid, dtype=torch.float32))
+            self.register_buffer("arm_half", torch.as_tensor(half, dtype=torch.float32))
 
     # ---------------------------------------------------------------- forward passes
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -248,9 +248,32 @@ def widened(policy: DexRepNetPolicy, config: PolicyConfig) -> DexRepNetPolicy:
     return new
 
 
-def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) limits of the arm joints of `config.hand` (a prefix of its actions), for a
-    residual arm head, whose observation must begin with the hand block's joint positions."""
+def check_policy_fits(config: PolicyConfig, hand: str, feature_set: str, source: str) -> None:
+    """The one compatibility check of a policy with what will run it: raise DexdrakeError
+    (naming `source`, the checkpoint) unless `config` was trained for hand `hand` on
+    `feature_set`, with that hand's joint count as actions and that feature set's size as
+    observations."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.hands.description import load_hand
+
+    if config.hand != hand:
+        raise DexdrakeError(f"{source} was trained for hand {config.hand!r}, not {hand!r}")
+    if config.feature_set != feature_set:
+        raise DexdrakeError(f"{source} was trained on feature set {config.feature_set!r}, not {feature_set!r}")
+    description = load_hand(hand)
+    if config.action_dim != description.num_actuators:
+        raise DexdrakeError(f"{source} has {config.action_dim} actions, hand {hand!r} has "
+                            f"{description.num_actuators} joints")
+    size = sum(observation_blocks(description, feature_set).values())
+    if size != config.obs_dim:
+        raise DexdrakeError(f"{source} expects {config.obs_dim} observations, feature set {feature_set!r} "
+                            f"gives {size}")
+
+
+def arm_action_map(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(mid, half) of the action map (HandDescription.action_map) on the arm joints of
+    `config.hand` (a prefix of its actions), for a residual arm head, whose observation must
+    begin with the hand block's joint positions."""
     from dexdrake.hands.description import load_hand
 
     if not config.blocks or config.blocks[0][0] != "hand":
@@ -258,9 +281,9 @@ def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
     hand = load_hand(config.hand)
     if len(hand.policy_joints) != config.action_dim:
         raise DexdrakeError(f"hand {config.hand} has {len(hand.policy_joints)} joints, the policy {config.action_dim} actions")
-    lo, hi = hand.joint_limits()
+    mid, half = hand.action_map()
     n = len(hand.arm_joints)
-    return lo[:n], hi[:n]
+    return mid[:n], half[:n]
 
 
 def policy_payload(policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> dict[str, Any]:

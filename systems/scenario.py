@@ -244,11 +244,11 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None):
 
 
 def simulated(s: Scenario) -> Scenario:
-    """`s` with simulated drivers (their limits kept) and no camera or policy: the model of a
-    hil/real station's robot and object for kinematics and for mirroring its measurements."""
+    """`s` with simulated drivers (their limits kept) and the ground-truth camera: its sim
+    station, and the model of a hil/real station's robot and object for kinematics and for
+    mirroring its measurements."""
     d = s.drivers
-    return dc.replace(s, drivers=Drivers(hand=dc.replace(d.hand, kind="sim"), arm=dc.replace(d.arm, kind="sim")),
-                      policy=None)
+    return dc.replace(s, drivers=Drivers(hand=dc.replace(d.hand, kind="sim"), arm=dc.replace(d.arm, kind="sim")))
 
 
 def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:

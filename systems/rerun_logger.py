@@ -146,8 +146,8 @@ class RerunLogger:
     """Records episodes to an .rrd file (or a live viewer with spawn=True) in one of MODES.
 
     sim, eval, demo: `log_step(env, info)` after each `GraspEnv.reset` (info None) and step,
-    hooked into the one episode loop by `hooks(env)`. hil, real: `RerunLogger(...,
-    scenario=scenario)`, `attach(station)`, and `systems/diagram.run_station_episode` calls
+    hooked into the one episode loop by `hooks(env)`. hil, real and a sim station (`dexdrake
+    sim --config`): `RerunLogger(..., scenario=scenario)`, `attach(station)`, and `systems/diagram.run_station_episode` calls
     `log_station_step` every control step and `log_fault` on the fault that ends the episode;
     perception results are logged as they arrive. The blueprint is sent with the first
     episode (its eye frames that episode's hand and object)."""
@@ -155,8 +155,10 @@ class RerunLogger:
     def __init__(self, path: str | Path | None, mode: str, spawn: bool = False, scenario=None):
         if mode not in MODES:
             raise DexdrakeError(f"unknown recording mode {mode!r}; one of {', '.join(MODES)}")
-        if (scenario is not None) != (mode in STATION_MODES):
-            raise DexdrakeError(f"a {mode} recording {'needs' if mode in STATION_MODES else 'takes no'} scenario")
+        if mode in STATION_MODES and scenario is None:
+            raise DexdrakeError(f"a {mode} recording needs a scenario")
+        if scenario is not None and mode not in (*STATION_MODES, "sim"):  # sim: `dexdrake sim --config`
+            raise DexdrakeError(f"a {mode} recording takes no scenario")
         self.mode, self.station = mode, None
         self.rec = rr.RecordingStream(f"dexdrake_{mode}")
         if path is not None:

@@ -26,9 +26,10 @@ def main() -> None:
     from scipy.optimize import least_squares
 
     from dexdrake.systems.arm_ik import ArmIK
-    from dexdrake.systems.scene import SceneConfig, build_grasp_scene
+    from dexdrake.systems.env_factory import training_scenario
+    from dexdrake.systems.scene import build_grasp_scene
 
-    scene = build_grasp_scene(SceneConfig(hand=args.hand, object="sphere_small"))
+    scene = build_grasp_scene(training_scenario(args.hand, "sphere_small"))
     ik = ArmIK(scene)
     q0 = np.clip(scene.hand.pregrasp_vector()[: ik.n_arm], ik.lo, ik.hi)
     p0, R0 = ik.palm_pose(q0)

@@ -28,7 +28,7 @@ def main() -> None:
 
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
 
     class FullIKExpert(ReactiveGrasp):
         """The expert with an IK solve for every lift label."""
@@ -40,7 +40,7 @@ def main() -> None:
     cpu = {"jacobian": 0.0, "full IK": 0.0}
     phases, labels, worst, apart = Counter(), 0, (0.0, ""), Counter()
     for name in args.objects.split(","):
-        env = GraspEnv(SceneConfig(object=name), horizon=args.horizon)
+        env = GraspEnv(training_scenario("adroit", name), horizon=args.horizon)
         for seed in range(args.seeds):
             env.reset(seed)
             env.fingertip_distances()  # as after every env step (the reward's query, shared with the label)

@@ -24,9 +24,9 @@ def main() -> None:
     args = parser.parse_args()
 
     from dexdrake.systems.grasp_env import GraspEnv
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
 
-    port_env, env = (GraspEnv(SceneConfig(object=args.object), "DexRep", args.horizon) for _ in range(2))
+    port_env, env = (GraspEnv(training_scenario("adroit", args.object), "DexRep", args.horizon) for _ in range(2))
     port = port_env.diagram.GetOutputPort("features")
     port_env.observation = lambda: port.Eval(port_env.context)
     cpu = {"features port": 0.0, "extractor on the plant context": 0.0}

@@ -1,7 +1,7 @@
 """Benchmark the DexRepNet policy: batch-1 inference per control step and BC time per epoch.
 
 Sizes are the shipped Adroit policy's (its recorded observation blocks and actions; fresh
-weights). Baselines named in the output: the scene's control period (SceneConfig), and the
+weights). Baselines named in the output: the Scenario's control period, and the
 paper's "about 6 minutes" for 150 BC epochs on one GPU.
 
 Usage: python scripts/bench_policy.py [--steps 2000] [--samples 10000] [--epochs 2]
@@ -20,7 +20,7 @@ from dexdrake.cli.demo import default_policy_path
 from dexdrake.learn.bc import BCConfig, train_bc
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
-from dexdrake.systems.scene import SceneConfig
+from dexdrake.systems.scenario import Scenario
 
 PAPER_BC_SECONDS = 6 * 60  # 150 epochs, one GPU, paper's dataset
 
@@ -66,7 +66,7 @@ def main() -> None:
     n_params = sum(p.numel() for p in policy.parameters())
     print(f"policy ({config.feature_set}): blocks {dict(config.blocks)} -> {config.action_dim}, {n_params} parameters, "
           f"torch {torch.__version__}")
-    period = SceneConfig().control_period
+    period = Scenario().control_period
 
     torch.set_num_threads(1)
     times = bench_inference(policy, args.steps)

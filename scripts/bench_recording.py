@@ -27,10 +27,10 @@ def main() -> None:
 
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.rerun_logger import RerunLogger
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    env = GraspEnv(SceneConfig(hand=args.hand, object=args.object), horizon=args.steps)
+    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.steps)
     env.rollout(ScriptedGrasp, 0)  # warm-up: scene built, caches filled
     plain = recorded = 0.0
     with tempfile.TemporaryDirectory() as folder:

@@ -122,7 +122,7 @@ def instrument(sections: Sections, sample_every: int = 5):
             return out
 
     def _sample_contact_split(env, q_command, acc):
-        diagram, t = env.diagram, env.context.get_time() + env.base_config.control_period
+        diagram, t = env.diagram, env.context.get_time() + env.scenario.control_period
         q = np.clip(q_command, env._mid - env._half, env._mid + env._half)
         runs = {}
         for key, far in (("full", False), ("free", True)):
@@ -138,7 +138,7 @@ def instrument(sections: Sections, sample_every: int = 5):
         query = env.scene.diagram.GetOutputPort("query_object").Eval(env.scene.diagram.GetMyContextFromRoot(env.context))
         start = time.process_time()
         query.ComputePointPairPenetration()
-        steps = round(env.base_config.control_period / env.base_config.time_step)
+        steps = round(env.scenario.control_period / env.scenario.time_step)
         acc["detect"] += (time.process_time() - start) * steps
         acc["full"] += runs["full"]
         acc["free"] += runs["free"]
@@ -315,11 +315,9 @@ def main() -> None:
 
     import mujoco_peer
 
-    from dexdrake.systems.scene import SceneConfig
-
     torch.set_num_threads(1)
     policy, factory = shipped_policy_env(objects, args.horizon)
-    dt, period = SceneConfig().time_step, SceneConfig().control_period
+    dt, period = factory.scenario.time_step, factory.scenario.control_period
     jobs = [(name, 1000 + k) for k in range(args.episodes) for name in objects]
     print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}; "
           f"{len(jobs)} episodes per measurement")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -32,8 +33,8 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.grasp_env import GraspEnv
-    from dexdrake.systems.scene import SceneConfig
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps (50 Hz)")
@@ -46,15 +47,15 @@ def main() -> None:
     print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'sim s/s':>9}{'vs MuJoCo':>11}"
           f"{'wall s':>8}{'success':>9}")
     for dt in TIME_STEPS:
-        env = GraspEnv(SceneConfig(hand=args.hand, object=args.object, time_step=dt), horizon=args.steps)
+        env = GraspEnv(replace(training_scenario(args.hand, args.object), time_step=dt), horizon=args.steps)
         env.rollout(ScriptedGrasp, seed=0)  # warm-up (first-use allocations)
         start, cpu_start, successes = time.perf_counter(), time.process_time(), 0
         for seed in range(args.episodes):
             successes += env.rollout(ScriptedGrasp, seed=seed).success
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
         control = args.episodes * args.steps / cpu
-        plant = control * env.base_config.control_period / dt
-        sim_rate = control * env.base_config.control_period
+        plant = control * env.scenario.control_period / dt
+        sim_rate = control * env.scenario.control_period
         ratio = f"{sim_rate / peer.sim_s_per_cpu_s:>10.3f}x" if peer else f"{'-':>11}"
         print(f"{dt * 1e3:>14.1f}{control:>17.1f}{plant:>15.0f}{sim_rate:>9.2f}{ratio}{wall:>8.1f}"
               f"{successes:>6}/{args.episodes}")

@@ -74,10 +74,10 @@ def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, str, dict
     hand, name, seeds, horizon = args
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import script_for
 
-    env = GraspEnv(SceneConfig(hand=hand, object=name), horizon=horizon)
+    env = GraspEnv(training_scenario(hand, name), horizon=horizon)
     default = script_for(env.scene.hand)
 
     def succeeds(variant: str, seed: int) -> bool:

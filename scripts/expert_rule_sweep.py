@@ -40,10 +40,10 @@ def _trial_object(args: tuple[str, str, list[int], int, dict]) -> tuple[str, int
     hand_name, name, seeds, horizon, overrides = args
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp, ReactiveRules
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import with_overrides
 
-    env = GraspEnv(SceneConfig(hand=hand_name, object=name), horizon=horizon)
+    env = GraspEnv(training_scenario(hand_name, name), horizon=horizon)
     hand = env.scene.hand
     rules = replace(with_overrides(ReactiveRules, hand.grasp_expert, hand, "grasp_expert"), **overrides)
     return name, sum(env.rollout(lambda e: ReactiveGrasp(e, rules=rules), s).success for s in seeds)

@@ -50,13 +50,13 @@ class PoseError:
 def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
-    from dexdrake.systems.scenario import load_scenario
+    from dexdrake.systems.scenario import load_scenario, simulated
     from dexdrake.systems.station import make_station
 
     scenario = load_scenario(config)
     scenario.object, scenario.seed = obj, seed
     if mode == "sim":
-        scenario.drivers.hand.kind = scenario.drivers.arm.kind = scenario.drivers.camera.kind = "sim"
+        scenario = simulated(scenario)
     else:
         scenario.hil.pwm_torque_scale = scale
         scenario.drivers.camera.kind = camera
@@ -143,7 +143,7 @@ def write_atomic(path: str, text: str) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="configs/hil.yaml")
+    parser.add_argument("--config", default="hil")
     parser.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", type=int, default=150)

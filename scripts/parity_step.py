@@ -4,7 +4,7 @@ pre-grasp pose, clear of the object) in the simulated station and in HIL (camera
 Prints, per joint group, the fastest measured joint speed and the largest and final
 difference between the two trajectories; both follow the set-point limits of `--config`.
 
-    .venv/bin/python scripts/parity_step.py [--config configs/hil.yaml] [--steps 100]
+    .venv/bin/python scripts/parity_step.py [--config hil] [--steps 100]
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ import numpy as np
 def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
     """Measured joint positions (steps x n, policy order) under the step commands."""
     from dexdrake.systems.diagram import run_station_episode
-    from dexdrake.systems.scenario import load_scenario
+    from dexdrake.systems.scenario import load_scenario, simulated
     from dexdrake.systems.station import make_station
 
     scenario = load_scenario(config)
     scenario.drivers.camera.kind = "sim"
     if mode == "sim":
-        scenario.drivers.hand.kind = scenario.drivers.arm.kind = "sim"
+        scenario = simulated(scenario)
     qs: list[np.ndarray] = []
     with make_station(scenario) as station:
         hand = station.hand
@@ -46,7 +46,7 @@ def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="configs/hil.yaml")
+    parser.add_argument("--config", default="hil")
     parser.add_argument("--steps", type=int, default=100)
     args = parser.parse_args()
     from dexdrake.hands.description import load_hand

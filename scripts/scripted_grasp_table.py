@@ -24,11 +24,11 @@ def _run_object(args: tuple[str, str, str, int, int]) -> tuple[str, list[bool], 
     hand, controller, name, seeds, horizon = args
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     cls = ReactiveGrasp if controller == "expert" else ScriptedGrasp
-    env = GraspEnv(SceneConfig(hand=hand, object=name), horizon=horizon)
+    env = GraspEnv(training_scenario(hand, name), horizon=horizon)
     cpu, calls = 0.0, 0
 
     def timed(env):

@@ -1,7 +1,7 @@
 """Soak the hardware-in-the-loop station: a long run reporting missed deadlines, loop-period
 percentiles and memory at start and end.
 
-The HIL station of `--config` (default configs/hil.yaml, camera "sim" unless --perception)
+The HIL station of `--config` (default: the packaged hil scenario, camera "sim" unless --perception)
 runs for `--minutes` of simulated time with a gentle sine controller around the pre-grasp
 pose (every finger joint +-0.15 rad at 0.2 Hz, every arm joint +-0.05 rad at 0.05 Hz) or,
 with --policy, the scenario's own controller. Sampled every `--sample-s` of simulated time:
@@ -15,7 +15,7 @@ Faults end the run early and are reported. `--wall-minutes` bounds the run's wal
 well (a loaded host runs the world slower than real time): the run then ends at the
 control step where it is reached, and says how much simulated time it covered.
 
-    .venv/bin/python scripts/soak_hil.py --minutes 10 [--wall-minutes 40] [--config configs/hil.yaml] [--policy]
+    .venv/bin/python scripts/soak_hil.py --minutes 10 [--wall-minutes 40] [--config hil] [--policy]
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def sine_controller(hand, q0: np.ndarray):
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="configs/hil.yaml")
+    parser.add_argument("--config", default="hil")
     parser.add_argument("--minutes", type=float, default=10.0, help="simulated minutes")
     parser.add_argument("--policy", action="store_true", help="the scenario's controller, not the sine")
     parser.add_argument("--perception", action="store_true", help="keep the scenario's camera")

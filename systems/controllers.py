@@ -6,6 +6,7 @@ mirroring GraspEnv). Every one outputs "command" and reads some of "features",
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 import numpy as np
@@ -14,21 +15,27 @@ from pydrake.systems.primitives import AffineSystem, PassThrough
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.systems.diagram import joint_map
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
-from dexdrake.systems.scenario import Scenario
+from dexdrake.systems.scenario import Scenario, simulated
+from dexdrake.systems.scenario_record import check_policy_scenario
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, script_for
-from dexdrake.systems.station import ControllerSystem, pose_from_vector, scene_config
+from dexdrake.systems.station import ControllerSystem, pose_from_vector
 
 
-def policy_controller(scenario: Scenario, hand: HandDescription) -> tuple[Diagram, str]:
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_mismatch: bool = False,
+                      warn: Callable[[str], None] = _stderr) -> tuple[Diagram, str]:
     """The scenario's policy in the slot: PolicySystem (features -> normalised action) and
     the map to joint set-points; refused (a DexdrakeError naming the checkpoint and the
     reason) when the checkpoint is missing or unreadable, or was trained for another hand,
-    feature set or action size."""
-    from dexdrake.dexrep.feature_sets import observation_blocks
-    from dexdrake.learn.policy import load_policy
+    feature set or action size, or under another plant step or control period (its
+    recorded scenario, `check_policy_scenario`; `allow_scenario_mismatch` runs it anyway).
+    Warning lines go to `warn`."""
+    from dexdrake.learn.policy import check_policy_fits, load_policy
     from dexdrake.paths import resolve_model_path
     from dexdrake.systems.policy_system import PolicySystem
 
@@ -38,21 +45,14 @@ def policy_controller(scenario: Scenario, hand: HandDescription) -> tuple[Diagra
     except DexdrakeError as err:
         raise DexdrakeError(f"policy refused: {err}") from None
     cfg = policy.config
-    if cfg.hand != scenario.hand:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained for hand {cfg.hand!r}, "
-                            f"the scenario runs {scenario.hand!r}")
-    if cfg.feature_set != entry.feature_set:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} was trained on feature set "
-                            f"{cfg.feature_set!r}, the scenario gives it {entry.feature_set!r}")
-    if cfg.action_dim != hand.num_actuators:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} has {cfg.action_dim} actions, hand "
-                            f"{scenario.hand!r} has {hand.num_actuators} joints")
-    size = sum(observation_blocks(hand, entry.feature_set).values())
-    if size != cfg.obs_dim:
-        raise DexdrakeError(f"policy refused: {entry.checkpoint} expects {cfg.obs_dim} observations, "
-                            f"feature set {entry.feature_set!r} gives {size}")
+    try:
+        check_policy_fits(cfg, scenario.hand, entry.feature_set, entry.checkpoint)
+    except DexdrakeError as err:
+        raise DexdrakeError(f"policy refused: {err}") from None
+    for line in check_policy_scenario(metadata["scenario"], scenario, entry.checkpoint, allow_scenario_mismatch):
+        warn(line)
     n = hand.num_actuators
-    mid, half = joint_map(hand)
+    mid, half = hand.action_map()
     builder = DiagramBuilder()
     system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period))
     to_command = builder.AddNamedSystem("action_to_command", AffineSystem(
@@ -78,7 +78,7 @@ class OnMeasurements:
     clock starts at the first call."""
 
     def __init__(self, scenario: Scenario, make: Callable):
-        self.env = GraspEnv(scene_config(scenario), feature_set=None, horizon=1)
+        self.env = GraspEnv(simulated(scenario), feature_set=None, horizon=1)
         self.env.reset(scenario.seed)
         self._make, self._controller, self._t0 = make, None, 0.0
 
@@ -100,13 +100,14 @@ def describe_script(hand: HandDescription) -> str:
             f"close by {g.close_end:.1f} s, lift {g.lift:.2f} m by {g.lift_end:.1f} s")
 
 
-def make_controller(scenario: Scenario):
+def make_controller(scenario: Scenario, allow_scenario_mismatch: bool = False,
+                    warn: Callable[[str], None] = _stderr):
     """(controller slot system, description) of what the scenario asks for: its policy (a
-    policy that cannot be run is refused with a DexdrakeError, never replaced), or the
-    scripted grasp when the scenario names no policy."""
+    policy that cannot be run is refused with a DexdrakeError, never replaced;
+    `policy_controller`), or the scripted grasp when the scenario names no policy."""
     hand = load_hand(scenario.hand)
     if scenario.policy is not None:
-        return policy_controller(scenario, hand)
+        return policy_controller(scenario, hand, allow_scenario_mismatch, warn)
     system = ControllerSystem(OnMeasurements(scenario, ScriptedGrasp), hand, scenario.control_period)
     return system, describe_script(hand)
 

@@ -1,7 +1,8 @@
 """Replay retargeted human grasps in Drake and record (observation, action) pairs for BC.
 
 One episode per demo (episode seed s):
-1. placement: the object placement that `GraspEnv.reset(s)` will sample is computed first,
+1. placement: the object placement of episode s (`ObjectPlacement.from_seed`, the one
+   `GraspScene.reset` applies) is computed first,
    and the canonical demo (object at (0, 0, rest height), no rotation) is moved rigidly with
    it, so the retargeted arm trajectory fits the placed object;
 2. replay: the retargeted joint trajectory is resampled at the control period (linear
@@ -32,7 +33,8 @@ from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.objects.library import ObjectInfo, get_object
 from dexdrake.systems.arm_ik import ArmIK
 from dexdrake.systems.grasp_env import GraspEnv
-from dexdrake.systems.scene import ObjectPlacement, SceneConfig
+from dexdrake.systems.scenario import Scenario
+from dexdrake.systems.scene import ObjectPlacement
 from dexdrake.task import TaskSpec, target_position
 
 
@@ -67,11 +69,6 @@ class ReplayConfig:
 
 
 # -- pure helpers ------------------------------------------------------------------------
-def episode_placement(seed: int) -> ObjectPlacement:
-    """The placement `GraspEnv.reset(seed)` samples (its generator's first draws)."""
-    return ObjectPlacement.sample(np.random.default_rng(seed))
-
-
 def place_demo(demo: HumanDemo, placement: ObjectPlacement, rest_height: float) -> HumanDemo:
     """The demo moved rigidly so its first object pose becomes the placed pose
     (x, y, rest_height, yaw): keypoints keep their pose relative to the object."""
@@ -206,8 +203,8 @@ class DemoReplayer:
 
     def env(self, object_name: str) -> GraspEnv:
         if object_name not in self._envs:
-            cfg = SceneConfig(hand=self.hand.name, object=object_name)
-            self._envs[object_name] = GraspEnv(cfg, self.feature_set, self.config.horizon, self.config.task)
+            scenario = Scenario(name="replay", hand=self.hand.name, object=object_name)
+            self._envs[object_name] = GraspEnv(scenario, self.feature_set, self.config.horizon, self.config.task)
         return self._envs[object_name]
 
     def _mesh(self, info: ObjectInfo):
@@ -224,23 +221,14 @@ class DemoReplayer:
             raise DexdrakeError("demo has no object_name; replay needs a library object")
         info = get_object(demo.object_name)
         env = self.env(info.name)
-        placement = episode_placement(seed)
+        placement = ObjectPlacement.from_seed(seed)
         placed = place_demo(demo, placement, info.rest_height)
         q = self.retargeter.retarget_sequence(placed, self._mesh(info), progress=False)
-        q_demo = resample_trajectory(q, placed.time, env.base_config.control_period)
+        q_demo = resample_trajectory(q, placed.time, env.scenario.control_period)
         c = self.config
         squeeze = closure_ramp(self.hand, c.horizon, grasp_onset_step(self.hand, q_demo, c.squeeze_onset),
-                               int(round(c.closure_ramp_time / env.base_config.control_period)), c.squeeze)
+                               int(round(c.closure_ramp_time / env.scenario.control_period)), c.squeeze)
         return ReplayPlan(seed, placement, q_demo, grasp_onset_step(self.hand, q_demo, c.grasp_onset), squeeze)
-
-    def _check_placement(self, env: GraspEnv, placement: ObjectPlacement) -> None:
-        X = env.scene.object_pose(env.plant_context)
-        yaw = RollPitchYaw(X.rotation()).yaw_angle()
-        err = max(abs(X.translation()[0] - placement.x), abs(X.translation()[1] - placement.y),
-                  abs(np.angle(np.exp(1j * (yaw - placement.yaw)))))
-        if err > 1e-6:
-            raise DexdrakeError(f"GraspEnv.reset placed the object differently from the planned placement "
-                                f"(error {err:.2e}); episode_placement no longer mirrors GraspEnv.reset")
 
     # execution -----------------------------------------------------------------------
     def run(self, env: GraspEnv, plan: ReplayPlan, offsets: np.ndarray | None = None, attempt: int = 0) -> Episode:
@@ -250,9 +238,8 @@ class DemoReplayer:
         if offsets is not None and offsets.shape != (H, self.hand.num_actuators):
             raise DexdrakeError(f"offsets must have shape {(H, self.hand.num_actuators)}, got {offsets.shape}")
         env.reset(plan.seed, q_hand=plan.q_demo[0])
-        self._check_placement(env, plan.placement)
         demo_steps = min(len(plan.q_demo) - 1, H)
-        raise_steps = max(1, int(round(self.config.raise_time / env.base_config.control_period)))
+        raise_steps = max(1, int(round(self.config.raise_time / env.scenario.control_period)))
         obs, act = [], []
         q_lift = None
         for k in range(H):
@@ -287,7 +274,7 @@ class DemoReplayer:
         """(horizon, n) correlated offsets: OU noise on all joints plus a closure ramp from
         the grasp phase on, both scaled by each joint's half range."""
         c, H = self.config, self.config.horizon
-        dt = env.base_config.control_period
+        dt = env.scenario.control_period
         noise = correlated_noise(rng, H, self.hand.num_actuators, c.noise_time / dt)
         amount = rng.uniform(*c.closure)
         ramp = closure_ramp(self.hand, H, plan.grasp_step, int(round(c.closure_ramp_time / dt)), amount)

@@ -34,17 +34,12 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 from dexdrake.dexrep.feature_sets import FeaturePath
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
-from dexdrake.hands.description import HandDescription
+from dexdrake.hardware.safety import HardwareError
 from dexdrake.systems.dexrep_system import DexRepSystem
+from dexdrake.systems.scene import SimulationDiverged
 from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault
 
 SLOT_INPUTS = ("features", "hand_state", "object_pose")
-
-
-def joint_map(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:
-    """(mid, half) of each joint's range: set-point = mid + action * half (policy order)."""
-    lo, hi = hand.joint_limits()
-    return (hi + lo) / 2, (hi - lo) / 2
 
 
 # ----------------------------------------------------------------------------- builder
@@ -70,7 +65,7 @@ class BuiltDiagram:
         policy = self.policy_system
         if policy is not None:
             q = self.diagram.GetOutputPort("hand_state").Eval(context)[: self.station.hand.num_actuators]
-            mid, half = joint_map(self.station.hand)
+            mid, half = self.station.hand.action_map()
             policy.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).SetFromVector(
                 np.clip((q - mid) / half, -1.0, 1.0))
 
@@ -107,14 +102,14 @@ def build_diagram(station: Station, controller=None, feature_set: str | None = "
     dexrep = None
     if feature_set is not None:
         from dexdrake.dexrep.geometry import object_geometry
+        from dexdrake.systems.scenario import simulated
         from dexdrake.systems.scene import build_grasp_scene
-        from dexdrake.systems.station import scene_config
 
         scenegraph = feature_path == "scenegraph"
         if scenegraph and station.scene is None:
             raise DexdrakeError(f"feature path 'scenegraph' needs the simulated object's SceneGraph; a "
                                 f"{station.mode} station knows the object by its perceived pose: use 'fast'")
-        scene = station.scene or build_grasp_scene(scene_config(station.scenario))  # hil/real: kinematics only
+        scene = station.scene or build_grasp_scene(simulated(station.scenario))  # hil/real: kinematics only
         dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(
             scene.hand, scene.plant, scene.hand_instance, object_geometry(station.scenario.object), feature_set,
             feature_path, scene.distance_geometry_id if scenegraph else None))
@@ -176,15 +171,11 @@ class StationEpisode:
         return None
 
     def reset(self, seed: int) -> None:
-        from dexdrake.systems.scene import ObjectPlacement
         from dexdrake.task import SuccessTracker
 
         station, period = self.built.station, self.built.station.scenario.control_period
         if station.scene is not None:
-            scene = station.scene
-            placement = ObjectPlacement.sample(np.random.default_rng(seed))
-            scene.set_initial_state(scene.plant.GetMyMutableContextFromRoot(self.context), placement,
-                                    scene.hand.pregrasp_vector())
+            station.scene.reset(station.scene.plant.GetMyMutableContextFromRoot(self.context), seed)
         elif station.world is None:  # real: the devices run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
         def held_start() -> None:  # a fault here ends the episode as a fault, before its first step
@@ -207,6 +198,9 @@ class StationEpisode:
         k = self.k + 1
 
         def advance() -> None:  # the controller acts on this instant's measurements (DriverSystem),
+            if station.scene is not None:
+                station.scene.advance(self.simulator, self.t_start + k * self.period)
+                return
             self.simulator.AdvanceTo(self.t_start + k * self.period)
             if station.world is not None:  # then the world runs one control period and pauses
                 station.world.advance_to(self.t_world + k * self.period)
@@ -236,29 +230,18 @@ class StationEpisode:
             self._world_paused = False
 
     def _fault_of(self, run: Callable[[], None]) -> str | None:
-        """Run `run`; a station's fault it raises is logged and returned (the episode ends
-        with it), any other exception (a bug) propagates."""
+        """Run `run`; a station's fault it raises (StationFault, HardwareError, or the sim
+        station's SimulationDiverged; pydrake re-raises an event's exception as its own type)
+        is logged and returned (the episode ends with it); any other exception (a bug)
+        propagates."""
         try:
             run()
-        except Exception as err:
-            fault = _fault_text(err)
-            if fault is None:
-                raise
+        except (StationFault, HardwareError, SimulationDiverged) as err:
+            fault = str(err) if not isinstance(err, SimulationDiverged) else f"simulation diverged: {err}"
             if self.logger is not None:
                 self.logger.log_fault(fault)
             return fault
         return None
-
-
-def _fault_text(err: Exception) -> str | None:
-    """What went wrong, if `err` is a station's fault (a StationFault or HardwareError, also
-    as Drake re-raises one from inside an event), else None (a bug: not an episode's end)."""
-    from dexdrake.hardware.safety import HardwareError
-
-    if isinstance(err, (StationFault, HardwareError)) or (isinstance(err, RuntimeError) and (
-            "StationFault" in repr(err) or "fault" in str(err).lower())):
-        return str(err)
-    return None
 
 
 def _await_first_pose(station: Station) -> None:

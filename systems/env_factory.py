@@ -29,14 +29,26 @@ class GraspEnvFactory:
         if self.horizon < 1:
             raise DexdrakeError(f"horizon must be >= 1, got {self.horizon}")
 
+    @property
+    def scenario(self):
+        """The sim Scenario the envs run (the defaults' plant step, control period and driver
+        limits for `hand`); what training records in its checkpoints (`scenario_record`)."""
+        return training_scenario(self.hand, self.objects[0])
+
     def __call__(self):
         from dexdrake.systems.grasp_env import GraspEnv
-        from dexdrake.systems.scene import SceneConfig
 
-        config = SceneConfig(hand=self.hand, object=self.objects[0])
-        env = GraspEnv(config, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
-                        objects=list(self.objects))
+        env = GraspEnv(self.scenario, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
+                       objects=list(self.objects))
         return ObjectFromSeed(env) if self.object_from_seed else env
+
+
+def training_scenario(hand: str, object_name: str | None = None):
+    """The sim Scenario of training, evaluation and the demo for `hand` and `object_name`
+    (None: the default object): the Scenario defaults (systems/scenario.py) for the rest."""
+    from dexdrake.systems.scenario import Scenario
+
+    return Scenario(name="training", hand=hand, **({} if object_name is None else {"object": object_name}))
 
 
 class ObjectFromSeed:
@@ -55,13 +67,9 @@ class ObjectFromSeed:
 def env_factory_for_policy(
     policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec()
 ) -> GraspEnvFactory:
-    """The factory matching a policy's hand and feature set (both must be recorded)."""
-    from dexdrake.dexrep.feature_sets import FEATURE_SETS
-    from dexdrake.hands.description import hand_names
+    """The factory matching a policy's recorded hand and feature set (`check_policy_fits`)."""
+    from dexdrake.learn.policy import check_policy_fits
 
     hand, feature_set = policy_config.hand, policy_config.feature_set
-    if hand not in hand_names():
-        raise DexdrakeError(f"policy records hand {hand!r}, not one of {hand_names()}")
-    if feature_set not in FEATURE_SETS:
-        raise DexdrakeError(f"policy records feature set {feature_set!r}, not one of {list(FEATURE_SETS)}")
+    check_policy_fits(policy_config, hand, feature_set, "the policy")
     return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task)

@@ -1,8 +1,9 @@
 """A step-by-step grasp environment over the Drake scene (the learning `Env` protocol).
 
-Actions are normalised joint set-points in [-1, 1] over each joint's range (policy order).
-Each `step` holds the set-point for one control period of the plant and scores the step
-with `dexdrake.task`. Observations are the selected DexRep feature set (hand state always
+Built from a sim Scenario (systems/scenario.py): the sim station of every mode, its plant
+step, control period and the drivers' target limits. Actions are normalised joint
+set-points in [-1, 1] over each joint's range (policy order). Each `step` holds the
+set-point for one control period of the plant and scores the step with `dexdrake.task`. Observations are the selected DexRep feature set (hand state always
 included); with `feature_set=None` the observation is the hand state [q; v] alone.
 """
 
@@ -20,41 +21,41 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.diagram import BuiltDiagram, build_diagram
-from dexdrake.systems.scenario import Scenario
-from dexdrake.systems.scene import ObjectPlacement, SceneConfig, build_grasp_scene
+from dexdrake.systems.scenario import Scenario, ScenarioError, validate_scenario
+from dexdrake.systems.scene import ObjectPlacement, SimulationDiverged
 from dexdrake.systems.station import sim_station
 
 
 class GraspEnv:
     """One hand, one object at a time, on the diagram of every mode (systems/diagram.py) with
-    the sim station and an empty controller slot: each step feeds its "command" input and
+    the sim station of `scenario` (its object: the first of `objects`, default the
+    scenario's) and an empty controller slot: each step feeds its "command" input and
     observes what its DexRepSystem computes. The diagram is built once per object."""
 
     def __init__(
         self,
-        config: SceneConfig = SceneConfig(),
+        scenario: Scenario,
         feature_set: str | None = None,
         horizon: int = 200,
         task: TaskSpec = TaskSpec(),
         objects: list[str] | None = None,
     ):
-        self.base_config, self.feature_set, self.horizon, self.task = config, feature_set, horizon, task
-        self.objects = objects or [config.object]
+        validate_scenario(scenario, f"scenario {scenario.name!r}")
+        if scenario.mode != "sim":
+            raise ScenarioError(f"scenario {scenario.name!r}: GraspEnv runs the sim station, not {scenario.mode}")
+        self.scenario, self.feature_set, self.horizon, self.task = scenario, feature_set, horizon, task
+        self.objects = objects or [scenario.object]
         self._scenes: dict[str, tuple[BuiltDiagram, Simulator, ObjectGeometry]] = {}
         self._use(self.objects[0])
-        lo, hi = self.scene.hand.joint_limits()
-        self._mid, self._half = (hi + lo) / 2, (hi - lo) / 2
-        self.command_guard = CommandGuard(lo, hi)  # counts bad commands of the current episode
+        self._mid, self._half = self.scene.hand.action_map()
+        self.command_guard = CommandGuard(*self.scene.hand.joint_limits())  # counts bad commands of the current episode
         self.action_dim = self.scene.hand.num_actuators
         self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
 
     # -- scene management -------------------------------------------------------------
     def _use(self, name: str) -> None:
         if name not in self._scenes:
-            c = replace(self.base_config, object=name)
-            scenario = Scenario(name="sim", hand=c.hand, object=name, seed=c.seed, time_step=c.time_step,
-                                control_period=c.control_period)
-            built = build_diagram(sim_station(scenario, build_grasp_scene(c)), None, self.feature_set)
+            built = build_diagram(sim_station(replace(self.scenario, object=name)), None, self.feature_set)
             self._scenes[name] = (built, Simulator(built.diagram), object_geometry(name))
         self.built, self.simulator, self.geometry = self._scenes[name]
         self.diagram, self.scene = self.built.diagram, self.built.station.scene
@@ -73,20 +74,19 @@ class GraspEnv:
         """Start an episode: object `object_name` (default: drawn from `seed` among the env's
         objects) placed with the seed's randomisation, the hand at `q_hand` (default pre-grasp)."""
         rng = np.random.default_rng(seed)
-        placement = ObjectPlacement.sample(rng)  # first: a seed places alike whatever the objects
+        ObjectPlacement.sample(rng)  # the placement's draws come first (GraspScene.reset)
         drawn = self.objects[rng.integers(len(self.objects))]
         if object_name is not None and object_name not in self.objects:
             raise DexdrakeError(f"object {object_name!r} is not one of this env's objects {self.objects}")
         self._use(object_name or drawn)
         self.seed = seed
         self.context.SetTime(0.0)
-        q0 = self.scene.hand.pregrasp_vector() if q_hand is None else np.asarray(q_hand, float)
-        self.scene.set_initial_state(self.plant_context, placement, q0)
+        self.scene.reset(self.plant_context, seed, q_hand)
         self.simulator.Initialize()
         self.p_start = self.object_position()
         self.tracker = SuccessTracker(self.p_start, self.task)
         self.steps = 0
-        self.q_command = q0.copy()
+        self.q_command = self.scene.hand_positions(self.plant_context)
         self.command_guard.reset_counts()
         self._observation = self.observation()
         return self._observation
@@ -125,13 +125,9 @@ class GraspEnv:
         self._command_port.FixValue(self.context, self.q_command)
         self.steps += 1
         try:
-            self.simulator.AdvanceTo(self.context.get_time() + self.base_config.control_period)
-        except RuntimeError as err:
-            if not _diverged(str(err)):
-                raise
+            self.scene.advance(self.simulator, self.context.get_time() + self.scenario.control_period)
+        except SimulationDiverged as err:
             return self._end_diverged(str(err))
-        if not np.all(np.isfinite(self.scene.plant.GetPositions(self.plant_context))):
-            return self._end_diverged("non-finite plant positions")
         self._observation = self.observation()
         p_obj = self.object_position()
         terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
@@ -144,7 +140,7 @@ class GraspEnv:
         """The step after the simulation diverged: the episode ends, failed, with the reason as
         its fault (the state is unusable until the next reset; the last good observation is
         returned)."""
-        fault = f"simulation diverged at step {self.steps} (seed {self.seed}): {why.splitlines()[0]}"
+        fault = f"simulation diverged at step {self.steps} (seed {self.seed}): {why}"
         return self._observation, 0.0, True, {"success": False, "lift": float("nan"), "fault": fault}
 
     # -- state access -------------------------------------------------------------------
@@ -224,9 +220,3 @@ def _rows_of(points, among) -> np.ndarray | None:
         return np.array([keys.index((p.body, tuple(p.offset))) for p in points])
     except ValueError:
         return None
-
-
-def _diverged(message: str) -> bool:
-    """Whether a simulator error says the simulation diverged (non-finite state, or the
-    contact solver failed), which ends an episode, rather than a bug, which propagates."""
-    return "non-finite" in message or "NaN" in message or "failed to converge" in message

@@ -20,7 +20,8 @@ Timing design (correctness must not depend on how the host schedules threads):
 - One clock. `HilWorld.clock()` is the plant's time. The emulators, both drivers (their PD
   dt, rate limits and watchdogs) and the station's control loop all run on it, so every
   device period, timeout and derivative is measured in simulated seconds.
-- Lockstep with the hand's PD loop. The world thread advances the plant one time step,
+- Lockstep with the hand's PD loop. The world thread advances in ticks of DEVICE_TICK_S
+  (the plant updates at its own step, a whole number of ticks, and holds its state between),
   services both emulators (they stream the frames that are due on the simulated clock),
   and, when a position batch went out with the servo on, waits (at most `reply_timeout_s`
   of wall time) for the driver's 4 torque frames before the next step: the PD always acts on
@@ -76,6 +77,10 @@ from dexdrake.systems.scenario import Scenario
 # start-up takes 0.2-0.3 s of world time, wall-clock dependent; beginning at the same time
 # in every run keeps even the rounding of the drivers' time differences the same.
 BEGIN_GRID_S = 1.0
+# The world services its devices every tick: the device loops' periods are whole
+# milliseconds (CAN positions 3 ms, Z1 2 ms), so at most one CAN cycle and one Z1 tick fall
+# due per tick and each gets its own exchange, whatever the plant step.
+DEVICE_TICK_S = 0.001
 
 
 class _PlantFingers:
@@ -158,6 +163,8 @@ class HilWorld:
         self.late_replies = 0  # hand cycles whose torques did not come within reply_timeout_s
         self.late_arm_commands = 0  # Z1 ticks whose command did not come within reply_timeout_s
         self._arm_period = 1.0 / Z1Config.rate_hz  # the Z1 client's tick (it sends one command)
+        # the world's tick: DEVICE_TICK_S, or the plant step where that is finer (a divisor of both)
+        self._tick = math.gcd(round(scenario.time_step * 1e6), round(DEVICE_TICK_S * 1e6)) / 1e6
         self.arm_client = None  # the Z1 client (attach_arm_client), for the lockstep
         self._wall0: float | None = None
         self._step_walls: collections.deque[float] = collections.deque(maxlen=20000)
@@ -286,9 +293,9 @@ class HilWorld:
 
     def step(self) -> None:
         """One lockstep world step (module doc); the world thread calls it in a loop."""
-        t_next = (self.steps + 1) * self.scenario.time_step  # a multiple of the step, exactly as
-        if self._held:  # the plant's update times (no drift from summing): the clock runs,
-            self._context.SetTime(t_next)  # the plant stays at rest (module doc)
+        t_next = (self.steps + 1) * self._tick  # a multiple of the tick (no drift from summing)
+        if self._held:  # the clock runs, the plant stays at rest (module doc)
+            self._context.SetTime(t_next)
         else:
             self._push_inputs()
             self._simulator.AdvanceTo(t_next)
@@ -352,7 +359,7 @@ class HilWorld:
         self.stop()
 
     def _run(self) -> None:
-        h, max_lag = self.scenario.time_step, self.scenario.hil.max_lag_s
+        h, max_lag = self._tick, self.scenario.hil.max_lag_s
         self._wall0 = anchor = time.monotonic() - self._t  # wall time of simulated t = 0
         try:
             while self._running.is_set():

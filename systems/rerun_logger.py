@@ -40,7 +40,8 @@ from dexdrake.dexrep.occupancy import occupied_voxels
 from dexdrake.errors import DexdrakeError
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.grasp_env import GraspEnv
-from dexdrake.systems.scene import TABLE_SIZE, GraspScene, SceneConfig
+from dexdrake.systems.scenario import simulated
+from dexdrake.systems.scene import TABLE_SIZE, GraspScene
 from dexdrake.systems.station import pose_from_vector
 
 MODES = ("sim", "eval", "demo", "hil", "real")
@@ -145,8 +146,8 @@ class RerunLogger:
     """Records episodes to an .rrd file (or a live viewer with spawn=True) in one of MODES.
 
     sim, eval, demo: `log_step(env, info)` after each `GraspEnv.reset` (info None) and step,
-    hooked into the one episode loop by `hooks(env)`. hil, real: `RerunLogger(...,
-    scenario=scenario)`, `attach(station)`, and `systems/diagram.run_station_episode` calls
+    hooked into the one episode loop by `hooks(env)`. hil, real and a sim station (`dexdrake
+    sim --config`): `RerunLogger(..., scenario=scenario)`, `attach(station)`, and `systems/diagram.run_station_episode` calls
     `log_station_step` every control step and `log_fault` on the fault that ends the episode;
     perception results are logged as they arrive. The blueprint is sent with the first
     episode (its eye frames that episode's hand and object)."""
@@ -154,8 +155,10 @@ class RerunLogger:
     def __init__(self, path: str | Path | None, mode: str, spawn: bool = False, scenario=None):
         if mode not in MODES:
             raise DexdrakeError(f"unknown recording mode {mode!r}; one of {', '.join(MODES)}")
-        if (scenario is not None) != (mode in STATION_MODES):
-            raise DexdrakeError(f"a {mode} recording {'needs' if mode in STATION_MODES else 'takes no'} scenario")
+        if mode in STATION_MODES and scenario is None:
+            raise DexdrakeError(f"a {mode} recording needs a scenario")
+        if scenario is not None and mode not in (*STATION_MODES, "sim"):  # sim: `dexdrake sim --config`
+            raise DexdrakeError(f"a {mode} recording takes no scenario")
         self.mode, self.station = mode, None
         self.rec = rr.RecordingStream(f"dexdrake_{mode}")
         if path is not None:
@@ -174,7 +177,7 @@ class RerunLogger:
         self._series: dict[str, list[tuple[int, float, int, float]]] = {}  # scalars not yet sent
         self._time = (0, 0.0, 0)  # (step, sim_time, episode) of the current step
         if scenario is not None:  # built before the station starts its devices
-            self._mirror = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=1)
+            self._mirror = GraspEnv(simulated(scenario), horizon=1)
             self._image_every = max(1, round(IMAGE_PERIOD_S / scenario.drivers.camera.period_s))
 
     def attach(self, station) -> None:

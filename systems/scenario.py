@@ -5,8 +5,15 @@ Modelled on Drake's `manipulation` station: a dataclass tree loaded with
 is simulated, emulated (hardware-in-the-loop: the real driver code against a device
 emulator whose joint dynamics come from a Drake plant) or real hardware.
 
-    scenario = load_scenario("configs/hil.yaml")
+    scenario = load_scenario("hil")  # the packaged configs/hil.yaml; a path is a path
     scenario.mode  # "sim" | "hil" | "real"
+
+Every mode steps its plant (the sim station, the HIL world, training's GraspEnv) at the
+scenario's `time_step` (5 ms by default) and runs its controller every `control_period`
+(20 ms). `scenario_record` is the part a policy's behaviour depends on (step, period, the
+drivers' target limits, noise); training stores it in the checkpoint and
+`check_policy_scenario` compares it with the scenario a policy is run under (both in
+systems/scenario_record.py).
 
 Modes follow from the driver kinds:
   sim   hand and arm kind "sim" (the Drake grasp scene; camera "sim" = ground-truth pose)
@@ -17,6 +24,7 @@ Modes follow from the driver kinds:
 
 import dataclasses as dc
 import math
+from importlib.resources import files
 from pathlib import Path
 from typing import Optional
 
@@ -152,7 +160,7 @@ class Scenario:
     hand: str = "allegro_z1"
     object: str = "box_cube"
     seed: int = 0
-    time_step: float = 0.002  # plant step (s)
+    time_step: float = 0.005  # plant step (s), every mode
     control_period: float = 0.02  # command / policy period (s)
     drivers: Drivers = dc.field(default_factory=Drivers)
     hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
@@ -170,12 +178,29 @@ class Scenario:
         return {"sim": "sim", "emulated": "hil", "hardware": "real"}[self.drivers.hand.kind]
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Load and validate a scenario YAML file; ScenarioError says what is wrong."""
-    path = Path(path)
+def packaged_scenarios() -> list[str]:
+    """Names of the scenario files shipped in the package (configs/*.yaml: sim, hil, real)."""
+    return sorted(p.name.removesuffix(".yaml") for p in files("dexdrake.configs").iterdir()
+                  if p.name.endswith(".yaml"))
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """A packaged scenario's file for a bare name (`hil`: configs/hil.yaml inside the
+    installed package, from any working directory); anything else is a path as given."""
+    text = str(name_or_path)
+    if text in packaged_scenarios():
+        return Path(str(files("dexdrake.configs").joinpath(f"{text}.yaml")))
+    return Path(name_or_path)
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load and validate a scenario (a packaged name or a YAML path, `scenario_path`);
+    ScenarioError says what is wrong."""
+    path = scenario_path(name_or_path)
     if not path.is_file():
-        raise ScenarioError(f"scenario file {path} does not exist")
-    return parse_scenario(path.read_text(), source=str(path))
+        raise ScenarioError(f"scenario file {path} does not exist (packaged scenarios: "
+                            f"{', '.join(packaged_scenarios())})")
+    return parse_scenario(path.read_text(), source=str(name_or_path))
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
@@ -235,6 +260,14 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None,
     check_allegro_config(hand)
     check_z1_config(arm)
     return hand, arm
+
+
+def simulated(s: Scenario) -> Scenario:
+    """`s` with simulated drivers (their limits kept) and the ground-truth camera: its sim
+    station, and the model of a hil/real station's robot and object for kinematics and for
+    mirroring its measurements."""
+    d = s.drivers
+    return dc.replace(s, drivers=Drivers(hand=dc.replace(d.hand, kind="sim"), arm=dc.replace(d.arm, kind="sim")))
 
 
 def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:

@@ -1,19 +1,18 @@
 """The simulated grasp scene: a hand, a table and one object in a Drake diagram.
 
-Defaults, chosen by measurement (issue 11; `scripts/bench_sim.py`, `scripts/bench_rollout.py`):
-the plant steps at 5 ms with the SAP solver and point contact, the controller every 20 ms
-(50 Hz, 4 plant steps; commands are PD set-points held between control steps). SAP treats
-the joint PD controllers implicitly, so the stiff gains of the model files are stable at
-any step; what the step costs is accuracy. The fastest PD mode (wrist, ~85 rad/s) has
-w*dt = 0.43 at 5 ms (0.17 at 2 ms, 0.85 at 10 ms): measured step responses settle as at
-2 ms to within one control period (fingers 80 ms, arm slides 180 vs 160 ms, no overshoot),
-while 10 ms slows fingers to 100 ms. Contact between 7-10 mm finger capsules and the object
-stays resolved for finger speeds up to ~1 m/s (5 mm per step). Scripted grasps over all 53
-training objects x 3 seeds: 2 ms 48 % (20-seed table), 5 ms 44 %, 10 ms 36 %; 5 ms costs
-about half the CPU of 2 ms per control step. Plant output ports are computed on demand
-(`use_sampled_output_ports=False`): nothing reads contact results every step, and sampling
-them cost ~25 % of each advance. The robot is gravity compensated (the virtual arm of the
-paper's model is a free-floating base held by servos).
+Built from a Scenario (systems/scenario.py: hand, object, plant step): the plant steps at
+the scenario's `time_step` with the SAP solver and point contact; commands are PD
+set-points held between control steps. SAP treats the joint PD controllers implicitly, so
+the stiff gains of the model files are stable at any step. Plant output ports are computed
+on demand unless `sampled_outputs` (a reader of the net actuation after every step, the
+HIL world, wants them sampled: on demand, each read repeats the step's solve). The robot is
+gravity compensated (the virtual arm of the paper's model is a free-floating base held by
+servos).
+
+An episode starts from `GraspScene.reset(context, seed)`: the object placed by the seed's
+randomisation (`ObjectPlacement.from_seed`), the hand at rest at its pre-grasp pose. A
+simulation that diverges (a non-finite state, or the plant's step fails from its state)
+raises `SimulationDiverged` from `GraspScene.advance`.
 
 The HIL world (systems/hil_world.py) steps the same scene built with a `JointDrive`: the
 arm's PD gains those of the Z1 controller, the fingers torque-driven (the Allegro firmware
@@ -46,9 +45,11 @@ from pydrake.multibody.plant import (
 )
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.tree import JointActuatorIndex, ModelInstanceIndex, PdControllerGains
+from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder
 from pydrake.systems.primitives import MatrixGain
 
+from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.objects.library import (
     DISTANCE_GEOMETRY_NAME,
@@ -57,22 +58,16 @@ from dexdrake.objects.library import (
     exclude_distance_geometry_from_contact,
     get_object,
 )
+from dexdrake.systems.scenario import Scenario
 
 TABLE_SIZE = (1.0, 1.0, 0.04)  # a thin box with its top face at z = 0 (not a half-space)
 
 
-@dataclass(frozen=True)
-class SceneConfig:
-    hand: str = "adroit"
-    object: str = "sphere_medium"
-    seed: int = 0
-    time_step: float = 0.005  # plant step (s)
-    control_period: float = 0.02  # command / policy period (s)
-    friction: float = 1.0
-    # Output ports sampled at each step (True) or computed on demand (False, the default:
-    # nothing reads contact results per step). A reader of the net actuation after every
-    # step (the HIL world) wants them sampled: on demand, each read repeats the step's solve.
-    sampled_outputs: bool = False
+TABLE_FRICTION = 1.0  # Coulomb friction of the table (the objects' is the library's)
+
+
+class SimulationDiverged(DexdrakeError):
+    """The simulated plant cannot continue: a non-finite state, or its step fails from it."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +98,11 @@ class ObjectPlacement:
         return cls(rng.uniform(*cls.X_RANGE), rng.uniform(*cls.Y_RANGE), rng.uniform(-np.pi, np.pi))
 
     @classmethod
+    def from_seed(cls, seed: int) -> "ObjectPlacement":
+        """The placement of episode `seed`: the first draws of default_rng(seed)."""
+        return cls.sample(np.random.default_rng(seed))
+
+    @classmethod
     def nearest_start(cls, xy: np.ndarray) -> np.ndarray:
         """The start position (x, y) nearest `xy`: no farther from the true start than `xy` is."""
         return np.array([np.clip(xy[0], *cls.X_RANGE), np.clip(xy[1], *cls.Y_RANGE)])
@@ -113,7 +113,7 @@ class ObjectPlacement:
 
 @dataclass
 class GraspScene:
-    config: SceneConfig
+    scenario: Scenario
     diagram: Diagram
     plant: MultibodyPlant
     scene_graph: SceneGraph
@@ -144,6 +144,38 @@ class GraspScene:
         self.plant.SetPositions(plant_context, q)
         self.plant.SetVelocities(plant_context, np.zeros(self.plant.num_velocities()))
         self.plant.SetFreeBodyPose(plant_context, self.object_body, placement.pose(self.object_info))
+
+    def reset(self, plant_context: Context, seed: int, q_hand: np.ndarray | None = None) -> ObjectPlacement:
+        """The start of episode `seed`: the object at `ObjectPlacement.from_seed(seed)`, the
+        hand at rest at `q_hand` (default: the pre-grasp pose); returns the placement."""
+        placement = ObjectPlacement.from_seed(seed)
+        q0 = self.hand.pregrasp_vector() if q_hand is None else np.asarray(q_hand, float)
+        self.set_initial_state(plant_context, placement, q0)
+        return placement
+
+    def advance(self, simulator: Simulator, t: float) -> None:
+        """`simulator.AdvanceTo(t)`; raises SimulationDiverged when the plant's state becomes
+        non-finite, or when Drake fails (a C++ RuntimeError) and the plant's own step fails
+        from the state it stopped at (the contact solver or SceneGraph refusing it); any
+        other error propagates."""
+        context = self.plant.GetMyContextFromRoot(simulator.get_context())
+        try:
+            simulator.AdvanceTo(t)
+        except RuntimeError as err:
+            if type(err) is not RuntimeError or not self._step_fails(context):
+                raise
+            raise SimulationDiverged(str(err).splitlines()[0]) from err
+        if not np.all(np.isfinite(self.plant.GetPositions(context))):
+            raise SimulationDiverged("non-finite plant positions")
+
+    def _step_fails(self, plant_context: Context) -> bool:
+        if not np.all(np.isfinite(self.plant.GetPositionsAndVelocities(plant_context))):
+            return True
+        try:
+            self.plant.EvalUniquePeriodicDiscreteUpdate(plant_context)
+        except RuntimeError:
+            return True
+        return False
 
 
 def _joint_indices(plant: MultibodyPlant, instance: ModelInstanceIndex, names) -> tuple[np.ndarray, np.ndarray]:
@@ -185,20 +217,21 @@ def _set_drive(plant: MultibodyPlant, instance: ModelInstanceIndex, hand: HandDe
             joint.set_default_damping(drive.damping[i])
 
 
-def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | None = None,
-                      desired_state: bool = False) -> GraspScene:
-    """Builds the diagram for `config` (the hand's actuators as `drive` says, if given; the
-    PD's desired velocities as an input with `desired_state`, else zero; see the module doc
-    for the ports); the object placement is applied by `set_initial_state`."""
-    hand = load_hand(config.hand)
-    info = get_object(config.object)
+def build_grasp_scene(scenario: Scenario, drive: JointDrive | None = None, desired_state: bool = False,
+                      sampled_outputs: bool = False) -> GraspScene:
+    """Builds the diagram of `scenario`'s hand and object at its plant step (the hand's
+    actuators as `drive` says, if given; the PD's desired velocities as an input with
+    `desired_state`, else zero; output ports sampled every step with `sampled_outputs`; see
+    the module doc for the ports); the episode's start is applied by `reset`."""
+    hand = load_hand(scenario.hand)
+    info = get_object(scenario.object)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(
         MultibodyPlantConfig(
-            time_step=config.time_step,
+            time_step=scenario.time_step,
             discrete_contact_approximation="sap",
             contact_model="point",
-            use_sampled_output_ports=config.sampled_outputs,
+            use_sampled_output_ports=sampled_outputs,
         ),
         builder,
     )
@@ -206,7 +239,7 @@ def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | N
     plant.set_gravity_enabled(hand_instance, False)
     if drive is not None:
         _set_drive(plant, hand_instance, hand, drive)
-    _add_table(plant, config.friction)
+    _add_table(plant, TABLE_FRICTION)
     object_instance = add_object(plant, info)
     plant.Finalize()
 
@@ -258,5 +291,5 @@ def build_grasp_scene(config: SceneConfig = SceneConfig(), drive: JointDrive | N
 
     diagram = builder.Build()
     return GraspScene(
-        config, diagram, plant, scene_graph, hand, hand_instance, object_instance, info, distance_id, q_index, v_index
+        scenario, diagram, plant, scene_graph, hand, hand_instance, object_instance, info, distance_id, q_index, v_index
     )

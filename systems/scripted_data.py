@@ -88,14 +88,14 @@ def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
     (noise_seed, seed), so a recording is reproducible.
     """
     from dexdrake.systems.grasp_env import GraspEnv
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
 
     if horizon < 1:
         raise DexdrakeError(f"horizon must be >= 1, got {horizon}")
     if not noise >= 0:
         raise DexdrakeError(f"noise std must be >= 0, got {noise}")
-    env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=None, horizon=horizon)
+    env = GraspEnv(training_scenario(hand, name), feature_set=None, horizon=horizon)
     script = GraspScript(**asdict(timing))
     states, actions, starts, success = [], [], [], []
     for seed in seeds:
@@ -157,10 +157,10 @@ def load_raw(path: str | Path) -> tuple[RawEpisodes, dict[str, Any]]:
 def _featurise_object(job: tuple[str, str, str, np.ndarray]) -> tuple[str, np.ndarray, dict[str, int]]:
     """Observations of `feature_set` for the raw `states` of object `name` (one env)."""
     from dexdrake.systems.grasp_env import GraspEnv
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
 
     hand, feature_set, name, states = job
-    env = GraspEnv(SceneConfig(hand=hand, object=name), feature_set=feature_set, horizon=1)
+    env = GraspEnv(training_scenario(hand, name), feature_set=feature_set, horizon=1)
     blocks = dict(env.observation_blocks)
     obs = np.empty((len(states), sum(blocks.values())), dtype=np.float32)
     for i, state in enumerate(states):

@@ -5,9 +5,9 @@ Every mode exposes the same ports (PORTS; policy joint order of the hand descrip
   output "hand_state"   measured [q; v] (2n)
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
 and the sim station also "query_object" (see sim below).
-sim:  the Drake grasp scene (systems/scene.py); built by make_station, its set-points are
-      clamped and rate-limited as the drivers would (systems/target_limits.py), so that
-      sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
+sim:  the Drake grasp scene (systems/scene.py); its set-points are clamped and
+      rate-limited as the drivers would (systems/target_limits.py), so that training, sim
+      and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
       DexRepSystem's SceneGraph feature path).
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
@@ -464,7 +464,7 @@ def make_station(scenario: Scenario, start: bool = True) -> Station:
     the CAN bus is opened, nothing is sent on it or to the Z1, the camera is not opened;
     such a station's DriverSystems raise StationFault if it is ever simulated."""
     if scenario.mode == "sim":
-        return sim_station(scenario, driver_limits=True)
+        return sim_station(scenario)
     if not start and scenario.mode != "real":
         raise DexdrakeError(f"only a real station is built without starting (a {scenario.mode} "
                             "station's devices are its simulated world)")
@@ -476,34 +476,21 @@ def make_station(scenario: Scenario, start: bool = True) -> Station:
         raise
 
 
-def scene_config(scenario: Scenario):
-    """The scenario's grasp scene configuration (sim station, HIL world, controllers' kinematics)."""
-    from dexdrake.systems.scene import SceneConfig
-
-    return SceneConfig(hand=scenario.hand, object=scenario.object, seed=scenario.seed,
-                       time_step=scenario.time_step, control_period=scenario.control_period)
-
-
-def sim_station(scenario: Scenario, scene=None, driver_limits: bool = False) -> Station:
-    """The sim station of `scenario` around its grasp scene (`scene`, default: built from
-    the scenario's scene_config). With `driver_limits` (make_station) its set-points pass
-    the drivers' limits and target rates (systems/target_limits.py), so that sim and hil
-    agree; GraspEnv (training) does not limit them yet."""
+def sim_station(scenario: Scenario) -> Station:
+    """The sim station of `scenario` around its grasp scene: the set-points pass the
+    drivers' joint limits and target rates (systems/target_limits.py), as in hil and real."""
     from dexdrake.systems.scene import build_grasp_scene
     from dexdrake.systems.target_limits import TargetLimiter, target_limits
 
-    scene = scene or build_grasp_scene(scene_config(scenario), desired_state=driver_limits)
+    scene = build_grasp_scene(scenario, desired_state=True)
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
-    if driver_limits:
-        lower, upper, rate, feedforward = target_limits(scenario, scene.hand)
-        limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
-            lower, upper, rate, scenario.time_step, velocity_feedforward=feedforward))
-        builder.ExportInput(limiter.GetInputPort("command"), "command")
-        builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
-        builder.Connect(limiter.GetOutputPort("desired_state"), sub.GetInputPort("desired_state"))
-    else:
-        builder.ExportInput(sub.GetInputPort("command"), "command")
+    lower, upper, rate, feedforward = target_limits(scenario, scene.hand)
+    limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
+        lower, upper, rate, scenario.time_step, velocity_feedforward=feedforward))
+    builder.ExportInput(limiter.GetInputPort("command"), "command")
+    builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
+    builder.Connect(limiter.GetOutputPort("desired_state"), sub.GetInputPort("desired_state"))
     for name in (*PORTS["outputs"], "query_object"):
         builder.ExportOutput(sub.GetOutputPort(name), name)
     return Station(scenario, builder.Build(), scene.hand, scene=scene)
@@ -573,8 +560,8 @@ def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDesc
     from dexdrake.systems.hil_world import HilWorld
     from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 
-    placement = ObjectPlacement.sample(np.random.default_rng(scenario.seed))
-    scene = build_grasp_scene(replace(scene_config(scenario), sampled_outputs=True), hil_drive(scenario, hand))
+    placement = ObjectPlacement.from_seed(scenario.seed)
+    scene = build_grasp_scene(scenario, hil_drive(scenario, hand), sampled_outputs=True)
     emu_bus = open_can_bus(scenario)
     stack.callback(emu_bus.shutdown)
     world = HilWorld(scenario, scene, emu_bus, hand.pregrasp_vector(), placement)

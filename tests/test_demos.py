@@ -141,13 +141,13 @@ def test_synthetic_grasps_are_seeded_and_distinct():
 
 def test_object_demos_head_where_the_arm_reaches_after_placement():
     from dexdrake.demos.synthetic import ADROIT_HEADING, HEADING_SPREAD, synthesize_object_demos
-    from dexdrake.systems.demo_replay import episode_placement
+    from dexdrake.systems.scene import ObjectPlacement
 
     for demo in synthesize_object_demos("sphere_small", 2, seed=3,
-                                        placement_yaw=lambda s: episode_placement(s).yaw):
+                                        placement_yaw=lambda s: ObjectPlacement.from_seed(s).yaw):
         extra = demo.meta.extra
         assert extra["grasp"] != "side" and extra["episode_seed"] == extra["seed"]
-        psi = episode_placement(extra["episode_seed"]).yaw
+        psi = ObjectPlacement.from_seed(extra["episode_seed"]).yaw
         assert abs(extra["placement_yaw"] - psi) < 1e-6
         fingers = demo.keypoints[-1, 9] - demo.keypoints[-1, 0]  # wrist -> middle MCP, object frame
         world_yaw = np.arctan2(fingers[1], fingers[0]) + psi

@@ -609,7 +609,7 @@ def test_features_show_logs_dexrep_each_step(tmp_path):
     from dexdrake.dexrep.geometry import object_geometry
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.rerun_logger import RerunLogger
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     parser = argparse.ArgumentParser()
@@ -625,7 +625,7 @@ def test_features_show_logs_dexrep_each_step(tmp_path):
         assert rows[entity] == 3, entity
     assert rows["/reward/total"] == 2 and rows["/world/object/mesh"] == 1
 
-    env = GraspEnv(SceneConfig(object="sphere_medium"), horizon=20)  # the hand reaches the object
+    env = GraspEnv(training_scenario("adroit", "sphere_medium"), horizon=20)  # the hand reaches the object
     logger = RerunLogger(tmp_path / "again.rrd", "sim")
     env.rollout(ScriptedGrasp, 0, logger=logger)
     logger.close()

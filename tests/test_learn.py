@@ -15,7 +15,7 @@ from dexdrake.learn.dapg import DAPGConfig, DAPGTrainer, demo_weight, rollout_se
 from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.gae import discounted_returns, gae_advantages
 from dexdrake.learn.npg import conjugate_gradient, fisher_vector_product, flat_params
-from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
+from dexdrake.learn.policy import UNRECORDED_SCENARIO, DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.learn.samplers import ProcessSampler, SequentialSampler, make_sampler, rollout
 
 TOY_BLOCKS = {"hand": 4, "occ_surf": 2, "local_geo": 3}
@@ -139,7 +139,7 @@ def test_checkpoint_round_trip_reproduces_outputs(tmp_path):
     policy.freeze_encoders()
     path = save_policy(tmp_path / "p.pt", policy, {"note": "hello", "epoch": 3})
     loaded, meta = load_policy(path)
-    assert meta == {"note": "hello", "epoch": 3}
+    assert meta == {"note": "hello", "epoch": 3, "scenario": UNRECORDED_SCENARIO}  # none recorded
     assert loaded.config == policy.config and loaded.config.hand == "toy"
     obs = torch.randn(16, 9)
     assert torch.equal(loaded(obs), policy(obs))
@@ -524,7 +524,7 @@ def test_policy_system_in_diagram(tmp_path):
     got = diagram.GetOutputPort("action").Eval(context)
     assert got[0] == 1.0 and np.allclose(got, expected, atol=1e-6)
     assert ctrl.guard.counts == {"non_finite": 0, "clipped": 5}  # updates at 0, 0.01, ..., 0.04
-    assert ctrl.metadata == {"hand": "toy"}
+    assert ctrl.metadata == {"hand": "toy", "scenario": UNRECORDED_SCENARIO}
     src.get_mutable_source_value(src.GetMyMutableContextFromRoot(simulator.get_mutable_context())).set_value(
         np.full(9, np.nan))  # a NaN observation gives a NaN action: the last action is held
     simulator.AdvanceTo(0.1)

@@ -51,3 +51,10 @@ def test_no_generic_top_level_names_installed(installed):
     top = {p.name for p in installed.iterdir() if not p.name.endswith(".dist-info")}
     assert top - {"bin"} == {"dexdrake"}, top  # bin/ holds the `dexdrake` console script
     assert (installed / "bin" / "dexdrake").is_file()
+
+
+def test_installed_package_ships_the_scenarios(installed):
+    code = ("from dexdrake.systems.scenario import load_scenario, packaged_scenarios\n"
+            "print(packaged_scenarios(), [load_scenario(n).mode for n in packaged_scenarios()])\n")
+    out = _run(installed, code)
+    assert out.strip() == "['hil', 'real', 'sim'] ['hil', 'real', 'sim']"

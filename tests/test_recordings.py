@@ -29,13 +29,12 @@ def _real(path: Path) -> None:
     from dexdrake.hardware.safety import period_stats
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.rerun_logger import RerunLogger
-    from dexdrake.systems.scenario import load_scenario
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.scenario import load_scenario, simulated
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
     from dexdrake.systems.station import Station, pose_vector
 
     scenario = load_scenario(CONFIGS / "real.yaml")
-    env = GraspEnv(SceneConfig(hand=scenario.hand, object=scenario.object), horizon=3)
+    env = GraspEnv(simulated(scenario), horizon=3)
     logger = RerunLogger(path, "real", scenario=scenario)
     logger.attach(Station(scenario, None, load_hand(scenario.hand)))  # no devices: no device statistics
     env.reset(scenario.seed)

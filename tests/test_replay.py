@@ -13,7 +13,6 @@ from dexdrake.systems.demo_replay import (
     ReplayConfig,
     closure_ramp,
     correlated_noise,
-    episode_placement,
     grasp_onset_step,
     place_demo,
     resample_trajectory,
@@ -76,8 +75,8 @@ def test_place_demo_keeps_keypoints_fixed_relative_to_the_object():
 
 
 def test_episode_placement_is_seeded_and_in_the_papers_ranges():
-    p = [episode_placement(s) for s in range(200)]
-    assert episode_placement(7) == episode_placement(7)
+    p = [ObjectPlacement.from_seed(s) for s in range(200)]
+    assert ObjectPlacement.from_seed(7) == ObjectPlacement.from_seed(7)
     assert len({q.yaw for q in p}) == 200
     assert all(-0.05 <= q.x <= 0.05 and -0.05 <= q.y <= 0.0 and -np.pi <= q.yaw <= np.pi for q in p)
 
@@ -137,7 +136,7 @@ def demo_dir(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("demos")
     (demo,) = synthesize_object_demos("sphere_small", 1, seed=0,
-                                      placement_yaw=lambda s: episode_placement(s).yaw)
+                                      placement_yaw=lambda s: ObjectPlacement.from_seed(s).yaw)
     save_demo(demo, folder / "sphere_small_00_top.npz")
     np.savez(folder / "sphere_small_00_top.adroit.npz", q=np.zeros((3, 30)))  # not a demo: skipped
     return folder

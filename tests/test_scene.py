@@ -7,17 +7,18 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from dexdrake.cli import main as cli_main
 from rrd_content import logged_rows
 from dexdrake.systems.grasp_env import GraspEnv
-from dexdrake.systems.scene import ObjectPlacement, SceneConfig, build_grasp_scene
+from dexdrake.systems.env_factory import training_scenario
+from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 from dexdrake.systems.scripted_grasp import ScriptedGrasp, closed_pose
 
 
 @pytest.fixture(scope="module")
 def sphere_env():
-    return GraspEnv(SceneConfig(object="sphere_medium"), horizon=150)
+    return GraspEnv(training_scenario("adroit", "sphere_medium"), horizon=150)
 
 
 def test_scene_ports_and_sizes():
-    scene = build_grasp_scene(SceneConfig(object="box_cube"))
+    scene = build_grasp_scene(training_scenario("adroit", "box_cube"))
     d = scene.diagram
     assert d.GetInputPort("command").size() == 30
     assert d.GetOutputPort("hand_state").size() == 60
@@ -54,7 +55,7 @@ def test_reset_places_object_at_rest_on_table(sphere_env):
 def test_a_seed_places_an_object_alike_whatever_the_envs_objects(sphere_env):
     # `dexdrake demo --object X --seed N` (a one-object env) must replay the evaluation's
     # episode N of X (an env over all objects): the placement may not depend on the count.
-    many = GraspEnv(SceneConfig(object="sphere_medium"), horizon=150,
+    many = GraspEnv(training_scenario("adroit", "sphere_medium"), horizon=150,
                     objects=["box_cube", "sphere_medium", "apple"])
     for seed in (1, 7, 1901):
         sphere_env.reset(seed)
@@ -76,7 +77,7 @@ def test_env_steps_the_one_diagram_and_observes_its_features_port():
     """GraspEnv feeds the built diagram's "command" input and reads its "features" output
     (DexRepSystem on the hand state and object pose), the same values as the extractor on
     the plant's own state."""
-    env = GraspEnv(SceneConfig(object="sphere_medium"), feature_set="DexRep", horizon=5)
+    env = GraspEnv(training_scenario("adroit", "sphere_medium"), feature_set="DexRep", horizon=5)
     env.reset(3)
     env.step(np.linspace(-0.3, 0.3, env.action_dim))
     assert env.diagram.GetInputPort("command") is not None and env.built.controller is None
@@ -165,7 +166,7 @@ def test_round_objects_are_grasped_at_the_start_yaw_whatever_their_own(sphere_en
     np.testing.assert_allclose(_planned_grasp(sphere_env, 0, 0.0), _planned_grasp(sphere_env, 0, 0.6), atol=1e-6)
     widths = sphere_env.scene.object_info.footprint_widths()
     assert widths.max() - widths.min() < 0.01
-    bar = GraspEnv(SceneConfig(object="box_bar"), horizon=5)
+    bar = GraspEnv(training_scenario("adroit", "box_bar"), horizon=5)
     assert np.abs(_planned_grasp(bar, 0, 0.0) - _planned_grasp(bar, 0, 0.6)).max() > 0.1
 
 
@@ -200,7 +201,7 @@ def test_rerun_recording_is_written(tmp_path, sphere_env):
     from dexdrake.systems.rerun_logger import RerunLogger
 
     path = tmp_path / "ep.rrd"
-    env = GraspEnv(SceneConfig(object="box_cube"), horizon=5)
+    env = GraspEnv(training_scenario("adroit", "box_cube"), horizon=5)
     logger = RerunLogger(path, "sim")
     env.rollout(ScriptedGrasp, seed=0, logger=logger)
     logger.close()

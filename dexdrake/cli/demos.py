@@ -132,14 +132,14 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from dexdrake.demos.format import save_demo
     from dexdrake.demos.synthetic import synthesize_object_demos
     from dexdrake.objects.library import resolve_objects
-    from dexdrake.systems.demo_replay import episode_placement
+    from dexdrake.systems.scene import ObjectPlacement
 
     names = resolve_objects(args.objects)[1]
     written = 0
     for i, name in enumerate(tqdm(names, desc="synthesize", unit="object")):
         for k, demo in enumerate(synthesize_object_demos(
                 name, args.per_object, seed=args.seed * 100003 + i,
-                placement_yaw=lambda s: episode_placement(s).yaw)):
+                placement_yaw=lambda s: ObjectPlacement.from_seed(s).yaw)):
             save_demo(demo, args.out / f"{name}_{k:02d}_{demo.meta.extra['grasp']}.npz")
             written += 1
     print(f"wrote {written} demos to {args.out}")

@@ -23,11 +23,11 @@ def _describe(args: argparse.Namespace) -> int:
 def _show(args: argparse.Namespace) -> int:
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.rerun_logger import RerunLogger
-    from dexdrake.systems.scene import SceneConfig
+    from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
     rrd = None if args.spawn else (args.rrd or f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd")
-    env = GraspEnv(SceneConfig(hand=args.hand, object=args.object), horizon=args.steps)
+    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.steps)
     logger = RerunLogger(rrd, "sim", spawn=args.spawn)
     try:
         summary = env.rollout(ScriptedGrasp, args.seed, logger=logger)

@@ -182,6 +182,14 @@ def policy_config_from_metadata(metadata: dict[str, Any], action_dim: int, obs_d
     return config
 
 
+def _scenario_record(hand: str) -> dict[str, Any]:
+    """The record of the sim scenario training runs `hand` under (stored in checkpoints)."""
+    from dexdrake.systems.env_factory import training_scenario
+    from dexdrake.systems.scenario_record import scenario_record
+
+    return scenario_record(training_scenario(hand))
+
+
 def dataset_summary(metadata: dict[str, Any]) -> dict[str, Any]:
     """The small, JSON-friendly part of a dataset's metadata (drops per-demo records)."""
     keep = ("format", "source", "hand", "feature_set", "observation_blocks", "objects", "counts", "seed",
@@ -208,7 +216,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
                          obs_noise=args.obs_noise, seed=args.seed)
     command = command_line(["train", "bc"], args, ["data", "out", "epochs", "batch", "lr", "weight-decay", "obs-noise",
                                                     "seed", "threads"])
-    meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata)}
+    meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata),
+            "scenario": _scenario_record(config.hand)}
     print(f"BC: {len(data)} samples, {config.obs_dim}-d observations {dict(config.blocks)}, {config.action_dim} actions")
     result = train_bc(policy, data, args.out, bc_config, meta)
     print(f"best epoch {result.best_epoch} (val loss {result.best_val_loss:.4g}); "
@@ -244,7 +253,8 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     meta = {"command": command, "init": str(args.init), "demos": str(args.demos),
             "init_sha256": hashlib.sha256(args.init.read_bytes()).hexdigest(),
             "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
-            "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")}}
+            "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")},
+            "scenario": _scenario_record(policy.config.hand)}
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
           f"{args.workers} worker(s) x {args.envs_per_worker} env(s) in lockstep")
@@ -290,7 +300,8 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []
-    final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
+    meta = {"command": command, "scenario": _scenario_record(args.hand)}
+    final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, meta,
                          args.address, probes)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0

@@ -12,17 +12,22 @@ from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 
+MISMATCH_HELP = "run a policy trained under another plant step or control period (with a warning)"
+
+
 def add_parser(subparsers) -> None:
     hil = subparsers.add_parser("hil", help="run one grasp episode hardware-in-the-loop")
-    hil.add_argument("--config", default="configs/hil.yaml", help="scenario YAML (mode hil)")
+    hil.add_argument("--config", default="hil", help="scenario (mode hil): a packaged name (hil) or a YAML path")
     hil.add_argument("--steps", type=argtypes.count, default=150, help="control steps")
     hil.add_argument("--rrd", type=argtypes.output_file(".rrd"), help="write a rerun recording of the loop to this .rrd file")
+    hil.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     hil.set_defaults(func=run_hil)
 
     real = subparsers.add_parser("real", help="the real Allegro + Z1 + Kinect station")
-    real.add_argument("--config", required=True, help="scenario YAML (mode real)")
+    real.add_argument("--config", required=True, help="scenario (mode real): a packaged name (real) or a YAML path")
     real.add_argument("--dry-run", action="store_true",
                       help="check connectivity, print limits, the plan and the diagram; move nothing")
+    real.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     real.set_defaults(func=run_real)
 
 
@@ -44,7 +49,8 @@ def run_hil(args: argparse.Namespace) -> int:
     if args.steps <= 0:
         raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
     rrd = args.rrd or scenario.rrd
-    controller, description = make_controller(scenario)  # refused before any device starts
+    # refused before any device starts
+    controller, description = make_controller(scenario, args.allow_scenario_mismatch)
     logger = None
     if rrd:
         from dexdrake.systems.rerun_logger import RerunLogger
@@ -87,10 +93,10 @@ def run_real(args: argparse.Namespace) -> int:
     if not args.dry_run:
         raise DexdrakeError("running the real station moves the robot; check it first with --dry-run "
                             "(a supervised real episode is not enabled in this version)")
-    return dry_run(scenario)
+    return dry_run(scenario, args.allow_scenario_mismatch)
 
 
-def dry_run(scenario) -> int:
+def dry_run(scenario, allow_scenario_mismatch: bool = False) -> int:
     """Connectivity checks; prints limits, the plan and the diagram (built, never run);
     commands nothing."""
     from dexdrake.hands.description import load_hand
@@ -122,7 +128,8 @@ def dry_run(scenario) -> int:
           f"feed-forward {'on' if arm_cfg.gravity_feedforward else 'off'}; payload "
           f"{z1_model().payload_kg:.3f} kg (the hand, from the model): set it as `load` in "
           "z1_controller/config/config.xml")
-    controller, description = make_controller(scenario)  # a policy that cannot run is refused here
+    # a policy that cannot run is refused here
+    controller, description = make_controller(scenario, allow_scenario_mismatch)
     print(f"  controller: {description}; control period {scenario.control_period * 1e3:.0f} ms")
     print(f"  perception ({c.kind}): a frame every {c.period_s * 1e3:.0f} ms, "
           + ("tracked from the last pose (global registration for the first pose and when tracking is lost)"

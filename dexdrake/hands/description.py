@@ -96,6 +96,13 @@ class HandDescription:
         """(lower, upper) position limits in policy order, read from the model file."""
         return _model_limits(str(self.model_path), self.policy_joints)
 
+    def action_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mid, half) of each joint's range in policy order: the one map between normalised
+        actions and joint set-points, set-point = mid + action * half (action in [-1, 1]
+        spans the range)."""
+        lo, hi = self.joint_limits()
+        return (hi + lo) / 2, (hi - lo) / 2
+
     def pregrasp_vector(self) -> np.ndarray:
         """The pre-grasp pose in policy order, clamped into the joint limits."""
         lo, hi = self.joint_limits()

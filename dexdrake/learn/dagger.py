@@ -471,9 +471,9 @@ def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, hand: HandDescription
     """The behaviour-cloning loss on samples `idx` of the action that holds the measured joints
     (set-point = current position, read from the hand block's joint positions): a policy whose
     held-out loss is not well below this has learnt little beyond copying its own state."""
-    lo, hi = hand.joint_limits()
-    q = dataset.observations[idx, : len(lo)]
-    return float(np.mean(np.sum((dataset.actions[idx] - (q - (hi + lo) / 2) / ((hi - lo) / 2)) ** 2, axis=1)))
+    mid, half = hand.action_map()
+    q = dataset.observations[idx, : len(mid)]
+    return float(np.mean(np.sum((dataset.actions[idx] - (q - mid) / half) ** 2, axis=1)))
 
 
 SELECTION = ("the policy with the highest executed success on the training objects, as measured by the next "

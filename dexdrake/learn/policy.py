@@ -37,6 +37,9 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.learn.env_protocol import observation_dim
 
 CHECKPOINT_FORMAT = "dexdrake.policy/1"
+# The scenario a checkpoint without a record of its own (metadata "scenario") was trained
+# under: the shipped weights' plant step and control period (s), no driver target limits.
+UNRECORDED_SCENARIO = {"time_step": 0.005, "control_period": 0.02, "target_limits": None, "depth_noise": False}
 DEMO_STD_FRACTION = 0.5  # exploration std = this fraction of the demo actions' std, per dimension
 ENCODER_ACTIVATIONS = ("relu", "none")
 ACT_CHUNK = 8  # rows per network call in act_batch (see there)
@@ -112,9 +115,9 @@ class DexRepNetPolicy(nn.Module):
         self.register_buffer("obs_std", torch.ones(obs_dim))
         self.register_buffer("encoders_frozen", torch.tensor(False))
         if config.residual_arm:
-            lo, hi = arm_limits(config)
-            self.register_buffer("arm_mid", torch.as_tensor((hi + lo) / 2, dtype=torch.float32))
-            self.register_buffer("arm_half", torch.as_tensor((hi - lo) / 2, dtype=torch.float32))
+            mid, half = arm_action_map(config)
+            self.register_buffer("arm_mid", torch.as_tensor(mid, dtype=torch.float32))
+            self.register_buffer("arm_half", torch.as_tensor(half, dtype=torch.float32))
 
     # ---------------------------------------------------------------- forward passes
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -263,9 +266,32 @@ def widened(policy: DexRepNetPolicy, config: PolicyConfig) -> DexRepNetPolicy:
     return new
 
 
-def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) limits of the arm joints of `config.hand` (a prefix of its actions), for a
-    residual arm head, whose observation must begin with the hand block's joint positions."""
+def check_policy_fits(config: PolicyConfig, hand: str, feature_set: str, source: str) -> None:
+    """The one compatibility check of a policy with what will run it: raise DexdrakeError
+    (naming `source`, the checkpoint) unless `config` was trained for hand `hand` on
+    `feature_set`, with that hand's joint count as actions and that feature set's size as
+    observations."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.hands.description import load_hand
+
+    if config.hand != hand:
+        raise DexdrakeError(f"{source} was trained for hand {config.hand!r}, not {hand!r}")
+    if config.feature_set != feature_set:
+        raise DexdrakeError(f"{source} was trained on feature set {config.feature_set!r}, not {feature_set!r}")
+    description = load_hand(hand)
+    if config.action_dim != description.num_actuators:
+        raise DexdrakeError(f"{source} has {config.action_dim} actions, hand {hand!r} has "
+                            f"{description.num_actuators} joints")
+    size = sum(observation_blocks(description, feature_set).values())
+    if size != config.obs_dim:
+        raise DexdrakeError(f"{source} expects {config.obs_dim} observations, feature set {feature_set!r} "
+                            f"gives {size}")
+
+
+def arm_action_map(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(mid, half) of the action map (HandDescription.action_map) on the arm joints of
+    `config.hand` (a prefix of its actions), for a residual arm head, whose observation must
+    begin with the hand block's joint positions."""
     from dexdrake.hands.description import load_hand
 
     if not config.blocks or config.blocks[0][0] != "hand":
@@ -273,9 +299,9 @@ def arm_limits(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
     hand = load_hand(config.hand)
     if len(hand.policy_joints) != config.action_dim:
         raise DexdrakeError(f"hand {config.hand} has {len(hand.policy_joints)} joints, the policy {config.action_dim} actions")
-    lo, hi = hand.joint_limits()
+    mid, half = hand.action_map()
     n = len(hand.arm_joints)
-    return lo[:n], hi[:n]
+    return mid[:n], half[:n]
 
 
 def policy_payload(policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -317,7 +343,9 @@ def policy_from_payload(payload: Mapping[str, Any]) -> DexRepNetPolicy:
 
 def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
     """Rebuild a policy from a checkpoint file alone, or from a training state that holds one
-    under "policy" (DAPG's resumable states); returns (policy in eval mode, metadata)."""
+    under "policy" (DAPG's resumable states); returns (policy in eval mode, metadata). The
+    metadata's "scenario" is the one it was trained under (systems/scenario.scenario_record),
+    UNRECORDED_SCENARIO for a checkpoint that records none."""
     path = Path(path)
     if not path.is_file():
         raise DexdrakeError(f"policy checkpoint {path} does not exist")
@@ -333,5 +361,7 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
         payload = payload["policy"]
     policy = policy_from_payload(payload)
     policy.eval()
-    return policy, dict(payload.get("metadata", {}))
+    metadata = dict(payload.get("metadata", {}))
+    metadata.setdefault("scenario", dict(UNRECORDED_SCENARIO))
+    return policy, metadata
 

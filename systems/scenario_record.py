@@ -1,0 +1,47 @@
+"""The record of the scenario a policy was trained under, stored in its checkpoint, and the
+check of it against the scenario the policy is about to run under."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from dexdrake.hands.description import load_hand
+from dexdrake.systems.scenario import Scenario, ScenarioError
+from dexdrake.systems.target_limits import target_limits
+
+
+def scenario_record(s: Scenario) -> dict[str, Any]:
+    """What a policy trained or run under `s` depends on, as plain data (stored in policy
+    checkpoints): the plant step and control period (s), the drivers' target limits in
+    policy order (systems/target_limits.py: lower, upper, max_rate (inf: none),
+    velocity_feedforward) and the camera's depth noise (rendered cameras only)."""
+    lower, upper, rate, feedforward = target_limits(s, load_hand(s.hand))
+    return {"time_step": s.time_step, "control_period": s.control_period,
+            "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),
+                              "velocity_feedforward": feedforward.tolist()},
+            "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise}
+
+
+def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
+                          allow_mismatch: bool = False) -> list[str]:
+    """Compare the scenario a policy was trained under (`trained`, its checkpoint's
+    `scenario_record`) with `s`, the one it is about to run under. A different plant step or
+    control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
+    warning lines to print: those overridden mismatches, and a difference in the target
+    limits (which the policy may tolerate)."""
+    run = scenario_record(s)
+    hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
+            for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]
+    if hard and not allow_mismatch:
+        raise ScenarioError(f"policy refused: {checkpoint} was trained under {'; '.join(hard)}; "
+                            "--allow-scenario-mismatch runs it anyway")
+    warnings = [f"warning: {checkpoint} was trained under {h}; running it anyway (--allow-scenario-mismatch)"
+                for h in hard]
+    if trained.get("target_limits") is None:
+        warnings.append(f"warning: {checkpoint} was trained without the drivers' target limits; "
+                        "this scenario limits its set-points")
+    elif trained["target_limits"] != run["target_limits"]:
+        warnings.append(f"warning: {checkpoint} was trained under other target limits or rates "
+                        "than this scenario's drivers apply")
+    return warnings

@@ -159,6 +159,7 @@ class RerunLogger:
         self.mode, self.station = mode, None
         self.rec = rr.RecordingStream(f"dexdrake_{mode}")
         if path is not None:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
             self.rec.save(str(path))
         elif spawn:
             self.rec.spawn()

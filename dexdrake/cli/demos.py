@@ -12,6 +12,7 @@ import numpy as np
 from dexdrake import argtypes
 from dexdrake.cli import replay
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import check_writable
 
 # MediaPipe skeleton: each finger's chain from the wrist
 _CHAINS = [[0, 1, 2, 3, 4], [0, 5, 6, 7, 8], [0, 9, 10, 11, 12], [0, 13, 14, 15, 16],
@@ -152,8 +153,8 @@ def cmd_retarget(args: argparse.Namespace) -> int:
 
     hand = load_hand(args.hand)
     try:
-        out = args.out or argtypes.writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
-    except argparse.ArgumentTypeError as e:
+        out = args.out or check_writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
+    except DexdrakeError as e:
         raise DexdrakeError(f"default --out: {e}; pass --out") from None
     notes: list[str] = []
     demo = _load_demo_or_keypoints(args.demo, args, notes, demo_files=True)
@@ -200,6 +201,7 @@ def write_rrd(path: Path, demo, retargeter, Q: np.ndarray, keypoints: np.ndarray
     import rerun as rr
 
     rec = rr.RecordingStream("dexdrake_retarget")
+    path.parent.mkdir(parents=True, exist_ok=True)
     rec.save(str(path))
     for t in range(demo.num_frames):
         rec.set_time("frame", sequence=t)

@@ -56,7 +56,7 @@ def add_parser(subparsers) -> None:
 
     bc = train_sub.add_parser("bc", help="behaviour cloning from a demo dataset (.npz)")
     bc.add_argument("--data", required=True, type=Path, help="demo dataset .npz (metadata: hand, feature_set, observation_blocks)")
-    bc.add_argument("--out", required=True, type=Path, help="output folder (checkpoints, bc_log.csv/png)")
+    bc.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (checkpoints, bc_log.csv/png)")
     bc.add_argument("--epochs", type=argtypes.count, default=150)
     bc.add_argument("--batch", type=argtypes.count, default=64)
     bc.add_argument("--lr", type=argtypes.positive, default=1e-5)
@@ -82,7 +82,7 @@ def add_parser(subparsers) -> None:
                       help="paper: r_t as the paper writes it (full pay up to 0.22 m from the target); aligned: "
                            "Adroit relocate's 0.05/0.10 m radii, paying r_t only inside the success radius "
                            "(see dexdrake.task)")
-    dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
+    dapg.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
     dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
     dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
@@ -94,7 +94,7 @@ def add_parser(subparsers) -> None:
     dapg.set_defaults(func=cmd_train_dapg)
 
     dagger = train_sub.add_parser("dagger", help="DAgger with the state-driven grasp expert (no demo file needed)")
-    dagger.add_argument("--out", required=True, type=Path, help="output folder (per-iteration data and policies, dagger_log.csv)")
+    dagger.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (per-iteration data and policies, dagger_log.csv)")
     dagger.add_argument("--hand", default="adroit")
     dagger.add_argument("--feature-set", default="DexRep")
     dagger.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)

@@ -9,6 +9,7 @@ from dataclasses import replace
 from dexdrake import argtypes
 
 CONTROLLERS = ("scripted",)
+MIN_TIME_STEP = 1e-4  # s: 200 plant steps per control step; smaller ones take hours per episode
 
 
 def add_parser(subparsers) -> None:
@@ -18,8 +19,9 @@ def add_parser(subparsers) -> None:
     sim.add_argument("--controller", default="scripted", help=f"one of {', '.join(CONTROLLERS)}")
     sim.add_argument("--seed", type=argtypes.seed, default=0)
     sim.add_argument("--steps", type=argtypes.count, default=150, help="control steps (50 Hz)")
-    sim.add_argument("--time-step", type=argtypes.positive, help="plant step (s); default: the "
-                     "scene's (5 ms); must divide the 0.02 s control period")
+    sim.add_argument("--time-step", type=argtypes.float_in(MIN_TIME_STEP, 0.02, low_open=False),
+                     help="plant step (s); default: the scene's (5 ms); must divide the 0.02 s control period, "
+                          f"at least {MIN_TIME_STEP:g} s")
     sim.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                      help="write a rerun recording to this .rrd file")
     sim.set_defaults(func=run_sim)

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import check_writable
 
 
 def add_parser(subparsers) -> None:
@@ -44,7 +46,7 @@ def run_hil(args: argparse.Namespace) -> int:
         raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `hil` needs emulated drivers")
     if args.steps <= 0:
         raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
-    rrd = args.rrd or scenario.rrd
+    rrd = args.rrd or (scenario.rrd and check_writable(Path(scenario.rrd), folder=False))
     controller, description = make_controller(scenario)  # refused before any device starts
     logger = None
     if rrd:

@@ -83,7 +83,8 @@ def _pid_alive(pid: int) -> bool:
 class WriterLock:
     """Exclusive writer of `folder` while held (a context manager): `folder/.dexdrake.lock`
     holds the owner's pid, created with O_EXCL; held by a live process -> OutputError naming
-    it; left by a dead one -> taken over. `what` names the thing in the message."""
+    it; left by a dead one -> taken over. `what` names the thing in the message. A folder the
+    lock made is removed again if nothing was written into it."""
 
     def __init__(self, folder: Path, what: str | None = None):
         self.folder, self.what = Path(folder), what or f"folder {folder}"
@@ -96,6 +97,7 @@ class WriterLock:
             return None
 
     def __enter__(self) -> "WriterLock":
+        self.made = not self.folder.exists()
         self.folder.mkdir(parents=True, exist_ok=True)
         for _ in range(3):
             try:
@@ -119,3 +121,5 @@ class WriterLock:
     def __exit__(self, *exc) -> None:
         if self._owner() == os.getpid():
             self.path.unlink(missing_ok=True)
+        if self.made and not any(self.folder.iterdir()):
+            self.folder.rmdir()

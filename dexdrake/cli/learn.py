@@ -14,6 +14,7 @@ from typing import Any
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import WriterLock
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
 from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
@@ -118,6 +119,10 @@ def add_parser(subparsers) -> None:
                         help="earlier DAgger runs' folders: their states, labelled anew by this expert, are trained on too")
     dagger.add_argument("--residual-arm", action="store_true",
                         help="a new network's arm actions are added to the arm's current position (it learns the lead)")
+    dagger.add_argument("--resume-changed", action="store_true",
+                        help="go on with a run in OUT whose settings (iterations, per-object, epochs, lr, ...) differ: "
+                             "later iterations use the new ones; fewer --iterations choose dagger_policy.pt again "
+                             "among the first ones (default: refused)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_backend_options(dagger)
     dagger.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
@@ -173,6 +178,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     from dexdrake.learn.demo_dataset import load_demo_dataset
     from dexdrake.learn.policy import DexRepNetPolicy
 
+    if (args.out / "bc_log.csv").is_file():
+        raise DexdrakeError(f"{args.out} already holds a BC run (bc_log.csv); choose another --out or delete it")
     torch.set_num_threads(args.threads)
     data = load_demo_dataset(args.data)
     config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])
@@ -184,7 +191,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
                                                     "seed", "threads"])
     meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata)}
     print(f"BC: {len(data)} samples, {config.obs_dim}-d observations {dict(config.blocks)}, {config.action_dim} actions")
-    result = train_bc(policy, data, args.out, bc_config, meta)
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        result = train_bc(policy, data, args.out, bc_config, meta)
     print(f"best epoch {result.best_epoch} (val loss {result.best_val_loss:.4g}); "
           f"checkpoints {result.best_checkpoint} and {result.last_checkpoint}; curves {result.log_csv.with_suffix('.png')}")
     return 0
@@ -233,11 +241,12 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
           f"{args.workers} worker(s)")
-    sampler = make_sampler(factory, args.backend, args.workers, args.address)
-    try:
-        result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
-    finally:
-        sampler.close()
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        sampler = make_sampler(factory, args.backend, args.workers, args.address)
+        try:
+            result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
+        finally:
+            sampler.close()
     last = result.rows[-1] if result.rows else None
     summary = (f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}, "
                f"{last['env_steps']} env steps, {last['cpu_s'] / 3600:.3f} CPU-hours in all") if last else ""
@@ -249,6 +258,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
 def cmd_train_dagger(args: argparse.Namespace) -> int:
     import torch
 
+    from dexdrake.dexrep.feature_sets import observation_blocks
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import DaggerConfig, train_dagger
     from dexdrake.systems.env_factory import GraspEnvFactory
@@ -256,7 +266,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
 
     objects = training_objects(args.objects)
 
-    load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback
+    observation_blocks(load_hand(args.hand), args.feature_set)  # unknown names: refused before workers start
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
@@ -268,12 +278,13 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "weight-decay", "obs-noise",
                                                         "arm-weight", "probe-per-object",
-                                                        "init", "prior", "residual-arm", "workers", "backend", "address", "threads", "seed"])
+                                                        "init", "prior", "residual-arm", "resume-changed", "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []
-    final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
-                         args.address, probes)
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
+                             args.address, probes, args.resume_changed)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 

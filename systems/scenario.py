@@ -17,9 +17,11 @@ Modes follow from the driver kinds:
 
 import dataclasses as dc
 import math
+import typing
 from pathlib import Path
 from typing import Optional
 
+import yaml
 from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
@@ -160,13 +162,46 @@ class Scenario:
 def load_scenario(path: str | Path) -> Scenario:
     """Load and validate a scenario YAML file; ScenarioError says what is wrong."""
     path = Path(path)
+    if path.is_dir():
+        raise ScenarioError(f"scenario file {path} is a folder; give a .yaml file (e.g. configs/hil.yaml)")
     if not path.is_file():
         raise ScenarioError(f"scenario file {path} does not exist")
     return parse_scenario(path.read_text(), source=str(path))
 
 
+_KINDS = {float: ("a number", (int, float)), int: ("an integer", (int,)), str: ("a string", (str,)),
+          bool: ("true or false", (bool,))}
+
+
+def _check_types(data: object, schema: type, source: str, prefix: str = "") -> None:
+    """ScenarioError naming the first field of `data` (parsed YAML) whose value is not of its
+    `schema` field's scalar type (number, integer, string, bool), nested entries included."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: {'the file' if not prefix else prefix.rstrip('.')} holds "
+                            f"{'nothing' if data is None else repr(data)}, not `field: value` lines "
+                            f"(fields: {', '.join(f.name for f in dc.fields(schema))})")
+    hints = typing.get_type_hints(schema)
+    for key, value in data.items():
+        hint = hints.get(key)
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if typing.get_origin(hint) is typing.Union and len(args) == 1:  # Optional[X]
+            if value is None:
+                continue
+            hint = args[0]
+        if dc.is_dataclass(hint) and value is not None:
+            _check_types(value, hint, source, f"{prefix}{key}.")
+        elif hint in _KINDS:
+            name, types = _KINDS[hint]
+            if isinstance(value, bool) != (hint is bool) or not isinstance(value, types):
+                raise ScenarioError(f"{source}: field {prefix}{key} must be {name}, got {value!r}")
+
+
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Load and validate a scenario from YAML text."""
+    try:
+        _check_types(yaml.safe_load(text), Scenario, source)
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"{source}: not valid YAML ({' '.join(str(err).split())})") from None
     try:
         scenario = yaml_load_typed(schema=Scenario, data=text)
     except Exception as err:  # yaml_load_typed raises RuntimeError/TypeError/yaml errors
@@ -228,6 +263,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         get_object(s.object)
     except DexdrakeError as err:
         raise ScenarioError(f"{source}: {err}") from None
+    _require(s.seed >= 0, source, f"seed must be at least 0, got {s.seed}")
     _require(s.time_step > 0 and math.isfinite(s.time_step), source,
              f"time_step must be > 0, got {s.time_step}")
     _require(s.control_period >= s.time_step, source,

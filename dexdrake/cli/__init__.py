@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 import time
 import warnings
@@ -108,11 +107,6 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:  # before the command started
             print("dexdrake: interrupted", file=sys.stderr)
             code = 130
-    if code == 130 and argv is None:
-        # end now: the exit handlers of interrupted worker pools would print tracebacks
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(130)
     return code
 
 

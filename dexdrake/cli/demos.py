@@ -93,6 +93,8 @@ def _load_demo_or_keypoints(path: Path, args: argparse.Namespace, notes: list[st
     from dexdrake.demos.format import DemoFormatError, is_demo_file, load_demo
     from dexdrake.demos.loaders import KEYPOINT_SUFFIXES, load_keypoint_array, parse_pose
 
+    if path.is_dir():
+        raise DemoFormatError(f"{path} is a folder; give a demo or keypoint file")
     if not path.is_file():
         raise DemoFormatError(f"{path}: no such file")
     if path.suffix.lower() not in KEYPOINT_SUFFIXES:
@@ -120,6 +122,10 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     notes: list[str] = []
     demo = _load_demo_or_keypoints(args.file, args, notes, demo_files=False)
+    if demo.object_name:
+        from dexdrake.objects.library import get_object
+
+        get_object(demo.object_name)  # refused here, not at replay
     out = save_demo(demo, args.out)
     for n in notes:
         print(f"  {n}")

@@ -83,8 +83,8 @@ def _pid_alive(pid: int) -> bool:
 class WriterLock:
     """Exclusive writer of `folder` while held (a context manager): `folder/.dexdrake.lock`
     holds the owner's pid, created with O_EXCL; held by a live process -> OutputError naming
-    it; left by a dead one -> taken over. `what` names the thing in the message. A folder the
-    lock made is removed again if nothing was written into it."""
+    it; left by a dead one -> taken over. `what` names the thing in the message. Folders the
+    lock made are removed again if nothing was written into them."""
 
     def __init__(self, folder: Path, what: str | None = None):
         self.folder, self.what = Path(folder), what or f"folder {folder}"
@@ -97,7 +97,7 @@ class WriterLock:
             return None
 
     def __enter__(self) -> "WriterLock":
-        self.made = not self.folder.exists()
+        self.existing = _nearest_existing(self.folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         for _ in range(3):
             try:
@@ -121,5 +121,7 @@ class WriterLock:
     def __exit__(self, *exc) -> None:
         if self._owner() == os.getpid():
             self.path.unlink(missing_ok=True)
-        if self.made and not any(self.folder.iterdir()):
-            self.folder.rmdir()
+        made = self.folder
+        while made != self.existing and made.is_dir() and not any(made.iterdir()):
+            made.rmdir()
+            made = made.parent

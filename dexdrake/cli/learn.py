@@ -178,8 +178,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     from dexdrake.learn.demo_dataset import load_demo_dataset
     from dexdrake.learn.policy import DexRepNetPolicy
 
-    if (args.out / "bc_log.csv").is_file():
-        raise DexdrakeError(f"{args.out} already holds a BC run (bc_log.csv); choose another --out or delete it")
+    if (args.out / "bc_best.pt").is_file():
+        raise DexdrakeError(f"{args.out} already holds a BC run (bc_best.pt); choose another --out or delete it")
     torch.set_num_threads(args.threads)
     data = load_demo_dataset(args.data)
     config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])

@@ -343,16 +343,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
         raise DexdrakeError(f"probe objects {sorted(set(probes) & set(objects))} are also training objects")
     check_backend(config.backend, address)
     check_resume(out_dir, config, objects, resume_changed)
-    out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
-                    config.iterations)
-    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
-                                               "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
-                                               "collect_s", "train_s"],
-                 resume=True, key="iteration", resume_from=finished)
-    meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
-    aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     hand = load_hand(config.hand)
     policy = load_policy(Path(config.init))[0] if config.init else None
     if policy is not None and policy.config.feature_set != config.feature_set and policy.config.hand == config.hand:
@@ -363,6 +354,15 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     if policy is not None and policy.config.residual_arm != config.residual_arm:
         raise DexdrakeError(f"{config.init} has {'a residual' if policy.config.residual_arm else 'an absolute'} arm "
                             f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
+                    config.iterations)
+    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
+                                               "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
+                                               "collect_s", "train_s"],
+                 resume=True, key="iteration", resume_from=finished)
+    meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
+    aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address) as sampler:

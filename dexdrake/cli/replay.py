@@ -117,40 +117,39 @@ def replay_demos(jobs: list[tuple[int, str, int]], hand: str, feature_set: str |
     if workers < 1:
         raise DexdrakeError(f"--workers must be at least 1, got {workers}")
     results: dict[int, Any] = {}
-    bar = tqdm(total=len(jobs), desc=f"replay {hand}", unit="demo", disable=not progress)
-    if workers == 1:
-        _init_worker(hand, feature_set, config)
-        for job in jobs:
-            i, res = _replay_job(job)
-            results[i] = res
-            bar.update()
-            bar.set_postfix(ok=sum(r.success for r in results.values()))
-    else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        ctx = mp.get_context("spawn")  # Drake objects don't pickle or survive fork
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers inherit it: Ctrl-C is ours
-        try:
-            pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                       initargs=(hand, feature_set, config))
-            futures = [pool.submit(_replay_job, j) for j in jobs]
-        finally:
-            signal.signal(signal.SIGINT, previous)
-        try:
-            for fut in as_completed(futures):
-                i, res = fut.result()
+    with tqdm(total=len(jobs), desc=f"replay {hand}", unit="demo", disable=not progress) as bar:  # closed on Ctrl-C too
+        if workers == 1:
+            _init_worker(hand, feature_set, config)
+            for job in jobs:
+                i, res = _replay_job(job)
                 results[i] = res
                 bar.update()
                 bar.set_postfix(ok=sum(r.success for r in results.values()))
-        except BaseException:  # Ctrl-C or an error: drop the queued jobs, end the running ones
-            running = list(pool._processes.values())
-            pool.shutdown(wait=False, cancel_futures=True)
-            for process in running:
-                process.terminate()
-            raise
-        pool.shutdown()
-    bar.close()
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            ctx = mp.get_context("spawn")  # Drake objects don't pickle or survive fork
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers inherit it: Ctrl-C is ours
+            try:
+                pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                           initargs=(hand, feature_set, config))
+                futures = [pool.submit(_replay_job, j) for j in jobs]
+            finally:
+                signal.signal(signal.SIGINT, previous)
+            try:
+                for fut in as_completed(futures):
+                    i, res = fut.result()
+                    results[i] = res
+                    bar.update()
+                    bar.set_postfix(ok=sum(r.success for r in results.values()))
+            except BaseException:  # Ctrl-C or an error: drop the queued jobs, end the running ones
+                running = list(pool._processes.values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                for process in running:
+                    process.terminate()
+                raise
+            pool.shutdown()
     return [results[i] for i, _, _ in jobs]
 
 

@@ -28,7 +28,7 @@ def open_npz(path: str | Path) -> Iterator[np.lib.npyio.NpzFile]:
     if path.is_dir():
         raise DexdrakeError(f"{path} is a folder; give a .npz file")
     if not path.is_file():
-        raise DexdrakeError(f"{path}: no such file")
+        raise DexdrakeError(f"{path} does not exist")
     try:
         with np.load(path, allow_pickle=False) as data:
             yield data

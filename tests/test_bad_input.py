@@ -313,3 +313,21 @@ def test_ctrl_c_during_a_replay_with_workers(world):
     lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and not PROGRESS.search(line)]
     assert process.returncode == 130 and lines == [lines[0]] and "interrupted" in lines[0], err
     assert not (world / "r.npz").exists()
+
+
+def test_a_broken_user_object_is_named_with_the_fix(world, capsys):
+    import trimesh
+
+    from dexdrake.objects.library import import_mesh
+    from dexdrake.objects.meshfile import BrokenMeshFileError, load_obj
+
+    trimesh.creation.box((0.05, 0.05, 0.05)).export(world / "mesh.stl")
+    mesh = import_mesh(world / "mesh.stl", "boxy").mesh_path
+    mesh.write_text("")
+    assert main(["sim", "--object", "boxy", "--steps", "1"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and "boxy" in lines[0] and "holds no triangle mesh" in lines[0], lines
+    assert "objects import FILE --name NAME --overwrite" in lines[0] and "unknown object 'boxy'" in lines[1]
+    mesh.unlink()  # removed while a simulation uses it
+    with pytest.raises(BrokenMeshFileError, match="is gone"):
+        load_obj(mesh)

@@ -285,8 +285,14 @@ def test_library_warnings_never_precede_the_error_line(world, capsys, monkeypatc
         warnings.warn("a library's warning", UserWarning)
         raise DexdrakeError("the user's mistake")
 
+    def to_stderr(message, category, filename, lineno, file=None, line=None):  # as outside pytest
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
     monkeypatch.setattr(sim, "run_sim", warn_then_fail)
-    assert "the user's mistake" in _fails(["sim"], capsys, world)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = to_stderr
+        assert "the user's mistake" in _fails(["sim"], capsys, world)
 
 
 def test_ctrl_c_is_one_line_and_exit_130(world, capsys, monkeypatch):

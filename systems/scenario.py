@@ -190,10 +190,20 @@ def _check_types(data: object, schema: type, source: str, prefix: str = "") -> N
             hint = args[0]
         if dc.is_dataclass(hint) and value is not None:
             _check_types(value, hint, source, f"{prefix}{key}.")
-        elif hint in _KINDS:
-            name, types = _KINDS[hint]
-            if isinstance(value, bool) != (hint is bool) or not isinstance(value, types):
-                raise ScenarioError(f"{source}: field {prefix}{key} must be {name}, got {value!r}")
+        elif hint in _KINDS and not _reads_as(value, hint):
+            raise ScenarioError(f"{source}: field {prefix}{key} must be {_KINDS[hint][0]}, got {value!r}")
+
+
+def _reads_as(value: object, kind: type) -> bool:
+    """Whether Drake's YAML reader takes `value` (as PyYAML parsed it) for a `kind` field; it
+    also reads numbers PyYAML leaves as strings, such as 1.0e9."""
+    if isinstance(value, str) and kind in (int, float):
+        try:
+            kind(value)
+        except ValueError:
+            return False
+        return True
+    return isinstance(value, bool) == (kind is bool) and isinstance(value, _KINDS[kind][1])
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -27,12 +26,14 @@ def _number(kind: type, text: str) -> int | float:
     return value
 
 
-def int_at_least(low: int) -> Callable[[str], int]:
-    """An integer >= low (seeds: 0, counts and steps: 1)."""
+def int_at_least(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An integer >= low (seeds: 0, counts and steps: 1) and, if given, <= high."""
     def parse(text: str) -> int:
         value = _number(int, text)
         if value < low:
             raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {value}")
         return value
 
     parse.__name__ = "integer"
@@ -65,35 +66,25 @@ non_negative = float_in(0.0, low_open=False)
 
 
 def output_file(*suffixes: str) -> Callable[[str], Path]:
-    """A file path that can be written: not a folder, its folder exists or can be made,
-    and (if given) one of `suffixes`."""
+    """A file to write, ending in one of `suffixes` (if given). Marked `output = "file"`:
+    `dexdrake.cli.main` checks every output with `dexdrake.outputs` before the command runs."""
     def parse(text: str) -> Path:
         path = Path(text)
         if suffixes and path.suffix.lower() not in suffixes:
             raise argparse.ArgumentTypeError(f"{text!r} must end in {' or '.join(suffixes)}")
-        return writable(path, folder=False)
+        return path
 
     parse.__name__ = "path"
+    parse.output = "file"
     return parse
 
 
 def output_folder(text: str) -> Path:
-    """A folder that exists or can be made, and can be written into."""
-    return writable(Path(text), folder=True)
+    """A folder to write into (checked as `output_file`'s are)."""
+    return Path(text)
 
 
-def writable(path: Path, folder: bool) -> Path:
-    """`path` if it can be written (as a folder or a file); else ArgumentTypeError."""
-    if path.exists() and path.is_dir() != folder:
-        raise argparse.ArgumentTypeError(f"{str(path)!r} is {'a file' if folder else 'a folder'}")
-    parent = path if folder and path.exists() else path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise argparse.ArgumentTypeError(f"cannot create {str(path)!r}: {str(parent)!r} is a file")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"cannot write to {str(parent)!r} (permission denied)")
-    return path
+output_folder.output = "folder"
 
 
 def label(text: str) -> str:

@@ -17,6 +17,14 @@ class UnknownNameError(DexdrakeError, KeyError):
     def __str__(self) -> str:  # KeyError would quote the message
         return self.args[0]
 
+    def __reduce__(self):  # rebuilt from its fields in the process that receives it
+        return type(self), (self.kind, self.name, self.valid), self.__dict__
+
+
+class NonFiniteError(DexdrakeError):
+    """NaN or infinite numbers where finite ones are needed (a diverged training, a damaged
+    checkpoint): nothing is written from them."""
+
 
 class DexdrakeWarning(UserWarning):
     """Something a user should know that did not stop the work (the CLI prints one line)."""

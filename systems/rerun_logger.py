@@ -162,6 +162,7 @@ class RerunLogger:
         self.mode, self.station = mode, None
         self.rec = rr.RecordingStream(f"dexdrake_{mode}")
         if path is not None:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
             self.rec.save(str(path))
         elif spawn:
             self.rec.spawn()
@@ -398,7 +399,7 @@ class RerunLogger:
             self._scalar(f"dexrep/distance/{pt.name}", float(value))
 
     def _log_task(self, info: dict) -> None:
-        rec, task, terms = self.rec, TaskSpec(), info["terms"]
+        task, terms = TaskSpec(), info["terms"]
         for key, value in (("r_d", terms.r_d), ("r_g", terms.r_g), ("r_t", terms.r_t), ("total", terms.total)):
             self._scalar(f"reward/{key}", float(value))
         self._scalar("task/lift", float(info["lift"]))

@@ -24,10 +24,12 @@ Modes follow from the driver kinds:
 
 import dataclasses as dc
 import math
+import typing
 from importlib.resources import files
 from pathlib import Path
 from typing import Optional
 
+import yaml
 from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
@@ -197,14 +199,58 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load and validate a scenario (a packaged name or a YAML path, `scenario_path`);
     ScenarioError says what is wrong."""
     path = scenario_path(name_or_path)
+    if path.is_dir():
+        raise ScenarioError(f"scenario file {path} is a folder; give a .yaml file or a packaged name "
+                            f"({', '.join(packaged_scenarios())})")
     if not path.is_file():
         raise ScenarioError(f"scenario file {path} does not exist (packaged scenarios: "
                             f"{', '.join(packaged_scenarios())})")
     return parse_scenario(path.read_text(), source=str(name_or_path))
 
 
+_KINDS = {float: ("a number", (int, float)), int: ("an integer", (int,)), str: ("a string", (str,)),
+          bool: ("true or false", (bool,))}
+
+
+def _check_types(data: object, schema: type, source: str, prefix: str = "") -> None:
+    """ScenarioError naming the first field of `data` (parsed YAML) whose value is not of its
+    `schema` field's scalar type (number, integer, string, bool), nested entries included."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: {'the file' if not prefix else prefix.rstrip('.')} holds "
+                            f"{'nothing' if data is None else repr(data)}, not `field: value` lines "
+                            f"(fields: {', '.join(f.name for f in dc.fields(schema))})")
+    hints = typing.get_type_hints(schema)
+    for key, value in data.items():
+        hint = hints.get(key)
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if typing.get_origin(hint) is typing.Union and len(args) == 1:  # Optional[X]
+            if value is None:
+                continue
+            hint = args[0]
+        if dc.is_dataclass(hint) and value is not None:
+            _check_types(value, hint, source, f"{prefix}{key}.")
+        elif hint in _KINDS and not _reads_as(value, hint):
+            raise ScenarioError(f"{source}: field {prefix}{key} must be {_KINDS[hint][0]}, got {value!r}")
+
+
+def _reads_as(value: object, kind: type) -> bool:
+    """Whether Drake's YAML reader takes `value` (as PyYAML parsed it) for a `kind` field; it
+    also reads numbers PyYAML leaves as strings, such as 1.0e9."""
+    if isinstance(value, str) and kind in (int, float):
+        try:
+            kind(value)
+        except ValueError:
+            return False
+        return True
+    return isinstance(value, bool) == (kind is bool) and isinstance(value, _KINDS[kind][1])
+
+
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Load and validate a scenario from YAML text."""
+    try:
+        _check_types(yaml.safe_load(text), Scenario, source)
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"{source}: not valid YAML ({' '.join(str(err).split())})") from None
     try:
         scenario = yaml_load_typed(schema=Scenario, data=text)
     except Exception as err:  # yaml_load_typed raises RuntimeError/TypeError/yaml errors
@@ -280,6 +326,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         get_object(s.object)
     except DexdrakeError as err:
         raise ScenarioError(f"{source}: {err}") from None
+    _require(s.seed >= 0, source, f"seed must be at least 0, got {s.seed}")
     _require(s.time_step > 0 and math.isfinite(s.time_step), source,
              f"time_step must be > 0, got {s.time_step}")
     _require(s.control_period >= s.time_step, source,

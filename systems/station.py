@@ -272,7 +272,7 @@ class PerceptionSystem(LeafSystem):
             self._t0 = wall
         on_sim = self.simulated_clock and sim_time is not None
         now = self._now = sim_time if on_sim else wall
-        cam, log = self.camera, self.log
+        cam = self.camera
         due = not on_sim or now >= self._due - 1e-9
         if on_sim and due and self._future is not None:
             cf.wait([self._future])

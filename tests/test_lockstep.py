@@ -101,7 +101,8 @@ def test_reward_fingertip_distances_equal_their_own_closest_point_query():
     from dexdrake.systems.env_factory import GraspEnvFactory
 
     env = GraspEnvFactory("adroit", "DexRep+Vel", ("mug",), 40)()
-    obs, rng, shared, own = env.reset(5), np.random.default_rng(0), [], []
+    env.reset(5)
+    rng, shared, own = np.random.default_rng(0), [], []
     for _ in range(40):
         env.step(np.clip(env.normalise(env.scene.hand.pregrasp_vector()) + 0.3 * rng.standard_normal(env.action_dim),
                          -1, 1))

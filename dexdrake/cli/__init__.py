@@ -13,8 +13,10 @@ import importlib
 import sys
 import time
 import warnings
+from pathlib import Path
 
 from dexdrake.errors import DexdrakeError, DexdrakeWarning
+from dexdrake.outputs import check_not_an_input, check_writable
 
 # Modules that contribute sub-commands with `add_parser(subparsers)`.
 COMMAND_MODULES = [
@@ -43,27 +45,88 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _format_warning(message, category, filename, lineno, line=None) -> str:
-    if issubclass(category, DexdrakeWarning):
-        return f"dexdrake: warning: {message}\n"
-    return _default_format(message, category, filename, lineno, line)
+def _leaf(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[list[str], argparse.ArgumentParser]:
+    """The words of the sub-command `args` runs and its parser."""
+    words = []
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs or getattr(args, subs[0].dest, None) is None:
+            return words, parser
+        words.append(getattr(args, subs[0].dest))
+        parser = subs[0].choices[words[-1]]
 
 
-_default_format = warnings.formatwarning
+def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Every output of the command (flags whose type is marked `output` by dexdrake.argtypes)
+    can be written and is none of its input paths; else a one-line argparse error, exit 2."""
+    outputs, inputs = [], []
+    for action in parser._actions:
+        value = getattr(args, action.dest, None)
+        flag = action.option_strings[0] if action.option_strings else action.dest
+        kind = getattr(action.type, "output", None)
+        if kind and value is not None:
+            try:
+                check_writable(Path(value), folder=kind == "folder")
+            except DexdrakeError as err:
+                parser.error(f"argument {flag}: {err}")
+            outputs.append((flag, Path(value)))
+        elif action.dest != "help":
+            for item in value if isinstance(value, list) else [value]:
+                if isinstance(item, Path):
+                    inputs.append((flag, item))
+    try:
+        check_not_an_input(outputs, inputs)
+    except DexdrakeError as err:
+        parser.error(str(err))
+
+
+class _Warnings:
+    """Shows a DexdrakeWarning at once as one line; holds library warnings (torch, numpy)
+    back, to show them after a command that succeeds (none after an error line)."""
+
+    def __init__(self):
+        self.held: list[str] = []
+
+    def show(self, message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, DexdrakeWarning):
+            print(f"dexdrake: warning: {message}", file=sys.stderr)
+        else:
+            self.held.append(warnings.formatwarning(message, category, filename, lineno, line))
+
+    def flush(self) -> None:
+        sys.stderr.write("".join(self.held))
+        self.held.clear()
 
 
 def main(argv: list[str] | None = None) -> int:
-    warnings.formatwarning = _format_warning
-    args = build_parser().parse_args(argv)
-    name = " ".join([args.command] + [str(v) for k, v in vars(args).items()
-                                      if k.endswith("_command") and v])
+    shown = _Warnings()
+    with warnings.catch_warnings():
+        warnings.showwarning = shown.show
+        try:
+            code = _run(argv, shown)
+        except KeyboardInterrupt:  # before the command started
+            print("dexdrake: interrupted", file=sys.stderr)
+            code = 130
+    return code
+
+
+def _run(argv: list[str] | None, shown: _Warnings) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    words, leaf = _leaf(parser, args)
+    name = " ".join(words)
     start = time.perf_counter()
     try:
-        return int(args.func(args) or 0)
+        check_outputs(leaf, args)
+        code = int(args.func(args) or 0)
     except DexdrakeError as err:
+        shown.held.clear()
         message = "; ".join(line.strip() for line in str(err).splitlines() if line.strip())
         print(f"dexdrake {name}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        shown.held.clear()
         print(f"dexdrake {name}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
         return 130
+    shown.flush()
+    return code

@@ -12,6 +12,7 @@ import numpy as np
 from dexdrake import argtypes
 from dexdrake.cli import replay
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import check_writable
 
 # MediaPipe skeleton: each finger's chain from the wrist
 _CHAINS = [[0, 1, 2, 3, 4], [0, 5, 6, 7, 8], [0, 9, 10, 11, 12], [0, 13, 14, 15, 16],
@@ -92,6 +93,8 @@ def _load_demo_or_keypoints(path: Path, args: argparse.Namespace, notes: list[st
     from dexdrake.demos.format import DemoFormatError, is_demo_file, load_demo
     from dexdrake.demos.loaders import KEYPOINT_SUFFIXES, load_keypoint_array, parse_pose
 
+    if path.is_dir():
+        raise DemoFormatError(f"{path} is a folder; give a demo or keypoint file")
     if not path.is_file():
         raise DemoFormatError(f"{path}: no such file")
     if path.suffix.lower() not in KEYPOINT_SUFFIXES:
@@ -119,6 +122,10 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     notes: list[str] = []
     demo = _load_demo_or_keypoints(args.file, args, notes, demo_files=False)
+    if demo.object_name:
+        from dexdrake.objects.library import get_object
+
+        get_object(demo.object_name)  # refused here, not at replay
     out = save_demo(demo, args.out)
     for n in notes:
         print(f"  {n}")
@@ -152,8 +159,8 @@ def cmd_retarget(args: argparse.Namespace) -> int:
 
     hand = load_hand(args.hand)
     try:
-        out = args.out or argtypes.writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
-    except argparse.ArgumentTypeError as e:
+        out = args.out or check_writable(args.demo.with_suffix(f".{args.hand}.npz"), False)
+    except DexdrakeError as e:
         raise DexdrakeError(f"default --out: {e}; pass --out") from None
     notes: list[str] = []
     demo = _load_demo_or_keypoints(args.demo, args, notes, demo_files=True)
@@ -200,6 +207,7 @@ def write_rrd(path: Path, demo, retargeter, Q: np.ndarray, keypoints: np.ndarray
     import rerun as rr
 
     rec = rr.RecordingStream("dexdrake_retarget")
+    path.parent.mkdir(parents=True, exist_ok=True)
     rec.save(str(path))
     for t in range(demo.num_frames):
         rec.set_time("frame", sequence=t)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from dexdrake import argtypes
+from dexdrake.outputs import check_writable
 
 
 def _describe(args: argparse.Namespace) -> int:
@@ -26,7 +27,8 @@ def _show(args: argparse.Namespace) -> int:
     from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    rrd = None if args.spawn else (args.rrd or f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd")
+    rrd = None if args.spawn else (args.rrd or check_writable(Path(f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd"),
+                                                              folder=False))
     env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.steps)
     logger = RerunLogger(rrd, "sim", spawn=args.spawn)
     try:
@@ -65,7 +67,7 @@ def add_parser(subparsers) -> None:
     s.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                    help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
     s.add_argument("--seed", type=argtypes.seed, default=0)
-    s.add_argument("--steps", type=int, default=200, help="control steps (20 ms each)")
+    s.add_argument("--steps", type=argtypes.count, default=200, help="control steps (20 ms each)")
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
     s.set_defaults(func=_show)
 

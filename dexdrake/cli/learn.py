@@ -14,6 +14,7 @@ from typing import Any
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import WriterLock
 from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
 from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
@@ -68,7 +69,7 @@ def add_parser(subparsers) -> None:
 
     bc = train_sub.add_parser("bc", help="behaviour cloning from a demo dataset (.npz)")
     bc.add_argument("--data", required=True, type=Path, help="demo dataset .npz (metadata: hand, feature_set, observation_blocks)")
-    bc.add_argument("--out", required=True, type=Path, help="output folder (checkpoints, bc_log.csv/png)")
+    bc.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (checkpoints, bc_log.csv/png)")
     bc.add_argument("--epochs", type=argtypes.count, default=150)
     bc.add_argument("--batch", type=argtypes.count, default=64)
     bc.add_argument("--lr", type=argtypes.positive, default=1e-5)
@@ -94,7 +95,7 @@ def add_parser(subparsers) -> None:
                       help="paper: r_t as the paper writes it (full pay up to 0.22 m from the target); aligned: "
                            "Adroit relocate's 0.05/0.10 m radii, paying r_t only inside the success radius "
                            "(see dexdrake.task)")
-    dapg.add_argument("--out", required=True, type=Path, help="output folder (dapg_state.pt, checkpoints, curves)")
+    dapg.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
     dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
     dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
@@ -107,7 +108,7 @@ def add_parser(subparsers) -> None:
     dapg.set_defaults(func=cmd_train_dapg)
 
     dagger = train_sub.add_parser("dagger", help="DAgger with the state-driven grasp expert (no demo file needed)")
-    dagger.add_argument("--out", required=True, type=Path, help="output folder (per-iteration data and policies, dagger_log.csv)")
+    dagger.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (per-iteration data and policies, dagger_log.csv)")
     dagger.add_argument("--hand", default="adroit")
     dagger.add_argument("--feature-set", default="DexRep")
     dagger.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
@@ -131,6 +132,10 @@ def add_parser(subparsers) -> None:
                         help="earlier DAgger runs' folders: their states, labelled anew by this expert, are trained on too")
     dagger.add_argument("--residual-arm", action="store_true",
                         help="a new network's arm actions are added to the arm's current position (it learns the lead)")
+    dagger.add_argument("--resume-changed", action="store_true",
+                        help="go on with a run in OUT whose settings (iterations, per-object, epochs, lr, ...) differ: "
+                             "later iterations use the new ones; fewer --iterations choose dagger_policy.pt again "
+                             "among the first ones (default: refused)")
     dagger.add_argument("--workers", type=argtypes.count, default=2)
     _add_envs_per_worker(dagger, "policy-driven environments")
     _add_backend_options(dagger)
@@ -207,6 +212,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     from dexdrake.learn.demo_dataset import load_demo_dataset
     from dexdrake.learn.policy import DexRepNetPolicy
 
+    if (args.out / "bc_best.pt").is_file():
+        raise DexdrakeError(f"{args.out} already holds a BC run (bc_best.pt); choose another --out or delete it")
     torch.set_num_threads(args.threads)
     data = load_demo_dataset(args.data)
     config = policy_config_from_metadata(data.metadata, data.actions.shape[1], data.observations.shape[1])
@@ -219,7 +226,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     meta = {"command": command, "dataset": str(args.data), "dataset_metadata": dataset_summary(data.metadata),
             "scenario": _scenario_record(config.hand)}
     print(f"BC: {len(data)} samples, {config.obs_dim}-d observations {dict(config.blocks)}, {config.action_dim} actions")
-    result = train_bc(policy, data, args.out, bc_config, meta)
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        result = train_bc(policy, data, args.out, bc_config, meta)
     print(f"best epoch {result.best_epoch} (val loss {result.best_val_loss:.4g}); "
           f"checkpoints {result.best_checkpoint} and {result.last_checkpoint}; curves {result.log_csv.with_suffix('.png')}")
     return 0
@@ -258,11 +266,12 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
           f"{args.workers} worker(s) x {args.envs_per_worker} env(s) in lockstep")
-    sampler = make_sampler(factory, args.backend, args.workers, args.address, args.envs_per_worker)
-    try:
-        result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
-    finally:
-        sampler.close()
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        sampler = make_sampler(factory, args.backend, args.workers, args.address, args.envs_per_worker)
+        try:
+            result = train_dapg(policy, sampler, args.out, config, demos, resume=args.resume, metadata=meta)
+        finally:
+            sampler.close()
     last = result.rows[-1] if result.rows else None
     summary = (f"; last iteration: return {last['mean_return']:.2f}, success {last['success_rate']:.2f}, "
                f"{last['env_steps']} env steps, {last['cpu_s'] / 3600:.3f} CPU-hours in all") if last else ""
@@ -274,6 +283,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
 def cmd_train_dagger(args: argparse.Namespace) -> int:
     import torch
 
+    from dexdrake.dexrep.feature_sets import observation_blocks
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import DaggerConfig, train_dagger
     from dexdrake.objects.library import training_objects
@@ -282,7 +292,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
 
     objects = training_objects(args.objects)
 
-    load_hand(args.hand)  # an unknown hand is named here, not in a worker's traceback
+    observation_blocks(load_hand(args.hand), args.feature_set)  # unknown names: refused before workers start
     torch.set_num_threads(args.threads)
     config = DaggerConfig(hand=args.hand, feature_set=args.feature_set, iterations=args.iterations,
                           episodes_per_object=args.per_object, horizon=args.horizon, expert_noise=args.expert_noise,
@@ -295,14 +305,15 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     command = command_line(["train", "dagger"], args, ["out", "hand", "feature-set", "objects", "iterations", "per-object",
                                                         "horizon", "expert-noise", "epochs", "lr", "weight-decay", "obs-noise",
                                                         "arm-weight", "probe-per-object",
-                                                        "init", "prior", "residual-arm", "workers", "envs-per-worker", "backend", "address",
-                                                        "threads", "seed"])
+                                                        "init", "prior", "residual-arm", "resume-changed", "workers", "envs-per-worker",
+                                                        "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
     probes = resolve_objects("unseen")[1] if args.probe_per_object else []
     meta = {"command": command, "scenario": _scenario_record(args.hand)}
-    final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, meta,
-                         args.address, probes)
+    with WriterLock(args.out, f"the run folder {args.out}"):
+        final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, meta,
+                             args.address, probes, args.resume_changed)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
     return 0
 

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
 
 SPLITS = ("train", "unseen", "user", "augmented")  # as dexdrake.objects.library.SPLITS
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")  # as dexdrake.objects.importer.UP_AXES
+MAX_COPIES, MAX_SHAPES = 50, 999  # as dexdrake.objects.augment.MAX_COPIES, MAX_SHAPES
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -43,9 +44,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
     p_aug = sub.add_parser("augment", help="scaled copies of the training objects and procedural shapes, to train on "
                            "(split 'augmented')")
-    p_aug.add_argument("--copies", type=argtypes.count, default=2, help="copies per training object (default 2)")
-    p_aug.add_argument("--shapes", type=argtypes.non_negative_count, default=0,
-                       help="procedural shapes (superquadrics and compounds of them; default 0)")
+    p_aug.add_argument("--copies", type=argtypes.int_at_least(1, MAX_COPIES), default=2,
+                       help=f"copies per training object (default 2, at most {MAX_COPIES})")
+    p_aug.add_argument("--shapes", type=argtypes.int_at_least(0, MAX_SHAPES), default=0,
+                       help=f"procedural shapes (superquadrics and compounds of them; default 0, at most {MAX_SHAPES})")
     p_aug.set_defaults(func=cmd_augment)
     return parser
 

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import argparse
 import shlex
+import signal
+import warnings
+import zipfile
 from collections import defaultdict
 from dataclasses import asdict
 from pathlib import Path
@@ -19,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from dexdrake import argtypes
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, DexdrakeWarning
 
 DATASET_FORMAT = "dexdrake.replay/1"
 
@@ -49,20 +52,26 @@ def find_demos(folder: Path, objects: list[str] | None = None) -> list[tuple[Pat
 
 
 def _find_demos(folder: Path, objects: list[str] | None) -> list[tuple[Path, str, int | None]]:
-    """(path, object name, the episode seed the demo was made for or None) per demo."""
-    from dexdrake.demos.format import DemoFormatError, load_demo
+    """(path, object name, the episode seed the demo was made for or None) per demo; a demo
+    file that cannot be used (damaged, NaN keypoints, an unknown object) is named in a warning
+    and skipped."""
+    from dexdrake.demos.format import is_demo_file, load_demo
+    from dexdrake.objects.library import get_object
 
     folder = Path(folder)
     if not folder.is_dir():
-        raise DexdrakeError(f"demo folder {folder} does not exist")
+        raise DexdrakeError(f"demo folder {folder} {'is a file' if folder.exists() else 'does not exist'}; "
+                            "give the folder of demo .npz files")
     found = []
     for path in sorted(folder.glob("*.npz")):
         try:
             demo = load_demo(path)
+            get_object(demo.object_name)
             made_for = demo.meta.extra.get("episode_seed")
             found.append((path, demo.object_name, None if made_for is None else int(made_for)))
-        except DemoFormatError:
-            continue
+        except DexdrakeError as err:
+            if is_demo_file(path) or not zipfile.is_zipfile(path):  # not other .npz files (e.g. trajectories)
+                warnings.warn(f"skipping {path}: {err}", DexdrakeWarning, stacklevel=2)
     if not found:
         raise DexdrakeError(f"no demo-format .npz files in {folder} (make some with `dexdrake demos synth`)")
     if objects is None:
@@ -108,27 +117,39 @@ def replay_demos(jobs: list[tuple[int, str, int]], hand: str, feature_set: str |
     if workers < 1:
         raise DexdrakeError(f"--workers must be at least 1, got {workers}")
     results: dict[int, Any] = {}
-    bar = tqdm(total=len(jobs), desc=f"replay {hand}", unit="demo", disable=not progress)
-    if workers == 1:
-        _init_worker(hand, feature_set, config)
-        for job in jobs:
-            i, res = _replay_job(job)
-            results[i] = res
-            bar.update()
-            bar.set_postfix(ok=sum(r.success for r in results.values()))
-    else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        ctx = mp.get_context("spawn")  # Drake objects don't pickle or survive fork
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(hand, feature_set, config)) as pool:
-            for fut in as_completed([pool.submit(_replay_job, j) for j in jobs]):
-                i, res = fut.result()
+    with tqdm(total=len(jobs), desc=f"replay {hand}", unit="demo", disable=not progress) as bar:  # closed on Ctrl-C too
+        if workers == 1:
+            _init_worker(hand, feature_set, config)
+            for job in jobs:
+                i, res = _replay_job(job)
                 results[i] = res
                 bar.update()
                 bar.set_postfix(ok=sum(r.success for r in results.values()))
-    bar.close()
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            ctx = mp.get_context("spawn")  # Drake objects don't pickle or survive fork
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers inherit it: Ctrl-C is ours
+            try:
+                pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                           initargs=(hand, feature_set, config))
+                futures = [pool.submit(_replay_job, j) for j in jobs]
+            finally:
+                signal.signal(signal.SIGINT, previous)
+            try:
+                for fut in as_completed(futures):
+                    i, res = fut.result()
+                    results[i] = res
+                    bar.update()
+                    bar.set_postfix(ok=sum(r.success for r in results.values()))
+            except BaseException:  # Ctrl-C or an error: drop the queued jobs, end the running ones
+                running = list(pool._processes.values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                for process in running:
+                    process.terminate()
+                raise
+            pool.shutdown()
     return [results[i] for i, _, _ in jobs]
 
 

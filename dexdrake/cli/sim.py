@@ -12,6 +12,7 @@ from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 
 CONTROLLERS = ("scripted", "expert")
+MIN_TIME_STEP = 1e-4  # s: 200 plant steps per control step; smaller ones take hours per episode
 
 
 def add_parser(subparsers) -> None:
@@ -32,8 +33,9 @@ def add_parser(subparsers) -> None:
                      help="run a policy trained under another plant step or control period (with a warning)")
     sim.add_argument("--seed", type=argtypes.seed, help="episode seed (default: the scenario's; without --config: 0)")
     sim.add_argument("--steps", type=argtypes.count, default=150, help="control steps (50 Hz)")
-    sim.add_argument("--time-step", type=argtypes.positive, help="plant step (s); default: the "
-                     "scenario's (5 ms); must divide the 0.02 s control period")
+    sim.add_argument("--time-step", type=argtypes.float_in(MIN_TIME_STEP, 0.02, low_open=False),
+                     help="plant step (s); default: the scenario's (5 ms); must divide the 0.02 s control period, "
+                          f"at least {MIN_TIME_STEP:g} s")
     sim.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                      help="write a rerun recording to this .rrd file")
     sim.set_defaults(func=run_sim)

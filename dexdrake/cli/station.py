@@ -5,11 +5,13 @@ drivers that are never started; moves nothing)."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.outputs import check_writable
 
 
 MISMATCH_HELP = "run a policy trained under another plant step or control period (with a warning)"
@@ -48,7 +50,7 @@ def run_hil(args: argparse.Namespace) -> int:
         raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `hil` needs emulated drivers")
     if args.steps <= 0:
         raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
-    rrd = args.rrd or scenario.rrd
+    rrd = args.rrd or (scenario.rrd and check_writable(Path(scenario.rrd), folder=False))
     # refused before any device starts
     controller, description = make_controller(scenario, args.allow_scenario_mismatch)
     logger = None

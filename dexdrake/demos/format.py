@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.npz import open_npz
 
 FORMAT_VERSION = 1
 NUM_KEYPOINTS = 21
@@ -158,31 +159,36 @@ def load_demo(path: str | Path) -> HumanDemo:
     """Read and validate a demo file; raises DemoFormatError naming what is wrong."""
     path = Path(path)
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise DemoFormatError(f"{path}: not a readable .npz file ({e})") from e
-    with data:
-        missing = [k for k in _REQUIRED if k not in data.files]
-        if missing:
-            raise DemoFormatError(f"{path}: missing keys {missing}")
-        version = data["format_version"]
-        if version.shape != () or int(version) != FORMAT_VERSION:
-            raise DemoFormatError(f"{path}: unknown format_version {version!r} "
-                                  f"(this dexdrake reads version {FORMAT_VERSION})")
-        try:
-            m = json.loads(str(data["meta"]))
-            trim = TrimInfo(**m.pop("trim", {}))
-            meta = DemoMeta(trim=trim, **m)
-        except (ValueError, TypeError) as e:
-            raise DemoFormatError(f"{path}: malformed meta ({e})") from e
-        demo = HumanDemo(
-            keypoints=data["keypoints"], time=data["time"],
-            object_name=str(data["object_name"]), object_pos=data["object_pos"],
-            object_quat=data["object_quat"], meta=meta,
-            **{k: data[k] for k in _MANO if k in data.files},
-        )
+        with open_npz(path) as data:
+            demo = _read_demo(path, data)
+    except DemoFormatError:
+        raise
+    except DexdrakeError as e:  # missing, damaged or truncated
+        raise DemoFormatError(str(e)) from e
     try:
         demo.validate()
     except DemoFormatError as e:
         raise DemoFormatError(f"{path}: {e}") from None
     return demo
+
+
+def _read_demo(path: Path, data) -> HumanDemo:
+    missing = [k for k in _REQUIRED if k not in data.files]
+    if missing:
+        raise DemoFormatError(f"{path}: missing keys {missing}")
+    version = data["format_version"]
+    if version.shape != () or int(version) != FORMAT_VERSION:
+        raise DemoFormatError(f"{path}: unknown format_version {version!r} "
+                              f"(this dexdrake reads version {FORMAT_VERSION})")
+    try:
+        m = json.loads(str(data["meta"]))
+        trim = TrimInfo(**m.pop("trim", {}))
+        meta = DemoMeta(trim=trim, **m)
+    except (ValueError, TypeError) as e:
+        raise DemoFormatError(f"{path}: malformed meta ({e})") from e
+    return HumanDemo(
+        keypoints=data["keypoints"], time=data["time"],
+        object_name=str(data["object_name"]), object_pos=data["object_pos"],
+        object_quat=data["object_quat"], meta=meta,
+        **{k: data[k] for k in _MANO if k in data.files},
+    )

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.paths import models_dir
 
 NUM_POINTS = 2048
@@ -131,10 +131,20 @@ def normalise_cloud(points: np.ndarray) -> np.ndarray:
     return centred / radius
 
 
+def _non_finite(state: dict[str, torch.Tensor]) -> list[str]:
+    return [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+
+
 def save_encoder(model: PointNetAutoEncoder, path: Path) -> None:
-    """Writes the encoder's weights (the decoder is not needed at run time)."""
+    """Writes the encoder's weights (the decoder is not needed at run time) atomically;
+    NonFiniteError if one is NaN or infinite."""
+    state = model.encoder.state_dict()
+    if _non_finite(state):
+        raise NonFiniteError(f"the encoder's weights {_non_finite(state)[:3]} are not finite; {path} not written")
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.encoder.state_dict(), path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
 
 
 def load_encoder(path: Path | None = None) -> PointNetEncoder:
@@ -146,7 +156,15 @@ def load_encoder(path: Path | None = None) -> PointNetEncoder:
             "`dexdrake encoder train --meshes train --out models/weights/pointnet_encoder.pt`"
         )
     encoder = PointNetEncoder()
-    encoder.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        encoder.load_state_dict(state)
+    except Exception as exc:  # torch raises many types for a damaged or foreign file
+        raise DexdrakeError(f"cannot read PointNet encoder weights {path} ({type(exc).__name__}); "
+                            "train them again with `dexdrake encoder train`") from exc
+    if _non_finite(state):
+        raise NonFiniteError(f"PointNet encoder weights {path} hold non-finite values {_non_finite(state)[:3]}; "
+                             "train them again with a lower learning rate")
     encoder.eval()
     for p in encoder.parameters():
         p.requires_grad_(False)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ from dexdrake.dexrep.pointnet import (
     orthogonality_penalty,
     save_encoder,
 )
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, NonFiniteError
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb")
 
@@ -89,10 +90,22 @@ def load_mesh_sets(spec: str, seed: int = 0) -> tuple[list[trimesh.Trimesh], lis
     files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in MESH_SUFFIXES)
     if len(files) < 2:
         raise DexdrakeError(f"{folder} holds {len(files)} meshes; need at least 2 (one held out)")
-    meshes = [trimesh.load(p, force="mesh") for p in files]
+    meshes = [_load_mesh(p) for p in files]
     unseen = [m for i, m in enumerate(meshes) if i % 5 == 4] or meshes[-1:]
     train = [m for i, m in enumerate(meshes) if i % 5 != 4] if len(meshes) > 1 else meshes
     return train, unseen, f"{folder}: {len(train)} train, {len(unseen)} unseen"
+
+
+def _load_mesh(path: Path) -> trimesh.Trimesh:
+    """The mesh in `path`, or DexdrakeError naming the file if it holds no triangles."""
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as exc:  # trimesh raises many types for a damaged file
+        raise DexdrakeError(f"cannot read {path} as a mesh ({type(exc).__name__}: {exc}); "
+                            "remove it from the --meshes folder") from exc
+    if len(getattr(mesh, "faces", ())) == 0 or not mesh.area > 0:
+        raise DexdrakeError(f"{path} holds no triangles (an empty or damaged mesh); remove it from the --meshes folder")
+    return mesh
 
 
 def sample_cloud(mesh: trimesh.Trimesh, rng: np.random.Generator, augment: bool) -> np.ndarray:
@@ -142,6 +155,9 @@ def train(config: TrainConfig, out: Path, command: str = "") -> dict:
             opt.step()
             sched.step()
             losses.append(loss.item())
+            if not math.isfinite(losses[-1]):
+                raise NonFiniteError(f"encoder epoch {epoch}: the loss is {losses[-1]} (learning rate {config.lr:g}); "
+                                     f"training stopped, {out} not written; lower the learning rate")
         history.append(float(np.mean(losses)))
         bar.set_postfix(loss=f"{history[-1]:.4f}")
     out = Path(out)

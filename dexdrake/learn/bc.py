@@ -5,6 +5,7 @@ Paper defaults: Adam, 150 epochs, batch 64, lr 1e-5, loss mean_i ||pi(s_i) - a_i
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -15,7 +16,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.learn.curves import CsvLog, plot_curves
 from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset, save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, save_policy
@@ -132,6 +133,13 @@ def _mean_std(x: np.ndarray, rows: np.ndarray, chunk: int = 16384) -> tuple[np.n
     return mean.astype(np.float32), np.sqrt(squares / len(rows)).astype(np.float32)
 
 
+def _check_finite(loss: float, which: str, epoch: int, config: BCConfig) -> None:
+    """NonFiniteError (training stops, this epoch writes nothing) if `loss` is NaN or infinite."""
+    if not math.isfinite(loss):
+        raise NonFiniteError(f"BC epoch {epoch}: the {which} loss is {loss} (learning rate {config.lr:g}); "
+                             "training stopped, no checkpoint written for it; lower the learning rate")
+
+
 def train_bc(
     policy: DexRepNetPolicy,
     dataset: DemoDataset,
@@ -191,8 +199,11 @@ def train_bc(
             (err * weights).sum(-1).mean().backward()
             optimiser.step()
             total += err.detach().sum().item()
+            _check_finite(total, "training", epoch, config)
         train_loss = total / perm.shape[0]
         val_loss = _eval_loss(policy, obs, act, rows_va) if len(val_idx) else float("nan")
+        if len(val_idx):
+            _check_finite(val_loss, "validation", epoch, config)
         result.train_loss.append(train_loss)
         result.val_loss.append(val_loss)
         log.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "seconds": time.perf_counter() - t0})

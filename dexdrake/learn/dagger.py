@@ -36,6 +36,7 @@ import torch
 from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
+from dexdrake.npz import open_npz
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
@@ -101,7 +102,7 @@ class DaggerData:
 
     @staticmethod
     def load(path: Path) -> DaggerData:
-        with np.load(path, allow_pickle=False) as d:
+        with open_npz(path) as d:
             meta = json.loads(str(d["metadata"]))
             if meta.get("format") != DATA_FORMAT:
                 raise DexdrakeError(f"{path} is not a {DATA_FORMAT} file (DAgger data from before plant velocities "
@@ -144,7 +145,7 @@ class Aggregate:
 
 
 def _metadata(path: Path) -> dict[str, Any]:
-    with np.load(path, allow_pickle=False) as d:
+    with open_npz(path) as d:
         return json.loads(str(d["metadata"]))
 
 
@@ -167,7 +168,7 @@ def init_sha256(out_dir: Path) -> str | None:
 
 
 def _samples_in(path: Path) -> int:
-    with np.load(path, allow_pickle=False) as d:
+    with open_npz(path) as d:
         return len(d["episode_starts"])
 
 
@@ -303,17 +304,29 @@ def collect(sampler: Sampler, policy: DexRepNetPolicy | None, jobs: list[tuple[s
 
 
 # DaggerConfig fields a resumed run may change: how later iterations collect and fit (the data
-# files and the log record each iteration's episodes and samples)
+# files and the log record each iteration's episodes and samples); those but where the rollouts
+# run change results, and a change is made only when asked for (`resume_changed`)
 RESUMABLE = ("iterations", "workers", "envs_per_worker", "backend", "probe_per_object", "episodes_per_object", "epochs", "lr",
              "batch_size", "arm_weight")
+PLACE = ("workers", "envs_per_worker", "backend")  # where rollouts run: the same episodes
 
 
-def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> None:
+def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str], resume_changed: bool = False) -> None:
     """Refuse to resume into `out_dir` if its data were made with other arguments; the
-    message names each difference (resuming would mix the runs and mislabel the policy)."""
+    message names each difference (resuming would mix the runs and mislabel the policy).
+    A change of a RESUMABLE setting (against the latest iteration's) needs `resume_changed`."""
     first = out_dir / "data_00.npz"
     if not first.is_file():
         return
+    if not resume_changed:
+        latest = _metadata(sorted(out_dir.glob("data_[0-9][0-9].npz"))[-1]).get("config", {})
+        now = json.loads(json.dumps(asdict(config)))
+        changed = [f"{k} {latest[k]!r} (now {now[k]!r})" for k in RESUMABLE
+                   if k not in PLACE and k in latest and latest[k] != now[k]]
+        if changed:
+            raise DexdrakeError(f"{out_dir} holds a run made with {'; '.join(changed)}; pass --resume-changed to go on "
+                                "with the new settings (later iterations use them; fewer iterations choose "
+                                "dagger_policy.pt again among the first ones) or use another --out")
     meta = _metadata(first)
     old, now = meta.get("config", {}), json.loads(json.dumps(asdict(config)))  # as the file holds it
     if isinstance(old.get("prior"), str):  # a run from before several priors: one folder or none
@@ -331,7 +344,8 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str]) -> Non
 
 def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, make_expert: MakeExpert,
                  config: DaggerConfig = DaggerConfig(), metadata: dict[str, Any] | None = None,
-                 address: str | None = None, probe_objects: list[str] | None = None) -> Path:
+                 address: str | None = None, probe_objects: list[str] | None = None,
+                 resume_changed: bool = False) -> Path:
     """Run DAgger on `objects`; returns the chosen policy checkpoint (out_dir/dagger_policy.pt,
     see SELECTION). Episodes run in envs from `make_env` on `config.workers` workers of
     `config.backend` (`address`: a Ray cluster to join), labelled by `make_expert`'s expert.
@@ -340,6 +354,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     success rate (iteration 0: the expert, or the `config.init` policy; later: the previous
     iteration's policy); with `config.probe_per_object` also probe_XX.npz on `probe_objects`
     and the unseen columns; with `config.prior`, prior_XX.npz (that run's data relabelled).
+    A run in `out_dir` is resumed; with other settings only if `resume_changed` (check_resume).
     """
     if config.iterations < 1 or not 1 <= config.episodes_per_object <= PROBE_SEEDS:
         raise DexdrakeError(f"need iterations >= 1 and 1 <= episodes_per_object <= {PROBE_SEEDS}: {config}")
@@ -351,17 +366,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     if set(probes) & set(objects):
         raise DexdrakeError(f"probe objects {sorted(set(probes) & set(objects))} are also training objects")
     check_backend(config.backend, address)
-    check_resume(out_dir, config, objects)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_resume(out_dir, config, objects, resume_changed)
     torch.manual_seed(config.seed)
-    finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
-                    config.iterations)
-    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
-                                               "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
-                                               "collect_s", "train_s"],
-                 resume=True, key="iteration", resume_from=finished)
-    meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
-    aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     hand = load_hand(config.hand)
     policy = load_policy(Path(config.init))[0] if config.init else None
     if policy is not None and policy.config.feature_set != config.feature_set and policy.config.hand == config.hand:
@@ -372,6 +378,15 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     if policy is not None and policy.config.residual_arm != config.residual_arm:
         raise DexdrakeError(f"{config.init} has {'a residual' if policy.config.residual_arm else 'an absolute'} arm "
                             f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
+                    config.iterations)
+    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
+                                               "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
+                                               "collect_s", "train_s"],
+                 resume=True, key="iteration", resume_from=finished)
+    meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
+    aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     n_arm = len(hand.arm_joints)
     factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
     with make_sampler(factory, config.backend, config.workers, address, config.envs_per_worker) as sampler:

@@ -35,7 +35,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, NonFiniteError
+from dexdrake.npz import open_npz
 from dexdrake.learn.baseline import MLPBaseline
 from dexdrake.eval.seeds import TRAINING_SEEDS
 from dexdrake.learn.curves import plot_curves, plot_success_map, write_csv
@@ -281,6 +282,9 @@ class DAPGTrainer:
         params = list(self.policy.trainable_parameters())
         objective = (self.policy.log_prob(o, a) * w).sum() / w.shape[0]
         grad = flat_grad(objective, params)
+        if not (torch.isfinite(objective) and bool(torch.isfinite(grad).all())):
+            raise NonFiniteError(f"DAPG iteration {k}: the objective or its gradient is not finite "
+                                 f"(objective {float(objective):.4g}); training stopped, this iteration not saved")
 
         self._sampled_state = {name: t.clone() for name, t in self.policy.state_dict().items()}
         fisher_obs = torch.as_tensor(obs[self._subsample(len(obs), cfg.fisher_samples)])
@@ -415,7 +419,7 @@ def load_demo_term(
         raise DexdrakeError(f"{path} holds no DAgger data (data_XX.npz files)")
     sizes = []
     for f in files:
-        with np.load(f, allow_pickle=False) as d:
+        with open_npz(f) as d:
             sizes.append(int(d["labels"].shape[0]))
     total = sum(sizes)
     keep = total if max_samples is None else min(max_samples, total)
@@ -462,6 +466,9 @@ def train_dapg(
         defaults = json.loads(json.dumps(asdict(DAPGConfig())))  # a state older than a field ran its default
         saved = {k: v for k, v in {**defaults, **trainer.saved_config}.items() if k not in RESUMABLE_CHANGES}
         changed = sorted(k for k in now if saved.get(k) != now[k])
+        if config.iterations < trainer.iteration:
+            raise DexdrakeError(f"{out_dir} already ran {trainer.iteration} iterations; --iterations "
+                                f"{config.iterations} would stop before them: give at least {trainer.iteration}")
         if changed:
             last = trainer.sessions[-1]["command"] if trainer.sessions else ""
             raise DexdrakeError(f"cannot resume {out_dir} with a changed config: {changed} "

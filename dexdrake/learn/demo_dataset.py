@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.npz import open_npz
 from dexdrake.objects.meshfile import write_atomic
 
 
@@ -72,13 +72,8 @@ def load_demo_dataset(
 ) -> DemoDataset:
     """Load and validate a demo .npz; optionally check it matches a policy's sizes."""
     path = Path(path)
-    if not path.is_file():
-        raise DexdrakeError(f"demo dataset {path} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise DexdrakeError(f"demo dataset {path} is not a readable .npz file: {exc}") from exc
+    with open_npz(path) as data:
+        arrays = {k: data[k] for k in data.files}
     missing = [k for k in ("observations", "actions") if k not in arrays]
     if missing:
         raise DexdrakeError(f"demo dataset {path} lacks {missing}; it has {sorted(arrays)}")

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.learn.env_protocol import observation_dim
 
 CHECKPOINT_FORMAT = "dexdrake.policy/1"
@@ -304,8 +304,19 @@ def arm_action_map(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
     return mid[:n], half[:n]
 
 
+def non_finite_tensors(state: Mapping[str, Any]) -> list[str]:
+    """Names of the floating-point tensors in `state` holding a NaN or an infinity."""
+    return [k for k, v in state.items()
+            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+
+
 def policy_payload(policy: DexRepNetPolicy, metadata: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The checkpoint contents: format tag, config dict, CPU state dict, free-form metadata."""
+    """The checkpoint contents: format tag, config dict, CPU state dict, free-form metadata;
+    NonFiniteError if a weight is NaN or infinite (a diverged training is never saved)."""
+    bad = non_finite_tensors(policy.state_dict())
+    if bad:
+        raise NonFiniteError(f"the policy's weights {bad[:3]} are not finite: the training diverged "
+                             "(lower the learning rate); no checkpoint written")
     return {
         "format": CHECKPOINT_FORMAT,
         "config": policy.config.to_dict(),
@@ -347,6 +358,9 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
     metadata's "scenario" is the one it was trained under (systems/scenario.scenario_record),
     UNRECORDED_SCENARIO for a checkpoint that records none."""
     path = Path(path)
+    if path.is_dir():
+        raise DexdrakeError(f"policy checkpoint {path} is a folder; give the .pt file in it "
+                            f"(e.g. {path / 'dagger_policy.pt'})")
     if not path.is_file():
         raise DexdrakeError(f"policy checkpoint {path} does not exist")
     try:
@@ -359,6 +373,10 @@ def load_policy(path: str | Path) -> tuple[DexRepNetPolicy, dict[str, Any]]:
         raise DexdrakeError(f"policy checkpoint {path} holds a {type(payload).__name__}, not a policy")
     if isinstance(payload.get("policy"), Mapping):  # a training state (e.g. DAPG's dapg_iter_XXXX.pt)
         payload = payload["policy"]
+    bad = non_finite_tensors(payload.get("state_dict") or {})
+    if bad:
+        raise NonFiniteError(f"policy checkpoint {path} holds non-finite weights {bad[:3]} "
+                             "(from a diverged training); train again with a lower learning rate")
     policy = policy_from_payload(payload)
     policy.eval()
     metadata = dict(payload.get("metadata", {}))

@@ -526,6 +526,10 @@ class RaySampler(_WorkerPool):
             return self._ray.get(token)
         except self._ray.exceptions.RayActorError as exc:
             raise WorkerDied(type(exc).__name__) from None
+        except self._ray.exceptions.RayTaskError as exc:  # a user's mistake: its own one line
+            if isinstance(exc.cause, DexdrakeError):
+                raise exc.cause from None
+            raise
 
     def describe(self) -> str:
         return (f"RaySampler with {self.num_workers} worker(s) x {self.envs_per_worker} env(s) on "

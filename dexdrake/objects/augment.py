@@ -33,6 +33,9 @@ if TYPE_CHECKING:
     from dexdrake.objects.library import ObjectInfo
 
 SCALE_RANGE = (0.8, 1.25)  # per-axis scale factors of a copy
+# bounds on a request (an object folder is ~45 kB): 50 copies of every training object,
+# and as many shapes as shape_name's three digits name
+MAX_COPIES, MAX_SHAPES = 50, 999
 
 
 def copy_name(name: str, k: int) -> str:
@@ -90,17 +93,23 @@ def build_augmented(copies: int, shapes: int = 0, names: list[str] | None = None
     objects are kept); returns the objects' names."""
     from dexdrake.objects.library import get_object, list_objects
 
-    if copies < 1 or shapes < 0:
-        raise DexdrakeError(f"need copies >= 1 and shapes >= 0, got {copies} and {shapes}")
+    if not 1 <= copies <= MAX_COPIES or not 0 <= shapes <= MAX_SHAPES:
+        raise DexdrakeError(f"need 1 <= copies <= {MAX_COPIES} and 0 <= shapes <= {MAX_SHAPES}, "
+                            f"got {copies} and {shapes}")
     train = list_objects("train")
     infos = train if names is None else [get_object(n) for n in names]
     not_train = [i.name for i in infos if i.split != "train"]
     if not_train:
         raise DexdrakeError(f"only training objects are copied; {not_train} are not")
     root = store.augmented_root()
+    with store.writing(root, "the augmented split"):
+        return _build(root, infos, train, copies, shapes)
+
+
+def _build(root: Path, infos: list, train: list, copies: int, shapes: int) -> list[str]:
     wanted = {copy_name(i.name, k): (i, k) for i in infos for k in range(1, copies + 1)}
     wanted_shapes = {shape_name(k): k for k in range(1, shapes + 1)}
-    for folder in (p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
+    for folder in (p for p in root.iterdir() if p.is_dir()):
         if folder.name not in wanted and folder.name not in wanted_shapes:
             shutil.rmtree(folder)
     for name, (info, k) in wanted.items():

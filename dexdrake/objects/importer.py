@@ -62,6 +62,8 @@ def check_name(name: str) -> None:
 def load_mesh(path: Path) -> trimesh.Trimesh:
     """Read OBJ/STL/PLY/GLB/GLTF as one triangle mesh (scenes are concatenated)."""
     path = Path(path)
+    if path.is_dir():
+        raise MeshFileError(f"{path} is a folder; give a mesh file ({', '.join(SUPPORTED_SUFFIXES)})")
     if not path.is_file():
         raise MeshFileError(f"no such file: {path}")
     if path.suffix.lower() not in SUPPORTED_SUFFIXES:

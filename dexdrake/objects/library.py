@@ -218,10 +218,12 @@ def import_mesh(path: str | Path, name: str, category: str = "user", scale: floa
     if (store.shipped_root() / name).is_dir():
         raise importer.MeshImportError(f"{name!r} is a shipped object; choose another name")
     folder = store.user_root() / name
-    if folder.exists() and not overwrite:
-        raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass --overwrite to replace it")
-    mesh, report = importer.prepare_mesh(Path(path), scale, up_axis)
-    store.write_object_dir(folder, mesh, {"name": name, "category": category, "split": "user", "import": report}, pieces=None)
+    with store.writing(store.user_root(), "the user objects"):
+        if folder.exists() and not overwrite:
+            raise importer.MeshImportError(f"user object {name!r} already exists ({folder}); pass --overwrite to replace it")
+        mesh, report = importer.prepare_mesh(Path(path), scale, up_axis)
+        meta = {"name": name, "category": category, "split": "user", "import": report}
+        store.write_object_dir(folder, mesh, meta, pieces=None)
     return _info(folder)
 
 
@@ -230,7 +232,8 @@ def remove_user_object(name: str) -> None:
     folder = store.user_root() / name
     if not importer.NAME_PATTERN.match(name) or not folder.is_dir():
         raise UnknownNameError("user object", name, [p.name for p in _folders("user")])
-    shutil.rmtree(folder)
+    with store.writing(store.user_root(), "the user objects"):
+        shutil.rmtree(folder)
 
 
 def add_object(plant, info: ObjectInfo, name: str | None = None):

@@ -34,11 +34,21 @@ def file_hash(path: Path) -> str:
     return content_hash(Path(path).read_bytes())
 
 
+class BrokenMeshFileError(DexdrakeError, ValueError):
+    """An object's stored mesh file that is gone, empty or damaged."""
+
+
 def load_obj(path: Path) -> trimesh.Trimesh:
     """Load one of our OBJ files exactly as written (no vertex merging or reordering)."""
-    mesh = trimesh.load(str(path), file_type="obj", force="mesh", process=False)
+    fix = "import the object again (`dexdrake objects import FILE --name NAME --overwrite`) or remove it"
+    if not Path(path).is_file():
+        raise BrokenMeshFileError(f"{path} is gone (was the object removed while in use?); {fix}")
+    try:
+        mesh = trimesh.load(str(path), file_type="obj", force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for a damaged file
+        raise BrokenMeshFileError(f"{path} cannot be read ({type(exc).__name__}: {exc}); {fix}") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"{path} holds no triangle mesh")
+        raise BrokenMeshFileError(f"{path} holds no triangle mesh (empty or damaged); {fix}")
     return mesh
 
 

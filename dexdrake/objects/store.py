@@ -3,7 +3,8 @@
 Shipped objects live in `models_dir()/objects/<name>/`, imported ones in the user's data
 folder, `data_dir()/objects/<name>/` (not the cache: clearing the cache keeps them), scaled
 copies of the training objects (dexdrake.objects.augment) in `data_dir()/augmented/<name>/`. A folder is written completely in a temporary
-sibling and renamed into place, so a failed write leaves nothing behind.
+sibling and renamed into place, so a failed write leaves nothing behind; writers of a split
+hold its lock (`writing`), which also clears what a killed writer left.
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +21,7 @@ import trimesh
 
 from dexdrake.objects.convex import COACD_PARAMS, pieces_key, write_pieces
 from dexdrake.objects.meshfile import content_hash, load_obj, obj_bytes
+from dexdrake.outputs import WriterLock
 
 MESH_FILE, META_FILE, CONVEX_DIR = "mesh.obj", "meta.json", "convex"
 AUGMENTED_SPLIT = "augmented"  # the split of the scaled copies (dexdrake.objects.augment)
@@ -43,6 +46,17 @@ def augmented_root() -> Path:
     from dexdrake.paths import data_dir
 
     return data_dir() / AUGMENTED_SPLIT
+
+
+@contextmanager
+def writing(root: Path, what: str) -> Iterator[None]:
+    """Hold the writer lock of `root` (a split's folder; `what` names it for the message a
+    second writer gets) and remove the hidden temporary folders a killed writer left there."""
+    with WriterLock(root, what):
+        for tmp in root.iterdir():
+            if tmp.name.startswith(".") and tmp.is_dir():
+                shutil.rmtree(tmp, ignore_errors=True)
+        yield
 
 
 def describe(mesh: trimesh.Trimesh) -> dict[str, Any]:

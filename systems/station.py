@@ -285,7 +285,7 @@ class PerceptionSystem(LeafSystem):
             self._record(result, self._pending_frame, sim_time)
         if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
             raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
-        if self.has_pose and now - self._pose_time > cam.max_pose_age_s:
+        if sim_time is not None and self.has_pose and now - self._pose_time > cam.max_pose_age_s:
             raise StationFault(f"object pose {now - self._pose_time:.2f} s old (limit {cam.max_pose_age_s} s)")
         if self._future is None and now >= self._next_request - 1e-9:
             self._next_request = self._due = now + cam.period_s
@@ -327,18 +327,23 @@ class PerceptionSystem(LeafSystem):
             self.on_result(log)
 
     def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
-        """Block until the first pose arrives (StationFault after first_pose_timeout_s);
-        `check()` runs between polls (e.g. to raise on a driver fault meanwhile)."""
-        while not self.has_pose:
+        """Block until a pose arrives whose frame is at most `max_pose_age_s` old (a global
+        registration slower than that is followed by tracked frames); StationFault after
+        `first_pose_timeout_s`. `check()` runs between polls (e.g. to raise on a driver fault)."""
+        while not (self.has_pose and self._now - self._pose_time <= self.camera.max_pose_age_s):
             self.poll()
             check()
+            if self._t0 is not None and time.monotonic() - self._t0 > self.camera.first_pose_timeout_s:
+                raise StationFault(f"no object pose younger than {self.camera.max_pose_age_s} s within "
+                                   f"{self.camera.first_pose_timeout_s} s")
             time.sleep(0.02)
 
     def _init(self, context: Context, state: DiscreteValues) -> None:
         if self.simulated_clock:  # the episode starts: pace on the simulated clock from here
             self._next_request = self._due = self._now = context.get_time()
             # (the world has been paused at this time since the frames before it were taken)
-            self._frame_time, self._motion = self._now, [(self._now, X) for _, X in self._motion[-1:]]
+            self._frame_time = self._pose_time = self._now
+            self._motion = [(self._now, X) for _, X in self._motion[-1:]]
         state.set_value(0, self.pose)
 
     def predicted_pose(self) -> np.ndarray:

@@ -14,7 +14,7 @@ from typing import Any
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
-from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
+from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RANGES, check_evaluation_seeds, describe
 from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
 
@@ -110,8 +110,8 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--arm-weight", type=argtypes.positive, default=1.0,
                         help="loss weight of the arm's action dimensions (the fingers' is 1)")
     dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
-                        help="episodes per unseen object per iteration, labelled but never trained on: the log's "
-                             "unseen success and loss (default 0: no probe)")
+                        help="episodes per validation object per iteration, labelled but never trained on: the "
+                             "log's unseen_success and unseen_loss (default 0: no probe)")
     dagger.add_argument("--init", type=Path, default=None,
                         help="policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert drives)")
     dagger.add_argument("--prior", type=Path, nargs="+", default=[], metavar="DIR",
@@ -126,11 +126,13 @@ def add_parser(subparsers) -> None:
 
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
-    ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
+    ev.add_argument("--objects", default="unseen",
+                    help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")
     ev.add_argument("--episodes", type=argtypes.count, default=10, help="episodes per object (seeds S..S+N-1)")
-    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_EVALUATION_SEED,
-                    help="first episode seed S; seeds must lie in the range reserved for evaluation "
-                         f"[{EVALUATION_SEEDS.start}, {EVALUATION_SEEDS.stop}), disjoint from every training seed")
+    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_VALIDATION_SEED,
+                    help="first episode seed S (default: the first validation seed); the seeds must lie in one of "
+                         + ", ".join(f"{n} {describe(r)}" for n, r in SEED_RANGES.items())
+                         + f": validation for every choice, test (from {FIRST_TEST_SEED}) once per shipped policy")
     ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
     ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
@@ -194,12 +196,15 @@ def training_objects(spec: str) -> list[str]:
     """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
     from dexdrake.objects.library import get_object, resolve_objects
 
-    if spec in ("unseen", "seen"):
-        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    from dexdrake.objects.library import HELD_OUT_SPLITS
+
+    if spec in ("seen", *HELD_OUT_SPLITS):
+        raise DexdrakeError(f"train on 'train' objects or named ones; 'seen', {', '.join(map(repr, HELD_OUT_SPLITS))} "
+                            "are evaluation splits")
     _, objects = resolve_objects(spec)
-    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    held_out = [n for n in objects if get_object(n).split in HELD_OUT_SPLITS]
     if held_out:
-        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+        raise DexdrakeError(f"{held_out} are held-out objects, kept for evaluation; train on training or user objects")
     return objects
 
 
@@ -271,7 +276,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                                                         "init", "prior", "residual-arm", "workers", "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
-    probes = resolve_objects("unseen")[1] if args.probe_per_object else []
+    probes = resolve_objects("validation")[1] if args.probe_per_object else []
     final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, {"command": command},
                          args.address, probes)
     print(f"DAgger done: {final}; log {args.out / 'dagger_log.csv'}")
@@ -286,7 +291,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     label, objects = resolve_objects(args.objects)
     label = args.label or label
-    check_evaluation_seeds(args.seed, args.episodes)
+    part = check_evaluation_seeds(args.seed, args.episodes)
+    print(f"seeds {args.seed}..{args.seed + args.episodes - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
     logger = None
     if args.rrd:
         if args.workers > 1:

@@ -323,3 +323,17 @@ def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(loa
     policy, factory = bench.shipped_policy_env(["sphere_small"], 3)
     parts, steps, cpu, _ = bench.breakdown(["sphere_small"], 1, policy, factory, 1000)
     assert steps == 3 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0
+
+
+def test_dagger_and_demo_seeds_that_would_reach_the_evaluation_seeds_are_refused_in_one_line(tmp_path, capsys):
+    from dexdrake.eval.seeds import TRAINING_SEEDS
+    from dexdrake.learn.dagger import episode_seeds
+
+    config = DaggerConfig(seed=999, iterations=99, episodes_per_object=2, probe_per_object=3)
+    assert episode_seeds(config, 98, probe=True)[-1] == 999 * 10**6 + 98 * 10**4 + 5000 + 2 < TRAINING_SEEDS.stop
+    assert main(["train", "dagger", "--out", str(tmp_path / "d"), "--objects", OBJECT, "--seed", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert "DAgger's episode seeds" in err and "below the validation" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "d").exists()
+    assert main(["demos", "synth", "--objects", OBJECT, "--out", str(tmp_path / "s"), "--seed", "10"]) == 2
+    assert "demo episode seeds" in capsys.readouterr().err and not (tmp_path / "s").exists()

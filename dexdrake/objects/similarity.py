@@ -44,16 +44,34 @@ def distance(p: np.ndarray, q: np.ndarray, yaws: int = YAWS) -> float:
     return float(np.min(0.5 * (d_qp + d_pq)))
 
 
-def nearest(p: np.ndarray, others: Sequence[np.ndarray], refine: int = 8) -> tuple[int, float]:
-    """(index, distance) of the point set in `others` nearest to `p` by `distance`: every one
-    is first measured on a quarter of the points (a uniform subset, as the points are drawn
-    independently), then the `refine` nearest by that again on all of them."""
-    n = len(p) // 4
-    coarse = np.array([distance(p[:n], q[:n]) for q in others])
-    candidates = np.argsort(coarse)[:refine]
-    fine = [distance(p, others[k]) for k in candidates]
-    k = int(candidates[int(np.argmin(fine))])
-    return k, float(min(fine))
+def _chamfer(p: np.ndarray, q: np.ndarray) -> float:
+    return float(0.5 * (cKDTree(q).query(p)[0].mean() + cKDTree(p).query(q)[0].mean()))
+
+
+def _radial(points: np.ndarray) -> np.ndarray:
+    """(r, z) of each point, r its distance from the z axis: what a turn about z keeps."""
+    return np.stack([np.hypot(points[:, 0], points[:, 1]), points[:, 2]], axis=1)
+
+
+def lower_bound(p: np.ndarray, q: np.ndarray) -> float:
+    """A lower bound of `distance(p, q)` without a turn: the Chamfer distance of the points' (r, z).
+    |a - b| >= |(r_a, z_a) - (r_b, z_b)| for any a, b (|r_a - r_b| <= the xy distance), and
+    (r, z) is the same at every turn, so every turn's Chamfer distance is at least this."""
+    return _chamfer(_radial(p), _radial(q))
+
+
+def nearest(p: np.ndarray, others: Sequence[np.ndarray]) -> tuple[int, float]:
+    """(index, distance) of the point set in `others` nearest to `p` by `distance`, exactly:
+    candidates in order of `lower_bound`, stopping once the bound reaches the best distance."""
+    bounds = np.array([lower_bound(p, q) for q in others])
+    best, best_k = np.inf, -1
+    for k in np.argsort(bounds):
+        if bounds[k] >= best:
+            break
+        d = distance(p, others[k])
+        if d < best:
+            best, best_k = d, int(k)
+    return best_k, float(best)
 
 
 def reference_meshes(copies: int, shapes: int) -> dict[str, trimesh.Trimesh]:

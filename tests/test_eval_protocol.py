@@ -24,7 +24,7 @@ from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 TRAIN_OBJECTS = ("sphere_small", "can_soda")
-UNSEEN_OBJECT = "pear"
+UNSEEN_OBJECT = "star"
 
 
 @pytest.fixture(scope="module")

@@ -461,14 +461,6 @@ def horseshoe(radius: float, thickness: float, width: float, degrees: float = 24
     return mf.CrossSection([np.array(outer + inner)]).extrude(thickness)
 
 
-def gear(radius: float, thickness: float, teeth: int, tooth: float, hole: float) -> Solid:
-    """Spur-gear blank lying flat: a disc with square teeth on its rim and a round bore."""
-    disc = _cyl(thickness, radius, None, seg=SEGMENTS)
-    cogs = [_box((2 * tooth, tooth, thickness), (radius + 0.3 * tooth, 0, thickness / 2)).rotate((0, 0, 360 * k / teeth))
-            for k in range(teeth)]
-    return _union([disc] + cogs) - _cyl(3 * thickness, hole, None, (0, 0, -thickness))
-
-
 def arch(radius: float, width: float, depth: float) -> Solid:
     """Half ring standing on its two feet (a toy bridge), `depth` thick along y."""
     a = np.radians(np.linspace(0, 180, 25))
@@ -633,7 +625,6 @@ def _recipes() -> dict[str, Recipe]:
     add("star", "star", un, star, outer=0.07, inner=0.024, thickness=0.016)
     add("pipe_cross", "pipe_cross", un, pipe_cross, arm=0.065, radius=0.011)
     add("horseshoe", "horseshoe", un, horseshoe, radius=0.06, thickness=0.016, width=0.018)
-    add("gear", "gear", un, gear, radius=0.04, thickness=0.016, teeth=6, tooth=0.02, hole=0.018)
     add("arch", "arch", un, arch, radius=0.07, width=0.025, depth=0.035)
     add("jack", "jack", un, jack, arm=0.06, rod_radius=0.007, ball_radius=0.013)
 

@@ -149,7 +149,7 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
     argv = ["train", "dapg", "--init", str(init), "--demos", str(folder), "--out", str(out), "--per-object", "1",
             "--objects", ",".join(TRAIN_OBJECTS), "--horizon", "3", "--backend", "sequential", "--seed", "3"]
     assert main([UNSEEN_OBJECT if w == ",".join(TRAIN_OBJECTS) else w for w in argv]) == 2
-    assert f"['{UNSEEN_OBJECT}'] are unseen objects" in capsys.readouterr().err
+    assert f"['{UNSEEN_OBJECT}'] are held-out objects" in capsys.readouterr().err
     assert main([*argv, "--iterations", "1"]) == 0
     assert main([*argv, "--iterations", "1"]) == 2  # a fresh start never overwrites a run
     assert "--resume" in capsys.readouterr().err

@@ -74,6 +74,7 @@ def main() -> None:
 
     from dexdrake.dexrep.feature_sets import observation_blocks
     from dexdrake.eval.evaluate import evaluate_policy
+    from dexdrake.eval.seeds import VALIDATION_SEEDS, describe, seed_range
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
     from dexdrake.learn.curves import write_csv
@@ -82,7 +83,6 @@ def main() -> None:
     from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
     from dexdrake.objects.library import get_object, resolve_objects
     from dexdrake.objects.meshfile import write_atomic
-    from dexdrake.eval.seeds import VALIDATION_SEEDS, describe, seed_range
     from dexdrake.systems.env_factory import env_factory_for_policy
 
     config = run_config(args.run)

@@ -43,14 +43,14 @@ def main() -> int:
     points = {n: similarity.surface_points(m) for n, m in refs.items()}
     train = [i.name for i in list_objects("train")]
     threshold = training_median_nn(points, train)
-    lines = [f"# Held-out objects against the training and augmented objects", "",
+    lines = ["# Held-out objects against the training and augmented objects", "",
              f"- command: `{shlex.join(['python', *sys.argv])}`",
-             f"- {len(names)} reference objects: {len(train)} training objects, {args.copies} scaled copies of each, "
-             f"{args.shapes} procedural shapes",
-             "- distance: mean surface Chamfer, best over yaw (dexdrake.objects.similarity, "
-             f"{similarity.POINTS} points, {similarity.YAWS} turns)",
-             f"- threshold: the median training object's distance to its nearest training neighbour, "
-             f"{1000 * threshold:.1f} mm", "",
+             (f"- {len(names)} reference objects: {len(train)} training objects, {args.copies} scaled copies of each, "
+              f"{args.shapes} procedural shapes"),
+             ("- distance: mean surface Chamfer, best over yaw (dexdrake.objects.similarity, "
+              f"{similarity.POINTS} points, {similarity.YAWS} turns)"),
+             ("- threshold: the median training object's distance to its nearest training neighbour, "
+              f"{1000 * threshold:.1f} mm"), "",
              "| object | split | category | nearest reference | distance (mm) | beyond the threshold |", "|---|---|---|---|---|---|"]
     for split in SPLITS:
         for info in tqdm(list_objects(split), desc=split, unit="obj"):

@@ -246,11 +246,11 @@ def test_bc_study_fits_scores_and_tables_each_variant_on_a_runs_states(tmp_path,
     assert study.parse_variant("keep") == ({"keep_function": True}, False)
     monkeypatch.setattr(sys, "argv", ["bc_study.py", "--run", str(tmp_path / "d"), "--out", str(tmp_path / "s"),
                                       "--variants", "base,absolute+noise=0.1", "--epochs", "1", "--episodes", "1",
-                                      "--unseen-episodes", "1", "--workers", "1"])
+                                      "--validation-episodes", "1", "--workers", "1"])
     study.main()
     rows = read_csv(tmp_path / "s" / "bc_study.csv")
     assert [r["variant"] for r in rows] == ["base", "absolute+noise=0.1"]
-    assert all(float(r["held_out_loss"]) > 0 and float(r["unseen_probe_loss"]) > 0 for r in rows)
+    assert all(float(r["held_out_loss"]) > 0 and float(r["validation_probe_loss"]) > 0 for r in rows)
     assert all(0 <= float(r["seen_success_pct"]) <= 100 for r in rows)
     assert load_policy(tmp_path / "s" / "policy_base.pt")[0].config.residual_arm
     assert not load_policy(tmp_path / "s" / "policy_absolute+noise=0.1.pt")[0].config.residual_arm

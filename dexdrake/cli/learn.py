@@ -193,10 +193,8 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
 
 
 def training_objects(spec: str) -> list[str]:
-    """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
-    from dexdrake.objects.library import get_object, resolve_objects
-
-    from dexdrake.objects.library import HELD_OUT_SPLITS
+    """The objects `spec` names for training; the evaluation splits and held-out objects are refused."""
+    from dexdrake.objects.library import HELD_OUT_SPLITS, get_object, resolve_objects
 
     if spec in ("seen", *HELD_OUT_SPLITS):
         raise DexdrakeError(f"train on 'train' objects or named ones; 'seen', {', '.join(map(repr, HELD_OUT_SPLITS))} "

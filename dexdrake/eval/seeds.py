@@ -49,11 +49,6 @@ def seed_range(first: int, count: int) -> str | None:
     return next((name for name, r in SEED_RANGES.items() if count >= 1 and first in r and last in r), None)
 
 
-def evaluation_seeds_reserved(first: int, count: int) -> bool:
-    """True when seeds first .. first+count-1 all lie in one part of EVALUATION_SEEDS."""
-    return seed_range(first, count) is not None
-
-
 def check_evaluation_seeds(first: int, count: int) -> str:
     """The seed range ('validation' | 'test' | 'custom') of seeds first .. first+count-1; raise
     unless they lie in one."""

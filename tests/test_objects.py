@@ -379,7 +379,7 @@ def test_cli_splits_match_library():
 def test_cli_list_and_import(tmp_path, capsys):
     assert _cli(["objects", "list", "--split", "unseen"]) == 0
     out = capsys.readouterr().out
-    assert "camera" in out and "cup_tall" not in out and f"{len(list_objects('unseen'))} objects" in out
+    assert "jack" in out and "camera" not in out and "cup_tall" not in out and f"{len(list_objects('unseen'))} objects" in out
     good, bad = tmp_path / "good.stl", tmp_path / "huge.stl"
     _box_mesh().export(good)
     _box_mesh(size=(50.0, 1.0, 1.0)).export(bad)

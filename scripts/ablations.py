@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+from dexdrake.eval.seeds import FIRST_TEST_SEED
 from dexdrake.learn.curves import write_csv
 from dexdrake.objects.meshfile import write_atomic
 
@@ -163,7 +163,7 @@ def main() -> None:
     parser.add_argument("--objects", default="paper", help="'paper' (10 GRAB objects), 'unseen' or names")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--eval-seed", type=int, default=FIRST_EVALUATION_SEED)
+    parser.add_argument("--eval-seed", type=int, default=FIRST_TEST_SEED)
     args = parser.parse_args()
 
     import torch

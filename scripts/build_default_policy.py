@@ -5,7 +5,7 @@ test tables, shipping) is `dexdrake train recipe`; this script ships runs made b
 
     python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
-        [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped]
+        [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped] [--seeds validation|test]
 
 Each stage is a real command (printed and recorded in the manifest) and is skipped when its
 output already exists in --work (DAgger itself resumes per iteration; evaluations are kept per
@@ -14,8 +14,11 @@ models/weights/<hand>_dexrep_policy.pt (DAgger's chosen iterate), <hand>_dexrep_
 (commands, seeds, data, feature set, compute, metrics) and the evaluation tables
 eval_seen.md / eval_unseen.md with their .csv (eval_<hand>_seen.md ... for other hands than the Adroit);
 "seen" means the training objects used.
-No model selection uses the evaluation seeds: DAgger picks the iterate with the best success
-on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
+Choices and shipping are measured apart: by default (`--seeds validation`) the policy is
+evaluated on the validation seeds with the validation objects standing for the unseen ones,
+into --work only, to choose between candidates; `--seeds test` evaluates the chosen one once
+on the test seeds and the unseen objects and ships it with those tables. DAgger picks its
+iterate by the best success on its own training rollouts. `--dagger DIR` evaluates and ships an existing DAgger output
 folder (e.g. a long run resumed over several sessions) instead of running DAgger; the
 manifest then records the commands that run's policy and log name. `--dapg DIR` evaluates and
 ships a DAPG run's best policy (the highest mean return on its own rollouts), which must have
@@ -40,13 +43,14 @@ import sys
 import time
 from pathlib import Path
 
-from dexdrake.eval.seeds import FIRST_EVALUATION_SEED
+from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED
 from dexdrake.learn.ship import sha256, ship_eval_table
 from dexdrake.objects.meshfile import write_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
-EVAL_SEED = FIRST_EVALUATION_SEED  # the range reserved for evaluation, disjoint from every training seed
+EVAL_SEED = {"validation": FIRST_VALIDATION_SEED, "test": FIRST_TEST_SEED}  # first seed per --seeds
+HELD_OUT = {"validation": "validation", "test": "unseen"}  # the held-out objects per --seeds
 DATA_SOURCE = ("DAgger on the training objects: states visited by the state-driven expert (iteration 0) and by "
                "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
                "not the human-demo replay")
@@ -77,6 +81,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
+    parser.add_argument("--seeds", choices=tuple(EVAL_SEED), default="validation",
+                        help="validation: measure a candidate (nothing shipped); test: measure once and ship")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--dagger", type=Path, help="an existing DAgger output folder to evaluate and ship")
     mode.add_argument("--dapg", type=Path, help="a DAPG output folder (started from the shipped policy) to evaluate and ship")
@@ -114,9 +120,16 @@ def main() -> None:
     policy = target.relative_to(ROOT) if args.shipped else candidate if args.dapg else dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
     evals = work / "eval" / sha256(ROOT / policy)[:12]  # per policy content: a stale evaluation is never reused for another
-    for label, objects, episodes in (("unseen", "unseen", args.unseen_episodes), ("seen", seen, args.seen_episodes)):
-        run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes), "--seed", str(EVAL_SEED),
-             "--workers", str(args.workers), "--out", str(evals)], evals / f"eval_{label}.json", log)
+    evals = evals / args.seeds
+    for label, objects, episodes in (("unseen", HELD_OUT[args.seeds], args.unseen_episodes), ("seen", seen, args.seen_episodes)):
+        run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes),
+             "--seed", str(EVAL_SEED[args.seeds]), "--workers", str(args.workers), "--out", str(evals)],
+            evals / f"eval_{label}.json", log)
+    if args.seeds == "validation":
+        averages = {label: json.loads((evals / f"eval_{label}.json").read_text())["average_pct"] for label in ("seen", "unseen")}
+        print(f"validation (nothing shipped): seen {averages['seen']:.1f} %, validation objects {averages['unseen']:.1f} %; "
+              f"tables in {evals}")
+        return
 
     tables = "eval" if args.hand == "adroit" else f"eval_{args.hand}"
     if not args.shipped:

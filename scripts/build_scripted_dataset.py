@@ -34,7 +34,9 @@ def _record(job: tuple[str, str, list[int], int, str, float, int]):
 
 
 def cmd_record(args: argparse.Namespace) -> None:
+    from dexdrake.errors import DexdrakeError
     from dexdrake.eval.action_noise import DEFAULT_RHO
+    from dexdrake.eval.seeds import check_training_seeds
     from dexdrake.objects.library import resolve_objects
     from dexdrake.systems.scripted_data import concat, save_raw, timing_named
 
@@ -43,6 +45,10 @@ def cmd_record(args: argparse.Namespace) -> None:
     timing = timing_named(args.timing)
     _, names = resolve_objects(args.objects)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    try:
+        check_training_seeds(seeds, "episode seeds (--first-seed ...)")
+    except DexdrakeError as e:
+        raise SystemExit(f"build_scripted_dataset: error: {e}") from None
     jobs = [(args.hand, n, seeds, args.horizon, args.timing, args.noise, args.noise_seed) for n in names]
     with mp.get_context("spawn").Pool(args.workers) as pool:
         parts = list(tqdm(pool.imap(_record, jobs), total=len(jobs), desc="record", unit="object"))

@@ -133,7 +133,7 @@ BAD = [
     (["hil", "--config", "missing.yaml"], "missing.yaml"),
     (["eval", "--policy", "missing.pt"], "missing.pt"),
     (["train", "dagger", "--out", "o", "--hand", "nohand", "--objects", "can_soda"], "unknown hand"),
-    (["train", "dagger", "--out", "o", "--objects", "can_soda,mug"], "unseen objects, kept for evaluation"),
+    (["train", "dagger", "--out", "o", "--objects", "can_soda,mug"], "held-out objects, kept for evaluation"),
     (["features", "describe", "--hand", "nohand"], "unknown hand"),
 ]
 

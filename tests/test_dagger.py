@@ -246,11 +246,11 @@ def test_bc_study_fits_scores_and_tables_each_variant_on_a_runs_states(tmp_path,
     assert study.parse_variant("keep") == ({"keep_function": True}, False)
     monkeypatch.setattr(sys, "argv", ["bc_study.py", "--run", str(tmp_path / "d"), "--out", str(tmp_path / "s"),
                                       "--variants", "base,absolute+noise=0.1", "--epochs", "1", "--episodes", "1",
-                                      "--unseen-episodes", "1", "--workers", "1"])
+                                      "--validation-episodes", "1", "--workers", "1"])
     study.main()
     rows = read_csv(tmp_path / "s" / "bc_study.csv")
     assert [r["variant"] for r in rows] == ["base", "absolute+noise=0.1"]
-    assert all(float(r["held_out_loss"]) > 0 and float(r["unseen_probe_loss"]) > 0 for r in rows)
+    assert all(float(r["held_out_loss"]) > 0 and float(r["validation_probe_loss"]) > 0 for r in rows)
     assert all(0 <= float(r["seen_success_pct"]) <= 100 for r in rows)
     assert load_policy(tmp_path / "s" / "policy_base.pt")[0].config.residual_arm
     assert not load_policy(tmp_path / "s" / "policy_absolute+noise=0.1.pt")[0].config.residual_arm
@@ -323,3 +323,15 @@ def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(loa
     policy, factory = bench.shipped_policy_env(["sphere_small"], 3)
     parts, steps, cpu, _ = bench.breakdown([("sphere_small", 1000), ("sphere_small", 1001)], 2, policy, factory)
     assert steps == 6 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0
+def test_dagger_and_demo_seeds_that_would_reach_the_evaluation_seeds_are_refused_in_one_line(tmp_path, capsys):
+    from dexdrake.eval.seeds import TRAINING_SEEDS
+    from dexdrake.learn.dagger import episode_seeds
+
+    config = DaggerConfig(seed=999, iterations=99, episodes_per_object=2, probe_per_object=3)
+    assert episode_seeds(config, 98, probe=True)[-1] == 999 * 10**6 + 98 * 10**4 + 5000 + 2 < TRAINING_SEEDS.stop
+    assert main(["train", "dagger", "--out", str(tmp_path / "d"), "--objects", OBJECT, "--seed", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert "DAgger's episode seeds" in err and "below the validation" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "d").exists()
+    assert main(["demos", "synth", "--objects", OBJECT, "--out", str(tmp_path / "s"), "--seed", "10"]) == 2
+    assert "demo episode seeds" in capsys.readouterr().err and not (tmp_path / "s").exists()

@@ -13,7 +13,8 @@ from dexdrake.cli import main
 from dexdrake.episode import EpisodeResult
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.evaluate import EvalReport, evaluate_policy, wilson_interval
-from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, TRAINING_SEEDS, check_evaluation_seeds
+from dexdrake.eval.seeds import (CUSTOM_SEEDS, EVALUATION_SEEDS, FIRST_TEST_SEED, FIRST_VALIDATION_SEED, TEST_SEEDS,
+                                 TRAINING_SEEDS, VALIDATION_SEEDS, check_evaluation_seeds, check_training_seeds)
 from dexdrake.eval.tables import csv_table, markdown_table
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.dagger import DaggerData
@@ -23,7 +24,7 @@ from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 TRAIN_OBJECTS = ("sphere_small", "can_soda")
-UNSEEN_OBJECT = "pear"
+UNSEEN_OBJECT = "star"
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +41,20 @@ def _policy(path, blocks, action_dim, seed=0):
 
 # -- seeds and intervals -----------------------------------------------------------------------
 def test_seed_ranges_are_disjoint_and_checked():
-    assert TRAINING_SEEDS.stop <= EVALUATION_SEEDS.start == FIRST_EVALUATION_SEED
-    check_evaluation_seeds(FIRST_EVALUATION_SEED, 10)
-    for first, count in ((900, 10), (EVALUATION_SEEDS.start - 1, 2), (EVALUATION_SEEDS.stop - 1, 2)):
-        with pytest.raises(DexdrakeError, match="reserved for evaluation"):
+    assert TRAINING_SEEDS.stop == EVALUATION_SEEDS.start == CUSTOM_SEEDS.start
+    assert CUSTOM_SEEDS.stop == VALIDATION_SEEDS.start and VALIDATION_SEEDS.stop == TEST_SEEDS.start
+    assert TEST_SEEDS.stop == EVALUATION_SEEDS.stop < 2**31
+    assert 1_000_000_100 + 9 in CUSTOM_SEEDS  # the blocks that chose earlier policies are neither
+    assert check_evaluation_seeds(FIRST_VALIDATION_SEED, 10) == "validation"
+    assert check_evaluation_seeds(FIRST_TEST_SEED, 10) == "test"
+    assert check_evaluation_seeds(1_000_000_000, 10) == "custom"
+    for first, count in ((900, 10), (EVALUATION_SEEDS.start - 1, 2), (VALIDATION_SEEDS.start - 1, 2),
+                         (TEST_SEEDS.start - 1, 2), (EVALUATION_SEEDS.stop - 1, 2)):
+        with pytest.raises(DexdrakeError, match="must lie in one of validation"):
             check_evaluation_seeds(first, count)
+    check_training_seeds([0, TRAINING_SEEDS.stop - 1])
+    with pytest.raises(DexdrakeError, match="below the validation"):
+        check_training_seeds([TRAINING_SEEDS.stop])
 
 
 @pytest.mark.parametrize("wins, n, low, high", [(0, 10, 0.0, 0.2775), (5, 10, 0.2366, 0.7634), (10, 10, 0.7225, 1.0),
@@ -64,31 +74,33 @@ def _report(seed: int) -> EvalReport:
     return report
 
 
-def test_table_gives_intervals_hand_and_whether_seeds_are_reserved():
-    md = markdown_table(_report(FIRST_EVALUATION_SEED))
+def test_table_gives_intervals_hand_and_the_seed_range():
+    md = markdown_table(_report(FIRST_TEST_SEED))
     assert "| mug | 5/10 | 50.0 | 100.0 | 0.100 | 23.7-76.3 |" in md
     assert "| **average** | 5/20 | 25.0 | 83.9 | 0.100 | 11.2-46.9 |" in md
-    assert "hand allegro_z1, features DexRep" in md and "reserved for evaluation, disjoint" in md
+    assert "hand allegro_z1, features DexRep" in md and "test seeds (range [2000000000, 2100000000)" in md
+    assert "validation seeds (range [1500000000, 2000000000)" in markdown_table(_report(FIRST_VALIDATION_SEED))
     assert "95 % Wilson interval 11.2-46.9 %" in md
     assert "NOT in the range reserved" in markdown_table(_report(900))
-    assert csv_table(_report(FIRST_EVALUATION_SEED)).splitlines()[0].endswith(",ci95_pct")
-    d = _report(FIRST_EVALUATION_SEED).to_dict()
-    assert d["seeds_reserved_for_evaluation"] and d["per_object"]["pear"]["ci95_pct"][0] == 0.0
+    assert csv_table(_report(FIRST_TEST_SEED)).splitlines()[0].endswith(",ci95_pct")
+    d = _report(1_000_000_100).to_dict()
+    assert d["seeds_reserved_for_evaluation"] and d["seed_range"] == "custom" and d["per_object"]["pear"]["ci95_pct"][0] == 0.0
 
 
-def test_eval_cli_defaults_to_reserved_seeds_and_refuses_others(tmp_path, env_blocks, capsys):
+def test_eval_cli_defaults_to_validation_seeds_says_its_range_and_refuses_others(tmp_path, env_blocks, capsys):
     blocks, a = env_blocks
     path = _policy(tmp_path / "p.pt", blocks, a)
     assert main(["eval", "--policy", str(path), "--objects", UNSEEN_OBJECT, "--seed", "0"]) == 2
-    assert "reserved for evaluation" in capsys.readouterr().err
+    assert "must lie in one of validation" in capsys.readouterr().err
     argv = ["eval", "--policy", str(path), "--objects", UNSEEN_OBJECT, "--episodes", "2", "--horizon", "3", "--out",
             str(tmp_path / "ev")]
     assert main(argv) == 0
+    assert "validation range [1500000000, 2000000000)" in capsys.readouterr().out
     report = json.loads((tmp_path / "ev" / "eval_selected.json").read_text())
-    assert report["seed"] == FIRST_EVALUATION_SEED and report["seeds_reserved_for_evaluation"]
+    assert report["seed"] == FIRST_VALIDATION_SEED and report["seed_range"] == "validation"
     assert report["hand"] == "adroit" and report["average_ci95_pct"][1] > 0
     command = report["command"]
-    assert command.startswith("dexdrake eval --policy") and f"--seed {FIRST_EVALUATION_SEED}" in command
+    assert command.startswith("dexdrake eval --policy") and f"--seed {FIRST_VALIDATION_SEED}" in command
     assert main(command.split()[1:]) == 0  # the recorded command runs as written
     again = json.loads((tmp_path / "ev" / "eval_selected.json").read_text())
     assert [e["total_reward"] for e in again["episodes"]] == [e["total_reward"] for e in report["episodes"]]
@@ -110,7 +122,7 @@ def test_demo_runs_any_object_and_prints_the_measured_rates(tmp_path, env_blocks
     out = capsys.readouterr().out
     assert f"object={UNSEEN_OBJECT} (unseen) seed=12" in out and "measured rates: none" in out
     metrics = {"seen": {"average_pct": 41.5, "average_ci95_pct": [38.0, 45.1], "per_object": {"x": {}, "y": {}},
-                        "episodes_per_object": 10, "seed": FIRST_EVALUATION_SEED},
+                        "episodes_per_object": 10, "seed": 1000000000},
                "unseen": {"average_pct": 7.7, "per_object": {"x": {}}, "episodes_per_object": 10}}
     path.with_suffix(".json").write_text(json.dumps({"metrics": metrics}))
     assert main(["demo", "--policy", str(path), "--object", TRAIN_OBJECTS[1], "--steps", "2", "--rrd", rrd]) == 0
@@ -137,7 +149,7 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
     argv = ["train", "dapg", "--init", str(init), "--demos", str(folder), "--out", str(out), "--per-object", "1",
             "--objects", ",".join(TRAIN_OBJECTS), "--horizon", "3", "--backend", "sequential", "--seed", "3"]
     assert main([UNSEEN_OBJECT if w == ",".join(TRAIN_OBJECTS) else w for w in argv]) == 2
-    assert f"['{UNSEEN_OBJECT}'] are unseen objects" in capsys.readouterr().err
+    assert f"['{UNSEEN_OBJECT}'] are held-out objects" in capsys.readouterr().err
     assert main([*argv, "--iterations", "1"]) == 0
     assert main([*argv, "--iterations", "1"]) == 2  # a fresh start never overwrites a run
     assert "--resume" in capsys.readouterr().err

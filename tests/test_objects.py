@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,13 +63,60 @@ def _user_entries():
 
 # ------------------------------------------------------------------ shipped set
 def test_counts_and_splits_match_recipes():
-    train, unseen = list_objects("train"), list_objects("unseen")
-    assert len(train) >= 40 and len(unseen) >= 10
-    assert {i.name for i in train + unseen} == set(shapes.recipe_names())
-    assert {i.name for i in train} == set(shapes.recipe_names("train"))
-    # the unseen split holds categories absent from training
-    assert {i.category for i in unseen} - {i.category for i in train}
-    assert all(i.mass == 0.5 and i.friction == 1.0 for i in train + unseen)
+    splits = {s: list_objects(s) for s in shapes.SPLITS}
+    assert len(splits["train"]) >= 40 and len(splits["unseen"]) >= 8 and len(splits["validation"]) >= 4
+    assert len(splits["near"]) == 13  # the earlier unseen set, kept to reproduce its tables
+    every = [i for infos in splits.values() for i in infos]
+    assert sorted(i.name for i in every) == shapes.recipe_names()
+    for split, infos in splits.items():
+        assert {i.name for i in infos} == set(shapes.recipe_names(split))
+    assert all(i.mass == 0.5 and i.friction == 1.0 for i in every)
+
+
+def test_unseen_and_validation_objects_share_no_builder_or_category_with_training_or_each_other():
+    recipes = {s: [shapes.get_recipe(n) for n in shapes.recipe_names(s)] for s in shapes.SPLITS}
+    builders = {s: {r.builder for r in rs} for s, rs in recipes.items()}
+    categories = {s: {r.category for r in rs} for s, rs in recipes.items()}
+    trained = categories["train"] | {"procedural"}  # the augmented split: scaled copies and procedural shapes
+    for split in ("unseen", "validation"):
+        assert not builders[split] & (builders["train"] | builders["near"]), split
+        assert not categories[split] & (trained | categories["near"]), split
+    assert not builders["unseen"] & builders["validation"] and not categories["unseen"] & categories["validation"]
+
+
+SHIPPED_AUGMENT = (4, 100)  # the augmented split the shipped Adroit policy trained on: --copies 4 --shapes 100
+
+
+@pytest.mark.slow
+def test_each_unseen_object_is_farther_from_all_training_and_augmented_objects_than_the_median_training_neighbour():
+    from dexdrake.objects import similarity
+
+    manifest = json.loads((Path(__file__).resolve().parents[1] / "models/weights/adroit_dexrep_policy.json").read_text())
+    copies, n_shapes = SHIPPED_AUGMENT
+    assert f"dexdrake objects augment --copies {copies} --shapes {n_shapes}" in [c["command"] for c in manifest["commands"]]
+    refs = similarity.reference_meshes(copies, n_shapes)
+    points = {n: similarity.surface_points(m) for n, m in refs.items()}
+    train = shapes.recipe_names("train")
+    nn = [similarity.nearest(points[n], [points[m] for m in train if m != n])[1] for n in train]
+    threshold = float(np.median(nn))
+    assert 0.004 < threshold < 0.012  # millimetres apart, as measured (scripts/object_novelty.py)
+    names = list(points)
+    for name in shapes.recipe_names("unseen"):
+        k, d = similarity.nearest(similarity.surface_points(load_obj(get_object(name).mesh_path)), list(points.values()))
+        assert d > threshold, f"{name} is {1000 * d:.1f} mm from {names[k]}, within {1000 * threshold:.1f} mm"
+
+
+def test_chamfer_distance_is_zero_for_a_turned_copy_and_grows_with_scale():
+    from dexdrake.objects import similarity
+
+    mesh = shapes.build_mesh("l_block")
+    turned = mesh.copy()
+    turned.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 0, 1)))
+    p, q = similarity.surface_points(mesh), similarity.surface_points(turned)
+    assert similarity.distance(p, q) < 1e-9  # a turn of 90 degrees is one of the tried yaws
+    scaled = [similarity.surface_points(mesh.copy().apply_scale(f)) for f in (1.1, 1.3)]
+    assert 0 < similarity.distance(p, scaled[0]) < similarity.distance(p, scaled[1])
+    assert similarity.nearest(p, [scaled[1], q, scaled[0]]) == (1, similarity.distance(p, q))
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -207,7 +255,7 @@ def test_unknown_name_lists_valid_names():
     with pytest.raises(UnknownNameError):
         get_object("../objects/mug")
     with pytest.raises(UnknownNameError):
-        list_objects("validation")
+        list_objects("testing")
 
 
 def test_recipes_are_deterministic_and_shipped_meshes_current():
@@ -331,7 +379,7 @@ def test_cli_splits_match_library():
 def test_cli_list_and_import(tmp_path, capsys):
     assert _cli(["objects", "list", "--split", "unseen"]) == 0
     out = capsys.readouterr().out
-    assert "camera" in out and "cup_tall" not in out and f"{len(list_objects('unseen'))} objects" in out
+    assert "jack" in out and "camera" not in out and "cup_tall" not in out and f"{len(list_objects('unseen'))} objects" in out
     good, bad = tmp_path / "good.stl", tmp_path / "huge.stl"
     _box_mesh().export(good)
     _box_mesh(size=(50.0, 1.0, 1.0)).export(bad)

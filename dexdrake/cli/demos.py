@@ -138,10 +138,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     from dexdrake.demos.format import save_demo
     from dexdrake.demos.synthetic import synthesize_object_demos
+    from dexdrake.eval.seeds import check_training_seeds
     from dexdrake.objects.library import resolve_objects
     from dexdrake.systems.scene import ObjectPlacement
 
     names = resolve_objects(args.objects)[1]
+    check_training_seeds([(args.seed * 100003 + len(names) - 1) * 1000 + args.per_object - 1],
+                         "demo episode seeds ((seed * 100003 + object index) * 1000 + k)")
     written = 0
     for i, name in enumerate(tqdm(names, desc="synthesize", unit="object")):
         for k, demo in enumerate(synthesize_object_demos(

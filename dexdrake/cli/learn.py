@@ -14,8 +14,8 @@ from typing import Any
 
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RANGES, check_evaluation_seeds, describe
 from dexdrake.outputs import WriterLock
-from dexdrake.eval.seeds import EVALUATION_SEEDS, FIRST_EVALUATION_SEED, check_evaluation_seeds
 from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
 
@@ -124,8 +124,8 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--arm-weight", type=argtypes.positive, default=1.0,
                         help="loss weight of the arm's action dimensions (the fingers' is 1)")
     dagger.add_argument("--probe-per-object", type=argtypes.int_at_least(0), default=0,
-                        help="episodes per unseen object per iteration, labelled but never trained on: the log's "
-                             "unseen success and loss (default 0: no probe)")
+                        help="episodes per validation object per iteration, labelled but never trained on: the "
+                             "log's unseen_success and unseen_loss (default 0: no probe)")
     dagger.add_argument("--init", type=Path, default=None,
                         help="policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert drives)")
     dagger.add_argument("--prior", type=Path, nargs="+", default=[], metavar="DIR",
@@ -156,11 +156,13 @@ def add_parser(subparsers) -> None:
 
     ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
-    ev.add_argument("--objects", default="unseen", help="'seen', 'unseen' or comma-separated object names")
+    ev.add_argument("--objects", default="unseen",
+                    help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")
     ev.add_argument("--episodes", type=argtypes.count, default=10, help="episodes per object (seeds S..S+N-1)")
-    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_EVALUATION_SEED,
-                    help="first episode seed S; seeds must lie in the range reserved for evaluation "
-                         f"[{EVALUATION_SEEDS.start}, {EVALUATION_SEEDS.stop}), disjoint from every training seed")
+    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_VALIDATION_SEED,
+                    help="first episode seed S (default: the first validation seed); the seeds must lie in one of "
+                         + ", ".join(f"{n} {describe(r)}" for n, r in SEED_RANGES.items())
+                         + f": validation for every choice, test (from {FIRST_TEST_SEED}) once per shipped policy")
     ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
     _add_envs_per_worker(ev, "objects (one environment each)", "; 1 with --rrd")
     ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
@@ -309,7 +311,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
                                                         "backend", "address", "threads", "seed"])
     from dexdrake.objects.library import resolve_objects
 
-    probes = resolve_objects("unseen")[1] if args.probe_per_object else []
+    probes = resolve_objects("validation")[1] if args.probe_per_object else []
     meta = {"command": command, "scenario": _scenario_record(args.hand)}
     with WriterLock(args.out, f"the run folder {args.out}"):
         final = train_dagger(objects, args.out, GraspEnvFactory, ReactiveGrasp, config, meta,
@@ -326,7 +328,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     label, objects = resolve_objects(args.objects)
     label = args.label or label
-    check_evaluation_seeds(args.seed, args.episodes)
+    part = check_evaluation_seeds(args.seed, args.episodes)
+    print(f"seeds {args.seed}..{args.seed + args.episodes - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
     logger = None
     if args.rrd:
         if args.workers > 1:

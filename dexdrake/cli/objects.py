@@ -14,7 +14,7 @@ from dexdrake import argtypes
 if TYPE_CHECKING:
     from dexdrake.objects.library import ObjectInfo
 
-SPLITS = ("train", "unseen", "user", "augmented")  # as dexdrake.objects.library.SPLITS
+SPLITS = ("train", "unseen", "validation", "near", "user", "augmented")  # as dexdrake.objects.library.SPLITS
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")  # as dexdrake.objects.importer.UP_AXES
 MAX_COPIES, MAX_SHAPES = 50, 999  # as dexdrake.objects.augment.MAX_COPIES, MAX_SHAPES
 

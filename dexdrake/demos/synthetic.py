@@ -27,6 +27,7 @@ import trimesh
 from dexdrake.demos import human_hand as hh
 from dexdrake.demos.format import DemoMeta, HumanDemo
 from dexdrake.demos.trim import SignedDistance, canonicalize, trim_demo
+from dexdrake.eval.seeds import check_training_seeds
 
 GRASP_TYPES = ("top", "side", "pinch")
 _WRAP = np.array([[-0.45, 0.95, 0.6, 0.7]] + [[0.0, 1.5, 1.7, 1.2]] * 4)
@@ -239,6 +240,7 @@ def synthesize_object_demos(object_name: str, count: int, seed: int = 0,
 
     if heading is not None and placement_yaw is None:
         raise ValueError("synthesize_object_demos: a world heading needs placement_yaw")
+    check_training_seeds([seed * 1000 + count - 1], "demo episode seeds (seed * 1000 + i)")
     info = get_object(object_name)
     mesh = trimesh.load(info.mesh_path, force="mesh")
     types = grasp_types_for(mesh)

@@ -1,9 +1,10 @@
 """Per-object success of a policy checkpoint, in the layout of the paper's Table I.
 
 The protocol: every object of the split (seen = every training object, unseen = all unseen
-objects), N >= 10 episodes each with seeds S..S+N-1 taken from the range reserved for
-evaluation (`eval.seeds.EVALUATION_SEEDS`, disjoint from every training seed; the report
-says when they are not), deterministic mean actions and the paper's evaluation length of
+objects), N >= 10 episodes each with seeds S..S+N-1 taken from one part of the range
+reserved for evaluation (`eval.seeds`: validation for choices, test for a shipped policy's
+tables, custom for older blocks; the report names it, or says the seeds are not reserved),
+deterministic mean actions and the paper's evaluation length of
 100 control steps. The hand and feature set come from the policy. Rates carry 95 % Wilson
 intervals. Episodes run in worker processes (spawn/forkserver: a script calling
 `evaluate_policy` with workers > 1 needs a `if __name__ == "__main__":` guard), each stepping
@@ -28,7 +29,7 @@ from tqdm.auto import tqdm
 from dexdrake.episode import EpisodeResult, run_episode, run_lockstep
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.paper import PAPER_AVERAGE
-from dexdrake.eval.seeds import evaluation_seeds_reserved
+from dexdrake.eval.seeds import seed_range
 from dexdrake.learn.env_protocol import PolicyEnvFactory
 
 EVAL_HORIZON = 100  # control steps per evaluation episode (paper)
@@ -93,9 +94,13 @@ class EvalReport:
     def seeds_text(self) -> str:
         return f"{self.seed}..{self.seed + self.episodes_per_object - 1}"
 
+    def seed_range(self) -> str | None:
+        """'validation', 'test' or 'custom' (eval.seeds); None: not seeds reserved for evaluation."""
+        return seed_range(self.seed, self.episodes_per_object)
+
     def seeds_reserved(self) -> bool:
         """The seeds lie in the range reserved for evaluation (disjoint from training seeds)."""
-        return evaluation_seeds_reserved(self.seed, self.episodes_per_object)
+        return self.seed_range() is not None
 
     def paper_average(self) -> float | None:
         return PAPER_AVERAGE.get(self.label)
@@ -106,6 +111,7 @@ class EvalReport:
         d["average_pct"] = self.average_pct()
         d["average_ci95_pct"] = list(self.average_ci95_pct())
         d["seeds_reserved_for_evaluation"] = self.seeds_reserved()
+        d["seed_range"] = self.seed_range()
         return d
 
 

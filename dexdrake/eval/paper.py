@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-# DexRepNet Table I, success % of DexRep on unseen GRAB objects (library names).
+# DexRepNet Table I, success % of DexRep on unseen GRAB objects, keyed by the library's procedural
+# namesakes (the near split): a namesake is not the scanned GRAB object.
 PAPER_UNSEEN: dict[str, float] = {
     "mug": 100.0,
     "camera": 99.0,

@@ -36,6 +36,7 @@ import torch
 from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.seeds import check_training_seeds
 from dexdrake.npz import open_npz
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
@@ -342,6 +343,13 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str], resume
                             f"{'; '.join(diff)}; use another --out or delete that folder")
 
 
+def episode_seeds(config: DaggerConfig, iteration: int, probe: bool = False) -> list[int]:
+    """Iteration `iteration`'s episode seeds: seed * 10**6 + iteration * 10**4 + k, the probes'
+    PROBE_SEEDS above (k < episodes_per_object, or < probe_per_object for the probes)."""
+    first = config.seed * 10**6 + iteration * 10**4 + (PROBE_SEEDS if probe else 0)
+    return [first + k for k in range(config.probe_per_object if probe else config.episodes_per_object)]
+
+
 def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, make_expert: MakeExpert,
                  config: DaggerConfig = DaggerConfig(), metadata: dict[str, Any] | None = None,
                  address: str | None = None, probe_objects: list[str] | None = None,
@@ -365,6 +373,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
         raise DexdrakeError("probe_per_object needs probe objects")
     if set(probes) & set(objects):
         raise DexdrakeError(f"probe objects {sorted(set(probes) & set(objects))} are also training objects")
+    check_training_seeds([episode_seeds(config, config.iterations - 1, probe=bool(probes))[-1]],
+                         f"DAgger's episode seeds (seed * 10**6 + iteration * 10**4 + k; --seed {config.seed})")
     check_backend(config.backend, address)
     check_resume(out_dir, config, objects, resume_changed)
     torch.manual_seed(config.seed)
@@ -405,7 +415,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             if data_path.is_file():
                 data = DaggerData.load(data_path)
             else:
-                seeds = [config.seed * 10**6 + it * 10**4 + k for k in range(config.episodes_per_object)]
+                seeds = episode_seeds(config, it)
                 jobs = [(name, s) for s in seeds for name in objects]
                 driver = _driver(config.init, it)
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
@@ -419,7 +429,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 if probe_path.is_file():
                     probe = DaggerData.load(probe_path)
                 else:
-                    seeds = [config.seed * 10**6 + it * 10**4 + PROBE_SEEDS + k for k in range(config.probe_per_object)]
+                    seeds = episode_seeds(config, it, probe=True)
                     probe = collect(sampler, policy, [(name, s) for s in seeds for name in probes], 0.0,
                                     f"DAgger {it} (probe)", make_expert)
                     probe.save(probe_path, {"iteration": it, "probe": True, "config": asdict(config)})

@@ -17,7 +17,7 @@ from dexdrake.eval.tables import write_csv_beside
 from dexdrake.objects.meshfile import write_atomic
 
 METRIC_KEYS = ("average_pct", "average_ci95_pct", "per_object", "episodes_per_object", "seed",
-               "seeds_reserved_for_evaluation", "horizon", "command", "wall_s", "workers")
+               "seed_range", "horizon", "command", "wall_s", "workers")
 
 
 def sha256(path: Path) -> str:

@@ -1,4 +1,5 @@
-"""The object library: shipped train/unseen objects plus user-imported meshes.
+"""The object library: shipped objects (splits train, unseen, validation, near; see
+dexdrake.objects.shapes) plus user-imported meshes and the augmented training objects.
 
 Every object has a watertight, outward-wound mesh in its OBJECT FRAME (origin = centre of
 mass, z up, identity = a stable resting pose), convex pieces for contact and a Drake SDF.
@@ -30,7 +31,8 @@ from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
 from dexdrake.paths import cache_dir
 
-SPLITS = ("train", "unseen", "user", store.AUGMENTED_SPLIT)
+SPLITS = ("train", "unseen", "validation", "near", "user", store.AUGMENTED_SPLIT)
+HELD_OUT_SPLITS = ("unseen", "validation", "near")  # never trained on
 
 __all__ = [
     "DISTANCE_GEOMETRY_NAME",
@@ -50,7 +52,7 @@ class ObjectInfo:
 
     name: str
     category: str
-    split: str  # "train" | "unseen" | "user"
+    split: str  # one of SPLITS
     mesh_path: Path
     extents: tuple[float, float, float]  # AABB size in the object frame (m)
     rest_height: float  # z of the origin when resting on the plane z = 0
@@ -140,7 +142,7 @@ def _user_info(folder: Path) -> ObjectInfo | None:
 
 
 def list_objects(split: str | None = None) -> list[ObjectInfo]:
-    """All objects, or those of one split ("train" | "unseen" | "user"), sorted by name.
+    """All objects, or those of one split (SPLITS), sorted by name.
     Broken user objects are skipped with a BrokenObjectWarning."""
     if split is not None and split not in SPLITS:
         raise UnknownNameError("object split", split, SPLITS)
@@ -150,19 +152,20 @@ def list_objects(split: str | None = None) -> list[ObjectInfo]:
     return sorted((i for i in infos if split is None or i.split == split), key=lambda i: (SPLITS.index(i.split), i.name))
 
 
-SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen"}
+SPLIT_ALIASES = {"seen": "train", "train": "train", "unseen": "unseen", "validation": "validation", "near": "near"}
 EMPTY_SPLIT_HINT = {store.AUGMENTED_SPLIT: "; make them with `dexdrake objects augment`"}
 
 
 def resolve_objects(spec: str) -> tuple[str, list[str]]:
-    """(label, object names) for 'seen' / 'train', 'unseen', 'train+augmented' (the training
-    objects, their scaled copies and the procedural shapes) or a comma-separated name list.
+    """(label, object names) for 'seen' / 'train', 'unseen', 'validation', 'near',
+    'train+augmented' (the training objects, their scaled copies and the procedural shapes)
+    or a comma-separated name list.
 
     Names are checked against the object library (UnknownNameError lists the valid ones).
     """
     spec = spec.strip()
     if not spec:
-        raise DexdrakeError("empty object selection; use 'seen', 'unseen' or comma-separated names")
+        raise DexdrakeError("empty object selection; use 'seen', 'unseen', 'validation', 'near' or comma-separated names")
     if spec in SPLIT_ALIASES or spec == f"train+{store.AUGMENTED_SPLIT}":
         names = []
         for split in [SPLIT_ALIASES[spec]] if spec in SPLIT_ALIASES else ["train", store.AUGMENTED_SPLIT]:
@@ -170,7 +173,8 @@ def resolve_objects(spec: str) -> tuple[str, list[str]]:
             if not found:
                 raise DexdrakeError(f"the object library has no {split!r} objects{EMPTY_SPLIT_HINT.get(split, '')}")
             names += found
-        return {"train": "seen", "unseen": "unseen"}.get(SPLIT_ALIASES.get(spec, ""), "selected"), names
+        split = SPLIT_ALIASES.get(spec, "")
+        return ("seen" if split == "train" else split if split else "selected"), names
     names = [n.strip() for n in spec.split(",") if n.strip()]
     if len(set(names)) != len(names):
         raise DexdrakeError(f"object list {spec!r} repeats a name")
@@ -180,13 +184,14 @@ def resolve_objects(spec: str) -> tuple[str, list[str]]:
 
 
 def training_objects(spec: str) -> list[str]:
-    """The objects `spec` names for training; the evaluation splits and unseen objects are refused."""
-    if spec in ("unseen", "seen"):
-        raise DexdrakeError("train on 'train' objects or named ones; 'seen'/'unseen' are evaluation splits")
+    """The objects `spec` names for training; the evaluation splits and held-out objects are refused."""
+    if spec in ("seen", *HELD_OUT_SPLITS):
+        raise DexdrakeError(f"train on 'train' objects or named ones; 'seen', {', '.join(map(repr, HELD_OUT_SPLITS))} "
+                            "are evaluation splits")
     _, objects = resolve_objects(spec)
-    held_out = [n for n in objects if get_object(n).split == "unseen"]
+    held_out = [n for n in objects if get_object(n).split in HELD_OUT_SPLITS]
     if held_out:
-        raise DexdrakeError(f"{held_out} are unseen objects, kept for evaluation; train on training or user objects")
+        raise DexdrakeError(f"{held_out} are held-out objects, kept for evaluation; train on training or user objects")
     return objects
 
 

@@ -3,10 +3,18 @@
 Every object is a named `Recipe`: a builder function plus its parameters (metres). A
 builder returns a manifold3d `Manifold` posed in its stable resting orientation (z up,
 resting on z = 0); `build_mesh` turns it into a trimesh with the origin at the centre of
-mass. Variations of one builder with different parameters give the object count. Split
-"train" holds the training set; "unseen" holds shapes and categories absent from training
-(mug, camera, binoculars, apple, toothpaste, frying pan, toothbrush, elephant, hand, small
-pyramid, pear, spray bottle), as in the DexRepNet paper's unseen GRAB objects.
+mass. Variations of one builder with different parameters give the object count. The
+objects are procedural stand-ins, not scans. Splits:
+- "train": the training set (the augmented split scales its objects and adds superquadric
+  shapes, dexdrake.objects.augment);
+- "unseen": reported only (test seeds); builders and categories of their own, and each
+  farther from every training and augmented object (dexdrake.objects.similarity) than the
+  median training object is from its nearest training neighbour (tests/test_objects.py);
+- "validation": probes and choices (DAgger probes, candidate policies); builders and
+  categories shared with no other split;
+- "near": namesakes of the DexRepNet paper's unseen GRAB objects (mug, camera, apple, ...),
+  the unseen split of the earlier tables, kept to reproduce them; some are near training
+  objects (the small pyramid is the training pyramid's builder scaled down).
 """
 
 from __future__ import annotations
@@ -407,7 +415,121 @@ def spray_bottle(radius: float, height: float) -> Solid:
     return _union([body, neck, head, trigger])
 
 
+def _rest(solid: Solid) -> Solid:
+    """`solid` moved to rest on z = 0."""
+    return solid.translate((0, 0, -solid.bounding_box()[2]))
+
+
+def stool(seat_radius: float, height: float, seat_thickness: float = 0.012, leg_radius: float = 0.006) -> Solid:
+    """Round seat on three splayed legs."""
+    seat = _cyl(seat_thickness, seat_radius, None, (0, 0, height - seat_thickness))
+    legs = []
+    for a in np.radians([90, 210, 330]):
+        top = (0.55 * seat_radius * np.cos(a), 0.55 * seat_radius * np.sin(a), height - seat_thickness)
+        foot = (0.95 * seat_radius * np.cos(a), 0.95 * seat_radius * np.sin(a), leg_radius)
+        legs.append(_tube([foot, top], leg_radius, 12))
+    return _rest(_union([seat] + legs))
+
+
+def dumbbell(length: float, bar_radius: float, weight_radius: float, weight_width: float) -> Solid:
+    """Bar along x with a disc weight at each end, lying on the discs' rims."""
+    bar = _cyl_x(length, bar_radius, (0, 0, weight_radius))
+    weights = [_cyl_x(weight_width, weight_radius, (s * (length - weight_width) / 2, 0, weight_radius))
+               for s in (-1, 1)]
+    return _union([bar] + weights)
+
+
+def star(outer: float, inner: float, thickness: float, points: int = 5) -> Solid:
+    """Star prism lying flat: `points` tips at radius `outer`, notches at `inner`."""
+    a = np.arange(2 * points) * np.pi / points + np.pi / 2
+    r = np.where(np.arange(2 * points) % 2 == 0, outer, inner)
+    return mf.CrossSection([np.stack([r * np.cos(a), r * np.sin(a)], 1)]).extrude(thickness)
+
+
+def pipe_cross(arm: float, radius: float) -> Solid:
+    """Plus-shaped pipe fitting lying flat: four round arms of length `arm` from a centre."""
+    arms = [_cyl_x(2 * arm, radius, (0, 0, radius)), _cyl_x(2 * arm, radius, (0, 0, radius)).rotate((0, 0, 90))]
+    caps = [_sphere(1.15 * radius, (0, 0, 1.15 * radius), 20)]
+    return _rest(_union(arms + caps))
+
+
+def horseshoe(radius: float, thickness: float, width: float, degrees: float = 240.0) -> Solid:
+    """Flat arc of `degrees` (a horseshoe magnet's shape) of rectangular section, lying flat."""
+    a = np.radians(np.linspace(-degrees / 2, degrees / 2, 25))
+    outer = [(radius * np.cos(t), radius * np.sin(t)) for t in a]
+    inner = [((radius - width) * np.cos(t), (radius - width) * np.sin(t)) for t in a[::-1]]
+    return mf.CrossSection([np.array(outer + inner)]).extrude(thickness)
+
+
+def arch(radius: float, width: float, depth: float) -> Solid:
+    """Half ring standing on its two feet (a toy bridge), `depth` thick along y."""
+    a = np.radians(np.linspace(0, 180, 25))
+    outer = [(radius * np.cos(t), radius * np.sin(t)) for t in a]
+    inner = [((radius - width) * np.cos(t), (radius - width) * np.sin(t)) for t in a[::-1]]
+    section = mf.CrossSection([np.array(outer + inner)]).extrude(depth)
+    return section.translate((0, 0, -depth / 2)).rotate((90, 0, 0))
+
+
+def jack(arm: float, rod_radius: float, ball_radius: float) -> Solid:
+    """Toy jack: three orthogonal rods with balls on their ends, resting on three balls."""
+    tips = [np.eye(3)[i] * s * arm for i in range(3) for s in (-1, 1)]
+    rods = [_tube([tips[2 * i], tips[2 * i + 1]], rod_radius, 12) for i in range(3)]
+    balls = [_sphere(ball_radius, t, 16) for t in tips]
+    body = _union(rods + balls).rotate((0, 0, 45)).rotate((np.degrees(np.arctan(np.sqrt(2))), 0, 0))
+    return _rest(body)
+
+
+def chair(seat: float, height: float, back: float, leg: float = 0.007) -> Solid:
+    """Toy chair: square seat on four legs with a backrest on -y."""
+    t = 0.01
+    top = _box((seat, seat, t), (0, 0, height - t / 2))
+    legs = [_box((leg * 2, leg * 2, height - t), (sx * (seat / 2 - leg), sy * (seat / 2 - leg), (height - t) / 2))
+            for sx in (-1, 1) for sy in (-1, 1)]
+    rest = _box((seat, t, back), (0, -seat / 2 + t / 2, height + back / 2 - 0.001))
+    return _union([top, rest] + legs)
+
+
+def cactus(radius: float, height: float, arm_radius: float) -> Solid:
+    """Potted-cactus toy: an upright stem with two arms that bend upwards."""
+    stem = _tube([(0, 0, radius), (0, 0, height - radius)], radius, 16)
+    base = _cyl(radius, radius, None, seg=24)
+    arms = [_tube([(0, 0, 0.45 * height), (s * 2.2 * radius, 0, 0.45 * height), (s * 2.2 * radius, 0, (0.65 + 0.1 * s) * height)],
+                  arm_radius, 12) for s in (-1, 1)]
+    return _union([stem, base] + arms)
+
+
+def scissors(length: float, ring_radius: float, thickness: float = 0.006) -> Solid:
+    """Closed scissors lying flat: two blades along +x and two finger rings behind the pivot."""
+    blade = mf.CrossSection([np.array([(0, -0.009), (length, -0.001), (length, 0.001), (0, 0.009)])]).extrude(thickness)
+    rings = []
+    for s in (-1, 1):
+        c = (-ring_radius * 1.1, s * ring_radius * 0.95, 0)
+        ring = _cyl(thickness, ring_radius, None, c, 24) - _cyl(3 * thickness, 0.6 * ring_radius, None, (c[0], c[1], -thickness), 24)
+        rings.append(ring)
+    return _union([blade] + rings)
+
+
+def hourglass(radius: float, height: float, waist: float) -> Solid:
+    """Solid hourglass: two cones joined at a narrow waist between flat end discs."""
+    h, d = height, 0.012
+    return _revolve([(0, 0), (radius, 0), (radius, d), (waist, h / 2), (radius, h - d), (radius, h), (0, h)])
+
+
+def bell(radius: float, height: float, handle_length: float) -> Solid:
+    """Hand bell resting on its rim: a flared hollow body with a handle on top."""
+    t = 0.004
+    outer = [(radius, 0.0), (0.75 * radius, 0.35 * height), (0.55 * radius, 0.8 * height), (0.35 * radius, height)]
+    inner = [(0.35 * radius - t, height - t), (0.55 * radius - t, 0.8 * height - t), (0.75 * radius - t, 0.35 * height),
+             (radius - t, 0.0)]
+    body = _revolve(outer + [(0, height), (0, height - t)] + inner)
+    handle = _cyl(handle_length, 0.011, 0.009, (0, 0, height - 0.002), 20)
+    return _union([body, handle, _sphere(0.013, (0, 0, height + handle_length), 16)])
+
+
 # ---------------------------------------------------------------- registry
+SPLITS = ("train", "unseen", "validation", "near")
+
+
 @dataclass(frozen=True)
 class Recipe:
     """One named object: a builder with its parameters, a category and a split."""
@@ -428,7 +550,7 @@ def _recipes() -> dict[str, Recipe]:
     def add(name: str, category: str, split: str, builder: Callable[..., Solid], **params: Any):
         out[name] = Recipe(name, category, split, builder, params)
 
-    tr, un = "train", "unseen"
+    tr, un, va, ne = "train", "unseen", "validation", "near"
     add("cup_tall", "cup", tr, cup, radius_bottom=0.03, radius_top=0.04, height=0.12)
     add("cup_short", "cup", tr, cup, radius_bottom=0.035, radius_top=0.045, height=0.08)
     add("bottle_water", "bottle", tr, bottle, radius=0.033, height=0.22, neck_radius=0.013, neck_length=0.05)
@@ -483,19 +605,34 @@ def _recipes() -> dict[str, Recipe]:
     add("lightbulb", "lightbulb", tr, lightbulb, bulb_radius=0.032, base_radius=0.014, base_height=0.03)
     add("l_block", "l_block", tr, l_block, length=0.14, width=0.04, thickness=0.035)
 
-    add("mug", "mug", un, mug, radius=0.04, height=0.1, handle_reach=0.035)
-    add("mug_wide", "mug", un, mug, radius=0.05, height=0.085, handle_reach=0.03)
-    add("camera", "camera", un, camera, body=(0.12, 0.06, 0.075), lens_radius=0.03, lens_length=0.045)
-    add("binoculars", "binoculars", un, binoculars, tube_radius=0.025, length=0.12, gap=0.012)
-    add("apple", "apple", un, apple, radius=0.04)
-    add("pear", "pear", un, pear, radius=0.036, height=0.11)
-    add("toothpaste", "toothpaste", un, toothpaste, length=0.16, radius=0.018, crimp_width=0.05)
-    add("frying_pan", "frying_pan", un, frying_pan, radius=0.07, depth=0.03, handle_length=0.095)
-    add("toothbrush", "toothbrush", un, toothbrush, length=0.18, width=0.012, bristle_height=0.012)
-    add("elephant", "elephant", un, elephant, body_length=0.12)
-    add("hand", "hand", un, hand, palm_length=0.09, palm_width=0.08)
-    add("pyramid_small", "pyramid", un, pyramid, base=0.06, height=0.05, sides=4)
-    add("spray_bottle", "spray_bottle", un, spray_bottle, radius=0.035, height=0.2)
+    add("mug", "mug", ne, mug, radius=0.04, height=0.1, handle_reach=0.035)
+    add("mug_wide", "mug", ne, mug, radius=0.05, height=0.085, handle_reach=0.03)
+    add("camera", "camera", ne, camera, body=(0.12, 0.06, 0.075), lens_radius=0.03, lens_length=0.045)
+    add("binoculars", "binoculars", ne, binoculars, tube_radius=0.025, length=0.12, gap=0.012)
+    add("apple", "apple", ne, apple, radius=0.04)
+    add("pear", "pear", ne, pear, radius=0.036, height=0.11)
+    add("toothpaste", "toothpaste", ne, toothpaste, length=0.16, radius=0.018, crimp_width=0.05)
+    add("frying_pan", "frying_pan", ne, frying_pan, radius=0.07, depth=0.03, handle_length=0.095)
+    add("toothbrush", "toothbrush", ne, toothbrush, length=0.18, width=0.012, bristle_height=0.012)
+    add("elephant", "elephant", ne, elephant, body_length=0.12)
+    add("hand", "hand", ne, hand, palm_length=0.09, palm_width=0.08)
+    add("pyramid_small", "pyramid", ne, pyramid, base=0.06, height=0.05, sides=4)
+    add("spray_bottle", "spray_bottle", ne, spray_bottle, radius=0.035, height=0.2)
+
+    add("stool", "stool", un, stool, seat_radius=0.045, height=0.08)
+    add("stool_bar", "stool", un, stool, seat_radius=0.035, height=0.12)
+    add("dumbbell", "dumbbell", un, dumbbell, length=0.16, bar_radius=0.011, weight_radius=0.035, weight_width=0.025)
+    add("star", "star", un, star, outer=0.07, inner=0.024, thickness=0.016)
+    add("pipe_cross", "pipe_cross", un, pipe_cross, arm=0.065, radius=0.011)
+    add("horseshoe", "horseshoe", un, horseshoe, radius=0.06, thickness=0.016, width=0.018)
+    add("arch", "arch", un, arch, radius=0.07, width=0.025, depth=0.035)
+    add("jack", "jack", un, jack, arm=0.06, rod_radius=0.007, ball_radius=0.013)
+
+    add("chair", "chair", va, chair, seat=0.07, height=0.07, back=0.06)
+    add("cactus", "cactus", va, cactus, radius=0.018, height=0.15, arm_radius=0.012)
+    add("scissors", "scissors", va, scissors, length=0.11, ring_radius=0.022)
+    add("hourglass", "hourglass", va, hourglass, radius=0.04, height=0.13, waist=0.012)
+    add("bell", "bell", va, bell, radius=0.05, height=0.08, handle_length=0.06)
     return out
 
 
@@ -503,7 +640,7 @@ RECIPES: dict[str, Recipe] = _recipes()
 
 
 def recipe_names(split: str | None = None) -> list[str]:
-    """Names of the recipes, optionally only those of one split ("train" | "unseen")."""
+    """Names of the recipes, optionally only those of one split (SPLITS)."""
     return sorted(n for n, r in RECIPES.items() if split is None or r.split == split)
 
 

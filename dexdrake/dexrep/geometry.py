@@ -49,11 +49,11 @@ class SdfGrid:
         """Trilinear sd at (m, 3) points in index coordinates u = (p - origin) / spacing
         (inside the grid; outside it extrapolates linearly from the border cell). The gradient,
         if asked, is per index step (multiply by 1/spacing for per metre)."""
-        i0 = u.astype(np.intp)  # floor, for u >= 0
-        np.maximum(i0, 0, out=i0)
+        i0 = np.floor(u)
+        np.maximum(i0, 0.0, out=i0)
         np.minimum(i0, self._max_index, out=i0)
         f = u - i0
-        c = self._flat[(i0 @ self._strides)[:, None] + self._corner_offsets].astype(np.float64)
+        c = self._flat[self._flat_index(i0)[:, None] + self._corner_offsets].astype(np.float64)
         fx, fy, fz = f[:, 0], f[:, 1:2], f[:, 2:3]
         # corners ordered (x, y, z) bits: 000 001 010 011 100 101 110 111
         dz = c[:, 1::2] - c[:, 0::2]  # (m, 4): 00 01 10 11
@@ -73,10 +73,15 @@ class SdfGrid:
         """Signed distance at the grid node nearest to each (m, 3) index-coordinate point.
         Error <= spacing * sqrt(3) / 2 inside the grid; points outside clamp to border
         nodes, whose values are >= SDF_PAD (the object is never near them)."""
-        i = (u + 0.5).astype(np.intp)
-        np.maximum(i, 0, out=i)
+        i = np.floor(u + 0.5)
+        np.maximum(i, 0.0, out=i)
         np.minimum(i, self._max_index + 1, out=i)
-        return self._flat[i @ self._strides].astype(np.float64)
+        return self._flat[self._flat_index(i)].astype(np.float64)
+
+    def _flat_index(self, i: np.ndarray) -> np.ndarray:
+        """Flat indices of (m, 3) whole-number node indices held as floats (a float matmul:
+        exact below 2^53, and BLAS where an integer matmul is a slow loop)."""
+        return (i @ self._strides).astype(np.intp)
 
     @cached_property
     def _flat(self) -> np.ndarray:
@@ -85,17 +90,19 @@ class SdfGrid:
 
     @cached_property
     def _strides(self) -> np.ndarray:
+        """Flat-index strides of the node axes, as floats (see `_flat_index`)."""
         nx, ny, nz = self.values.shape
-        return np.array([ny * nz, nz, 1], dtype=np.intp)
+        return np.array([ny * nz, nz, 1], dtype=np.float64)
 
     @cached_property
     def _max_index(self) -> np.ndarray:
-        return np.array(self.values.shape, dtype=np.intp) - 2
+        """The largest cell index per axis (the last node's index - 1), as floats."""
+        return np.array(self.values.shape, dtype=np.float64) - 2
 
     @cached_property
     def _corner_offsets(self) -> np.ndarray:
-        bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=np.intp)
-        return bits @ self._strides
+        bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=np.float64)
+        return (bits @ self._strides).astype(np.intp)
 
 
 @dataclass(frozen=True)

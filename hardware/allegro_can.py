@@ -38,6 +38,8 @@ from dexdrake.hardware.safety import (
     MIN_PLAUSIBLE_TEMPERATURE_C,
     OVERSPEED_TOLERANCE,
     FaultLatch,
+    check_limit_margin,
+    measured_velocity_limits,
     SafeStopContext,
     HardwareError,
     JointLimits,
@@ -418,17 +420,9 @@ def check_allegro_config(cfg: AllegroConfig) -> AllegroSettings:
     if not (math.isfinite(cfg.max_target_rate) and 0 < cfg.max_target_rate <= vmax):
         raise HardwareError(f"Allegro max_target_rate {cfg.max_target_rate:g} rad/s must be in "
                             f"(0, {vmax:g}], the joints' velocity limit in the model")
-    if cfg.max_measured_velocity is None:
-        max_measured_velocity = vel.copy()
-    elif math.isfinite(cfg.max_measured_velocity) and 0 < cfg.max_measured_velocity <= vmax:
-        max_measured_velocity = np.full(NUM_JOINTS, float(cfg.max_measured_velocity))
-    else:
-        raise HardwareError(f"Allegro max_measured_velocity {cfg.max_measured_velocity:g} rad/s must be in "
-                            f"(0, {vmax:g}], the joints' velocity limit in the model")
+    max_measured_velocity = measured_velocity_limits("Allegro", cfg.max_measured_velocity, vel)
     m = cfg.limit_margin_rad
-    if not (math.isfinite(m) and 0 <= m and np.all(upper - lower > 2 * m)):
-        raise HardwareError(f"Allegro limit_margin_rad {m:g} must be >= 0 and leave every joint a "
-                            f"range (narrowest {float(np.min(upper - lower)):g} rad)")
+    check_limit_margin("Allegro", m, lower, upper)
     for name in ("watchdog_timeout_s", "temperature_timeout_s", "status_timeout_s", "reply_timeout_s",
                  "velocity_window_s"):
         value = getattr(cfg, name)

@@ -48,6 +48,26 @@ def _vector(values: Sequence[float] | np.ndarray | float, n: int, name: str) -> 
     return arr
 
 
+def measured_velocity_limits(device: str, value: float | None, model_velocity: np.ndarray,
+                             where: str = "the model") -> np.ndarray:
+    """Per-joint speeds (rad/s) a measured joint may reach: the model's velocity limits, or one
+    value for every joint, which must lie in (0, the slowest joint's limit]."""
+    vmax = float(np.min(model_velocity))
+    if value is None:
+        return np.asarray(model_velocity, dtype=float).copy()
+    if not (math.isfinite(value) and 0 < value <= vmax + 1e-9):
+        raise HardwareError(f"{device} max_measured_velocity {value:g} rad/s must be in (0, {vmax:g}], "
+                            f"the joints' velocity limit in {where}")
+    return np.full(len(model_velocity), float(value))
+
+
+def check_limit_margin(device: str, margin: float, lower: np.ndarray, upper: np.ndarray) -> None:
+    """A margin (rad) kept inside the joint limits must be >= 0 and leave every joint a range."""
+    if not (math.isfinite(margin) and 0 <= margin and np.all(upper - lower > 2 * margin)):
+        raise HardwareError(f"{device} limit_margin_rad {margin:g} must be >= 0 and leave every joint a "
+                            f"range (narrowest {float(np.min(upper - lower)):g} rad)")
+
+
 class JointLimits:
     """Clamps position commands into [lower, upper]; holds the last safe command on NaN/inf.
 

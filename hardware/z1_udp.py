@@ -41,6 +41,8 @@ from dexdrake.hardware.safety import (
     MIN_PLAUSIBLE_TEMPERATURE_C,
     OVERSPEED_TOLERANCE,
     FaultLatch,
+    check_limit_margin,
+    measured_velocity_limits,
     SafeStopContext,
     HardwareError,
     JointLimits,
@@ -321,17 +323,9 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
     if np.any(lower < lim.lower - 1e-6) or np.any(upper > lim.upper + 1e-6):
         raise HardwareError(f"Z1 joint limits {lower.tolist()} .. {upper.tolist()} reach outside "
                             f"the model's {lim.lower.tolist()} .. {lim.upper.tolist()} ({src})")
-    if cfg.max_measured_velocity is None:
-        measured = lim.velocity.copy()
-    elif math.isfinite(cfg.max_measured_velocity) and 0 < cfg.max_measured_velocity <= vmax + 1e-9:
-        measured = np.full(NUM_ARM_JOINTS, float(cfg.max_measured_velocity))
-    else:
-        raise HardwareError(f"Z1 max_measured_velocity {cfg.max_measured_velocity:g} rad/s must be in "
-                            f"(0, {vmax:g}], the joints' velocity limit in {src}")
+    measured = measured_velocity_limits("Z1", cfg.max_measured_velocity, lim.velocity, src)
     m = cfg.limit_margin_rad
-    if not (math.isfinite(m) and 0 <= m and np.all(upper - lower > 2 * m)):
-        raise HardwareError(f"Z1 limit_margin_rad {m:g} must be >= 0 and leave every joint a range "
-                            f"(narrowest {float(np.min(upper - lower)):g} rad)")
+    check_limit_margin("Z1", m, lower, upper)
     if not math.isfinite(cfg.max_motor_temperature_c):
         raise HardwareError(f"Z1 max_motor_temperature_c must be finite, got {cfg.max_motor_temperature_c}")
     return Z1Settings(kp, kd, velocity, lower, upper, lim.effort.copy(), lower + m, upper - m, measured)

@@ -37,7 +37,7 @@ def test_shipped_recipes_load(name):
     ("dagger: {config: {hand: shadow}}", "dagger.config.hand: 'shadow' is not one of"),
     ("test: {episodes: 0}", "test.episodes: need >= 1"),
     ("choose: [1]", "recipe field choose: expected a mapping"),
-    ("dagger: {objects: pear}", "dagger.objects: ['pear'] are unseen objects"),
+    ("dagger: {objects: star}", "dagger.objects: ['star'] are held-out objects"),
     ("test: {unseen: no_such_thing}", "test.unseen: "),
 ])
 def test_a_recipe_mistake_is_refused_in_one_line_before_any_work(tmp_path, capsys, text, field):
@@ -99,7 +99,7 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     assert dapg["settings"]["dapg.0"] == recipe_dict(recipe)["dapg"][0]
     assert dapg["config"]["rollouts_per_iteration"] == 2 and dapg["config"]["time_scale"] == 4 and dapg["env_steps"] == 8
     assert manifest["stages"][1]["config"]["workers"] == 1 and manifest["stages"][1]["config"]["backend"] == "sequential"
-    assert manifest["metrics"]["seen"]["seed"] == FIRST_TEST_SEED and manifest["metrics"]["unseen"]["per_object"].keys() == {"pear"}
+    assert manifest["metrics"]["seen"]["seed"] == FIRST_TEST_SEED and manifest["metrics"]["unseen"]["per_object"].keys() == {"star"}
     chosen = manifest["stages"][3]["chosen"]
     assert chosen["candidate"] == "dapg1/dapg_iter_0001.pt" and manifest["stages"][3]["policy_sha256"] == manifest["sha256"]
     validation = json.loads((out / "choose" / "dapg1_0001" / "eval_validation.json").read_text())

@@ -170,7 +170,7 @@ def run_dagger(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
 
     objects = training_objects(recipe.dagger.objects)
     config = replace(recipe.dagger.config, workers=rt.workers, backend=rt.backend)
-    probes = resolve_objects("unseen")[1] if config.probe_per_object else []
+    probes = resolve_objects("validation")[1] if config.probe_per_object else []
     folder = out / stage.name
     final = train_dagger(objects, folder, rt.make_env, rt.make_expert, config,
                          {"command": rt.command, "recipe_stage": stage.name}, rt.address, probes)

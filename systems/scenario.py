@@ -70,6 +70,8 @@ class HandDriver:
     max_target_rate: Optional[float] = None  # rad/s
     limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     watchdog_timeout_s: Optional[float] = None
+    status_timeout_s: Optional[float] = None  # no status reply for this long (s): fault
+    temperature_timeout_s: Optional[float] = None  # no temperature of a finger for this long (s): fault
     # run the driver loop in its own process (hardware/driver_process.py); None: hardware
     # and emulated_process yes, emulated no (the simulated-clock HIL steps its drivers in
     # lockstep in-process)
@@ -278,7 +280,8 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None,
     h, a = s.drivers.hand, s.drivers.arm
     hand = AllegroConfig(**given(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
                                  max_target_rate=h.max_target_rate, limit_margin_rad=h.limit_margin_rad,
-                                 watchdog_timeout_s=h.watchdog_timeout_s))
+                                 watchdog_timeout_s=h.watchdog_timeout_s, status_timeout_s=h.status_timeout_s,
+                                 temperature_timeout_s=h.temperature_timeout_s))
     arm = Z1Config(**given(host=a.host, local_port=a.local_port if arm_local_port is None else arm_local_port,
                            controller_port=a.controller_port if arm_controller_port is None
                            else arm_controller_port,

@@ -149,7 +149,9 @@ class DriverSystem(LeafSystem):
 
     def _send(self, context: Context) -> None:
         if not self.driver.running:
-            raise StationFault(f"{self.label}: the driver is not running (stopped, or never started)")
+            fault = self.driver.state().fault if hasattr(self.driver, "pid") else None  # a process says why
+            raise StationFault(f"{self.label}: the driver is not running "
+                               + (f"({fault})" if fault else "(stopped, or never started)"))
         if self._cmd.HasValue(context):
             self.driver.command_positions(self._cmd.Eval(context))
 
@@ -159,8 +161,13 @@ _WORKER: dict = {}
 
 
 def _worker_init(mesh_path: str) -> None:
+    """The perception worker: niced (+10) below the control loop and the driver processes,
+    so that a global registration's seconds of CPU delay neither."""
+    import os
+
     from dexdrake.hardware.perception import ObjectPoseEstimator
 
+    os.nice(10)
     _WORKER["estimator"] = ObjectPoseEstimator(mesh_path)
 
 

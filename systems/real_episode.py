@@ -93,7 +93,7 @@ def run_supervised(station: Station, controller, steps: int, logger=None,
     result = run_station_episode(station, controller, steps, logger)
     if result.fault:
         return SupervisedResult(phase, result.fault, result)
-    say(f"  {result.steps} steps in {result.wall_s:.1f} s")
+    say(f"  {result.steps} steps; {result.wall_s:.1f} s with the wait for the first pose")
     phase = PHASES[2]
     try:
         say(f"{phase}: the hand opens, then the arm goes back to the start pose ...")

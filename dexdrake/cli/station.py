@@ -99,7 +99,7 @@ def run_real(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.config)
     if scenario.mode != "real":
         raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `real` needs hardware drivers")
-    if not (args.dry_run or args.yes or sys.stdin.isatty()):
+    if not (args.dry_run or args.yes or (sys.stdin is not None and sys.stdin.isatty())):
         raise DexdrakeError("a real episode moves the robot and waits for the operator's Enter: run it "
                             "from a terminal, or pass --yes for scripted use")
     emulators = Emulators() if scenario.drivers.hand.kind == "emulated_process" else None

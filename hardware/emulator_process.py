@@ -89,7 +89,7 @@ class EmulatorProcess:
     def stop(self) -> None:
         """Ask the child to stop its emulator and exit (SIGKILL after 5 s)."""
         if self._conn is not None:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, EOFError):  # a child that is gone reports nothing
                 self._conn.send("stop")
                 if self._conn.poll(5.0):
                     kind, value = self._conn.recv()

@@ -43,21 +43,14 @@ class Emulators:
         return [proc.pid for proc in self.processes.values() if proc.pid is not None]
 
 
-def _free_port(kind: int) -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def resolve_ports(scenario: Scenario) -> Scenario:
-    """`scenario` with every `0` port of its hand and arm entries replaced by a free one."""
-    import socket
+    """`scenario` with the `0` ports of its CAN bus and of the Z1 client replaced by free
+    ones (the Z1 controller's `0` is the emulator's own bind, reported when it starts)."""
+    from dexdrake.hardware.z1_udp import free_udp_port
 
     h, a = scenario.drivers.hand, scenario.drivers.arm
-    hand = dc.replace(h, port=_free_port(socket.SOCK_DGRAM) if h.port == 0 else h.port)
-    arm = dc.replace(a, local_port=_free_port(socket.SOCK_DGRAM) if a.local_port == 0 else a.local_port)
+    hand = dc.replace(h, port=free_udp_port("") if h.port == 0 else h.port)
+    arm = dc.replace(a, local_port=free_udp_port(a.host) if a.local_port == 0 else a.local_port)
     return dc.replace(scenario, drivers=dc.replace(scenario.drivers, hand=hand, arm=arm))
 
 

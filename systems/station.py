@@ -149,7 +149,7 @@ class DriverSystem(LeafSystem):
 
     def _send(self, context: Context) -> None:
         if not self.driver.running:
-            fault = self.driver.state().fault if hasattr(self.driver, "pid") else None  # a process says why
+            fault = self.driver.state().fault  # a driver process that stopped itself says why
             raise StationFault(f"{self.label}: the driver is not running "
                                + (f"({fault})" if fault else "(stopped, or never started)"))
         if self._cmd.HasValue(context):

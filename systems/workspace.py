@@ -24,10 +24,6 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
 
 
-class WorkspaceViolation(DexdrakeError):
-    """A set-point whose hand leaves the workspace box."""
-
-
 class WorkspaceBox:
     """Forward kinematics of set-points against a box (module docstring)."""
 
@@ -40,7 +36,9 @@ class WorkspaceBox:
         plant.Finalize()
         self.context = plant.CreateDefaultContext()
         self.q_index = np.array([plant.GetJointByName(j, instance).position_start() for j in hand.policy_joints])
-        frame = lambda body: plant.GetBodyByName(body, instance).body_frame()  # noqa: E731
+        def frame(body: str):
+            return plant.GetBodyByName(body, instance).body_frame()
+
         self.points = [("palm", frame(hand.palm.body), np.asarray(hand.palm.centre, float))]
         self.points += [(p.name, frame(p.body), np.asarray(p.offset, float)) for p in hand.fingertips]
 
@@ -62,12 +60,6 @@ class WorkspaceBox:
                 return (f"workspace: the set-point puts the {name} at {np.round(p, 3).tolist()} m, outside "
                         f"the box {self.lower.tolist()} .. {self.upper.tolist()}")
         return None
-
-    def check(self, q: np.ndarray) -> None:
-        """Raise WorkspaceViolation when set-point `q` leaves the box."""
-        why = self.violation(q)
-        if why is not None:
-            raise WorkspaceViolation(why)
 
 
 class WorkspaceGuard(LeafSystem):

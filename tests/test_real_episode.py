@@ -58,7 +58,6 @@ def test_real_without_yes_and_without_a_terminal_is_refused_before_anything_star
 
 
 def test_the_workspace_box_refuses_set_points_whose_hand_leaves_it():
-    from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource
 
@@ -90,7 +89,6 @@ def test_the_workspace_box_refuses_set_points_whose_hand_leaves_it():
                 port.Eval(guard.GetMyContextFromRoot(context))
         else:
             assert np.array_equal(port.Eval(guard.GetMyContextFromRoot(context)), q)
-        Simulator(diagram)
 
 
 def test_a_first_pose_older_than_the_age_limit_waits_for_a_fresh_one():

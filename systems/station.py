@@ -658,6 +658,15 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
     if world is not None:  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
+    executor = None
+    cam = scenario.drivers.camera
+    if cam.kind != "sim":
+        from dexdrake.objects.library import get_object
+
+        executor = perception_executor(str(get_object(scenario.object).mesh_path))
+        stack.callback(executor.shutdown, wait=False, cancel_futures=True)
+        if start:  # its process's spawn, imports and model set-up, before any driver loop runs
+            executor.submit(time.monotonic).result()
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
@@ -708,15 +717,10 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     builder.ExportOutput(assemble.get_output_port(), "hand_state")
 
     perception = None
-    cam = scenario.drivers.camera
-    if cam.kind == "sim":
+    if executor is None:
         pose_sys = builder.AddNamedSystem("world_pose", WorldPoseSystem(world, period))
     else:
-        from dexdrake.objects.library import get_object
-
         read_frame = camera_reader(scenario, world, stack) if start else _unopened_camera
-        executor = perception_executor(str(get_object(scenario.object).mesh_path))
-        stack.callback(executor.shutdown, wait=False, cancel_futures=True)
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
             read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")

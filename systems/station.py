@@ -30,6 +30,9 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   StationFault at its next update, which ends the episode and triggers the safe stop.
 - A non-finite controller output is never sent: ControllerSystem holds the last command
   (systems/command_guard.py, the rule of every mode).
+- real: every command passes `workspace_guard` (systems/workspace.py) before the drivers: one
+  whose palm centre or a fingertip leaves the scenario's workspace box raises StationFault;
+  `Station.send`, the moves around a real episode (systems/real_episode.py), checks the same.
 - Perception failures (a failed camera read, lost tracking that global registration cannot
   recover, a crashed worker) hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose

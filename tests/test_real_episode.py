@@ -3,7 +3,8 @@ emulator processes of configs/real_emulated.yaml (real transports, the wall cloc
 runs end to end; Ctrl-C, a device fault, a stale pose and a set-point outside the workspace
 box each end in the safe stop (hand servo off, arm PASSIVE) with no process left; without
 --yes and without a terminal it is refused before anything starts. The workspace box and
-the fresh-first-pose rule are also tested on their own."""
+the fresh-first-pose rule are also tested on their own. The end-to-end run (20-45 s on a
+loaded 2-core host) runs by default; the fault cases are `slow`."""
 
 import concurrent.futures as cf
 import multiprocessing
@@ -144,7 +145,6 @@ def _safely_stopped(out: str) -> None:
     assert "safe stop: hand zero torque, then servo off; arm held, then PASSIVE" in out, out
 
 
-@pytest.mark.slow
 def test_real_emulated_runs_a_supervised_episode_end_to_end(tmp_path, capsys):
     rrd = tmp_path / "real.rrd"
     code = _main(["real_emulated", "--yes", "--rrd", str(rrd)])

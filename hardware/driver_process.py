@@ -395,7 +395,11 @@ class DriverProcess(SafeStopContext):
         if self._final_stats is not None or not self.running:
             return dict(self._final_stats or {})
         with self._lock:
-            self._conn.send("stats")
+            try:
+                self._conn.send("stats")
+            except OSError:  # the child ended since `running` was read: its report says why
+                self._pump(0.0)
+                return dict(self._final_stats or {})
             reply = self._pump(self.config.stop_timeout_s, "stats")
         return {} if reply is None or reply[0] != "stats" else reply[1]
 

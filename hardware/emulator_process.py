@@ -3,7 +3,9 @@
 `EmulatorProcess(factory)` spawns a child that builds an emulator with `factory(stack)`
 (starting it in its own thread, registering its stop and its transport's closing on
 `stack`), reports what a client needs to reach it (the Z1 emulator's port) and serves
-until `stop()` or until the parent is gone (its pipe closes). The child ignores SIGINT (a
+until `stop()` or until the parent is gone (its pipe closes). On `stop()` the child sends
+the emulated device's last state (`final`: the hand's servo and PWM, the arm's FSM state),
+read before the emulator stops: what the device was left in. The child ignores SIGINT (a
 terminal's Ctrl-C is the parent's to handle) and stops on SIGTERM. With `realtime_priority`
 its threads run SCHED_FIFO: a device has CPUs of its own, so the host's load must not slow
 the device side of a measurement.
@@ -24,7 +26,8 @@ from typing import Any
 from dexdrake.hardware.driver_process import set_realtime_priority
 from dexdrake.hardware.safety import HardwareError
 
-Factory = Callable[[contextlib.ExitStack], Any]  # builds and starts an emulator; returns what to report
+# builds and starts an emulator; returns (what to report, a function of the device's state at the end)
+Factory = Callable[[contextlib.ExitStack], tuple[Any, Callable[[], dict]]]
 
 
 def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
@@ -35,7 +38,7 @@ def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
         try:
             if realtime_priority:
                 set_realtime_priority(realtime_priority)
-            report = factory(stack)
+            report, final = factory(stack)
         except Exception as err:  # the parent raises it as a HardwareError
             conn.send(("error", f"{type(err).__name__}: {err}"))
             return
@@ -44,6 +47,7 @@ def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
             try:
                 if conn.poll(0.1):
                     conn.recv()  # anything: stop
+                    conn.send(("final", final()))
                     return
             except (EOFError, OSError):  # the parent is gone
                 return
@@ -51,19 +55,28 @@ def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
 
 class EmulatorProcess:
     """An emulator in its own process (module docstring); a context manager. `report` is
-    what the factory returned (e.g. the Z1 emulator's port)."""
+    what the factory reported (e.g. the Z1 emulator's port); `final`, after `stop()`, the
+    device's state at the end (None if the child could not tell)."""
 
-    def __init__(self, factory: Factory, realtime_priority: int = 0, start_timeout_s: float = 30.0):
+    def __init__(self, factory: Factory, realtime_priority: int = 0, start_timeout_s: float = 30.0,
+                 name: str = "emulator"):
         self.factory, self.realtime_priority, self.start_timeout_s = factory, realtime_priority, start_timeout_s
+        self.name = name
         self.report: Any = None
+        self.final: dict | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
         self._conn = None
+
+    @property
+    def pid(self) -> int | None:
+        """The emulator process's id (None before start)."""
+        return None if self._process is None else self._process.pid
 
     def start(self) -> Any:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._process = ctx.Process(target=_child_main, args=(self.factory, child, self.realtime_priority),
-                                    name="dexdrake-emulator", daemon=True)
+                                    name=f"dexdrake-{self.name}", daemon=True)
         self._process.start()
         child.close()
         reply = self._conn.recv() if self._conn.poll(self.start_timeout_s) else None
@@ -76,8 +89,11 @@ class EmulatorProcess:
     def stop(self) -> None:
         """Ask the child to stop its emulator and exit (SIGKILL after 5 s)."""
         if self._conn is not None:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, EOFError):  # a child that is gone reports nothing
                 self._conn.send("stop")
+                if self._conn.poll(5.0):
+                    kind, value = self._conn.recv()
+                    self.final = value if kind == "final" else None
         if self._process is not None:
             self._process.join(5.0)
             if self._process.is_alive():
@@ -95,20 +111,24 @@ class EmulatorProcess:
         self.stop()
 
 
-def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> None:
+def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[None, Callable[[], dict]]:
     """The Allegro firmware emulator (EmulatorConfig `config`) on the python-can bus of
-    `bus` (can.Bus keyword arguments), started; reports nothing."""
+    `bus` (can.Bus keyword arguments), started; reports nothing; at the end: "servo_on",
+    "max_abs_pwm" (the PWM it applies)."""
     import can
 
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
 
     opened = can.Bus(**bus)
     stack.callback(opened.shutdown)
-    stack.enter_context(AllegroEmulator(opened, config=config))
+    emulator = stack.enter_context(AllegroEmulator(opened, config=config))
+    return None, lambda: {"servo_on": emulator.servo_on, "max_abs_pwm": float(abs(emulator.pwm).max())}
 
 
-def z1_emulator(config, stack: contextlib.ExitStack) -> int:
-    """The Z1 controller emulator (Z1EmulatorConfig `config`), started; reports its port."""
+def z1_emulator(config, stack: contextlib.ExitStack) -> tuple[int, Callable[[], dict]]:
+    """The Z1 controller emulator (Z1EmulatorConfig `config`), started; reports its port; at
+    the end: "fsm" (the controller's state name)."""
     from dexdrake.hardware.z1_emulator import Z1Emulator
 
-    return stack.enter_context(Z1Emulator(config)).port
+    emulator = stack.enter_context(Z1Emulator(config))
+    return emulator.port, lambda: {"fsm": emulator.fsm.name}

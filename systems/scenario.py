@@ -19,7 +19,11 @@ Modes follow from the driver kinds:
   sim   hand and arm kind "sim" (the Drake grasp scene; camera "sim" = ground-truth pose)
   hil   hand and arm "emulated"; camera "sim" (pose from the co-simulated world) or
         "rendered" (Drake-rendered RGB-D of the world -> segmentation -> registration)
-  real  hand and arm "hardware"; camera "k4a" (Azure Kinect) or "recorded" (replay)
+  real  hand and arm "hardware"; camera "k4a" (Azure Kinect) or "recorded" (replay); or
+        hand and arm "emulated_process": the real mode's code path against emulators that
+        `dexdrake real` starts in processes of their own (systems/emulated_devices.py), on
+        real transports and the wall clock, with camera "recorded" or "rendered" (a static
+        scene: the object where the seed places it, rendered; nothing moves it)
 """
 
 import dataclasses as dc
@@ -37,7 +41,7 @@ from dexdrake.hands.allegro_units import NUM_JOINTS as NUM_HAND_JOINTS
 from dexdrake.hands.allegro_units import NM_PER_PWM
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 
-HAND_KINDS = ("sim", "emulated", "hardware")
+HAND_KINDS = ("sim", "emulated", "emulated_process", "hardware")
 CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
 ARM_MODES = ("LOWCMD", "JOINTCTRL")
 PERCEPTION_FAILURE_POLICIES = ("hold", "stop")
@@ -56,7 +60,8 @@ class HandDriver:
     kind: str = "sim"
     interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
     channel: str = "dexdrake_allegro"  # socketcan: "can0"; udp_multicast: the group address
-    port: Optional[int] = None  # udp_multicast: the UDP port (None: python-can's default)
+    # udp_multicast: the UDP port (None: python-can's default; 0, emulated_process only: a free one)
+    port: Optional[int] = None
     bitrate: int = 1_000_000
     device_id: int = 0
     kp: Optional[list[float]] = None  # PWM per rad
@@ -67,8 +72,11 @@ class HandDriver:
     max_target_rate: Optional[float] = None  # rad/s
     limit_margin_rad: Optional[float] = None  # targets stay this far inside the joint limits
     watchdog_timeout_s: Optional[float] = None
+    status_timeout_s: Optional[float] = None  # no status reply for this long (s): fault
+    temperature_timeout_s: Optional[float] = None  # no temperature of a finger for this long (s): fault
     # run the driver loop in its own process (hardware/driver_process.py); None: hardware
-    # yes, emulated no (the simulated-clock HIL steps its drivers in lockstep in-process)
+    # and emulated_process yes, emulated no (the simulated-clock HIL steps its drivers in
+    # lockstep in-process)
     process: Optional[bool] = None
     # with `process`: that process's threads run SCHED_FIFO at this priority (1..99; needs
     # CAP_SYS_NICE or `ulimit -r`, refused at start otherwise), so that the host's load
@@ -147,6 +155,24 @@ class HilWorldConfig:
 
 
 @dc.dataclass
+class RealEpisode:
+    """A supervised real episode (`dexdrake real`): the move to the start pose (the hand's
+    pre-grasp pose), `steps` control periods of the controller, the retreat (the hand opens,
+    then the arm goes back to the start pose), each move at `move_speed` on its fastest
+    joint (and never faster than the drivers' own target rates). Every set-point, the
+    moves' and the controller's, keeps the palm centre and the fingertips inside the
+    workspace box (world frame, m), else the episode ends in a fault stop
+    (systems/workspace.py)."""
+
+    steps: int = 150
+    workspace_lower: list[float] = dc.field(default_factory=lambda: [-0.45, -0.35, 0.0])
+    workspace_upper: list[float] = dc.field(default_factory=lambda: [0.45, 0.35, 0.6])
+    move_speed: float = 0.3  # rad/s, the fastest joint of a move
+    move_tolerance: float = 0.05  # rad: a move ends when every joint is this close to its goal
+    move_timeout_s: float = 30.0  # a move that has not arrived by then is a fault
+
+
+@dc.dataclass
 class PolicyEntry:
     checkpoint: str = ""  # a dexdrake policy checkpoint (.pt); no `policy` entry: the scripted grasp
     feature_set: str = "DexRep"
@@ -166,6 +192,7 @@ class Scenario:
     control_period: float = 0.02  # command / policy period (s)
     drivers: Drivers = dc.field(default_factory=Drivers)
     hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
+    real: RealEpisode = dc.field(default_factory=RealEpisode)
     policy: Optional[PolicyEntry] = None
     rrd: Optional[str] = None  # write a rerun recording of the loop here
 
@@ -177,7 +204,8 @@ class Scenario:
     @property
     def mode(self) -> str:
         """"sim", "hil" or "real" (see the module docstring); valid after validation."""
-        return {"sim": "sim", "emulated": "hil", "hardware": "real"}[self.drivers.hand.kind]
+        return {"sim": "sim", "emulated": "hil", "emulated_process": "real",
+                "hardware": "real"}[self.drivers.hand.kind]
 
 
 def packaged_scenarios() -> list[str]:
@@ -279,7 +307,9 @@ def is_multiple(period: float, step: float) -> bool:
 
 def own_process(driver: HandDriver | ArmDriver) -> bool:
     """Whether a hand or arm driver entry runs its driver loop in its own process."""
-    return driver.kind == "hardware" if driver.process is None else driver.process
+    if driver.process is None:
+        return driver.kind in ("hardware", "emulated_process")
+    return driver.process
 
 
 def driver_configs(s: Scenario, arm_controller_port: int | None = None,
@@ -296,7 +326,8 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None,
     h, a = s.drivers.hand, s.drivers.arm
     hand = AllegroConfig(**given(kp=h.kp, kd=h.kd, pwm_limit=h.pwm_limit, lower=h.lower, upper=h.upper,
                                  max_target_rate=h.max_target_rate, limit_margin_rad=h.limit_margin_rad,
-                                 watchdog_timeout_s=h.watchdog_timeout_s))
+                                 watchdog_timeout_s=h.watchdog_timeout_s, status_timeout_s=h.status_timeout_s,
+                                 temperature_timeout_s=h.temperature_timeout_s))
     arm = Z1Config(**given(host=a.host, local_port=a.local_port if arm_local_port is None else arm_local_port,
                            controller_port=a.controller_port if arm_controller_port is None
                            else arm_controller_port,
@@ -344,7 +375,9 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
              f"drivers.hand.kind ({h.kind}) and drivers.arm.kind ({a.kind}) must match: "
              "the hand's policy joints span the arm and the hand")
     mode = s.mode
-    cameras = {"sim": ("sim",), "hil": ("sim", "rendered"), "real": ("k4a", "recorded")}[mode]
+    emulated_process = h.kind == "emulated_process"
+    cameras = {"sim": ("sim",), "hil": ("sim", "rendered"),
+               "real": ("recorded", "rendered") if emulated_process else ("k4a", "recorded")}[mode]
     _require(c.kind in cameras, source,
              f"drivers.camera.kind {c.kind!r} is not available in {mode} mode "
              f"(use one of {', '.join(cameras)})")
@@ -356,7 +389,11 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(0 <= h.device_id <= 3, source, f"drivers.hand.device_id must be 0..3, got {h.device_id}")
         _require(bool(h.interface) and bool(h.channel), source,
                  "drivers.hand.interface and .channel must be set")
-        _require(h.port is None or 1 <= h.port <= 65535, source, f"drivers.hand.port {h.port} is not a UDP port")
+        _require(h.port is None or 1 <= h.port <= 65535 or (h.port == 0 and emulated_process), source,
+                 f"drivers.hand.port {h.port} is not a UDP port (0, a free one, only with emulated_process)")
+        _require(not emulated_process or h.interface != "virtual", source,
+                 "drivers.hand.interface 'virtual' does not cross processes; an emulated_process hand "
+                 "needs a bus that does (udp_multicast)")
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")
         for name, entry in (("hand", h), ("arm", a)):
@@ -371,7 +408,7 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
             port = getattr(a, name)
             _require(port is None or 0 <= port <= 65535, source,
                      f"drivers.arm.{name} {port} is not a UDP port")
-            _require(port != 0 or mode == "hil", source,
+            _require(port != 0 or a.kind != "hardware", source,
                      f"drivers.arm.{name} 0 (a free port) is only allowed with an emulated arm")
         try:  # the drivers' own checks against the model's and the vendor's limits
             driver_configs(s)
@@ -394,6 +431,13 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")
         _require(c.kind != "recorded" or bool(c.recording), source,
                  "drivers.camera.recording must name a folder or .npz for kind 'recorded'")
+    r = s.real
+    _require(r.steps >= 1 and r.move_speed > 0 and r.move_tolerance > 0 and r.move_timeout_s > 0, source,
+             "real.steps must be >= 1 and real.move_speed, .move_tolerance, .move_timeout_s > 0")
+    _check_vector(r.workspace_lower, 3, "real.workspace_lower", source)
+    _check_vector(r.workspace_upper, 3, "real.workspace_upper", source)
+    _require(all(lo < hi for lo, hi in zip(r.workspace_lower, r.workspace_upper)), source,
+             f"real.workspace_lower {r.workspace_lower} must be below real.workspace_upper {r.workspace_upper}")
     w = s.hil
     _require(w.pwm_torque_scale > 0 and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
              "hil.pwm_torque_scale, .max_lag_s and .reply_timeout_s must be > 0")

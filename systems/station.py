@@ -30,11 +30,16 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   StationFault at its next update, which ends the episode and triggers the safe stop.
 - A non-finite controller output is never sent: ControllerSystem holds the last command
   (systems/command_guard.py, the rule of every mode).
+- real: every command passes `workspace_guard` (systems/workspace.py) before the drivers: one
+  whose palm centre or a fingertip leaves the scenario's workspace box raises StationFault;
+  `Station.send`, the moves around a real episode (systems/real_episode.py), checks the same.
 - Perception failures (a failed camera read, lost tracking that global registration cannot
   recover, a crashed worker) hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
-  at all within `first_pose_timeout_s`, or a pose whose frame is older than
-  `max_pose_age_s` (a registration or a worker that does not finish), raises StationFault.
+  at most `max_pose_age_s` old within `first_pose_timeout_s` (the first, by global
+  registration, may be older: the episode waits for the tracking after it), or once one
+  came, a pose whose frame is older than `max_pose_age_s` (a registration or a worker that
+  does not finish), raises StationFault.
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import multiprocessing
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -145,7 +152,9 @@ class DriverSystem(LeafSystem):
 
     def _send(self, context: Context) -> None:
         if not self.driver.running:
-            raise StationFault(f"{self.label}: the driver is not running (stopped, or never started)")
+            fault = self.driver.state().fault  # a driver process that stopped itself says why
+            raise StationFault(f"{self.label}: the driver is not running "
+                               + (f"({fault})" if fault else "(stopped, or never started)"))
         if self._cmd.HasValue(context):
             self.driver.command_positions(self._cmd.Eval(context))
 
@@ -155,8 +164,13 @@ _WORKER: dict = {}
 
 
 def _worker_init(mesh_path: str) -> None:
+    """The perception worker: niced (+10) below the control loop and the driver processes,
+    so that a global registration's seconds of CPU delay neither."""
+    import os
+
     from dexdrake.hardware.perception import ObjectPoseEstimator
 
+    os.nice(10)
     _WORKER["estimator"] = ObjectPoseEstimator(mesh_path)
 
 
@@ -241,6 +255,9 @@ class PerceptionSystem(LeafSystem):
         self._pending_frame = None
         self._t0: float | None = None
         self.has_pose = False
+        # a pose at most max_pose_age_s old has come: from then on an older one is a fault (the
+        # first, by global registration, may take longer; the tracking after it catches up)
+        self.fresh = False
         self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])  # the last estimate
         self._now = 0.0  # the clock's time at the last poll (simulated or wall)
         self._frame_time = 0.0  # the clock's time of the pending frame
@@ -283,10 +300,14 @@ class PerceptionSystem(LeafSystem):
                 result = {"success": False, "reason": f"perception worker failed: {err}"}
             self._future = None
             self._record(result, self._pending_frame, sim_time)
-        if not self.has_pose and wall - self._t0 > cam.first_pose_timeout_s:
-            raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s")
-        if sim_time is not None and self.has_pose and now - self._pose_time > cam.max_pose_age_s:
-            raise StationFault(f"object pose {now - self._pose_time:.2f} s old (limit {cam.max_pose_age_s} s)")
+        age = now - self._pose_time
+        self.fresh = self.fresh or (self.has_pose and age <= cam.max_pose_age_s)
+        if not self.fresh and wall - self._t0 > cam.first_pose_timeout_s:
+            raise StationFault(f"no object pose within {cam.first_pose_timeout_s} s" if not self.has_pose else
+                               f"no object pose younger than {cam.max_pose_age_s} s within "
+                               f"{cam.first_pose_timeout_s} s")
+        if self.fresh and age > cam.max_pose_age_s:
+            raise StationFault(f"object pose {age:.2f} s old (limit {cam.max_pose_age_s} s)")
         if self._future is None and now >= self._next_request - 1e-9:
             self._next_request = self._due = now + cam.period_s
             try:
@@ -327,15 +348,12 @@ class PerceptionSystem(LeafSystem):
             self.on_result(log)
 
     def wait_for_first_pose(self, check: Callable[[], None] = lambda: None) -> None:
-        """Block until a pose arrives whose frame is at most `max_pose_age_s` old (a global
-        registration slower than that is followed by tracked frames); StationFault after
-        `first_pose_timeout_s`. `check()` runs between polls (e.g. to raise on a driver fault)."""
-        while not (self.has_pose and self._now - self._pose_time <= self.camera.max_pose_age_s):
+        """Block until a pose at most max_pose_age_s old arrives (StationFault after
+        first_pose_timeout_s); `check()` runs between polls (e.g. to raise on a driver fault
+        meanwhile)."""
+        while not self.fresh:
             self.poll()
             check()
-            if self._t0 is not None and time.monotonic() - self._t0 > self.camera.first_pose_timeout_s:
-                raise StationFault(f"no object pose younger than {self.camera.max_pose_age_s} s within "
-                                   f"{self.camera.first_pose_timeout_s} s")
             time.sleep(0.02)
 
     def _init(self, context: Context, state: DiscreteValues) -> None:
@@ -430,6 +448,7 @@ class Station:
     world: object = None  # hil: the HilWorld
     devices: dict = field(default_factory=dict)
     perception: PerceptionSystem | None = None
+    workspace: object = None  # real: the WorkspaceBox every set-point is checked against
     _stop: contextlib.ExitStack | None = None
 
     @property
@@ -437,10 +456,42 @@ class Station:
         return self.scenario.mode
 
     def stop(self) -> None:
-        """Safe stop: drivers first (zero torque / PASSIVE), then emulators and the world."""
-        if self._stop is not None:
-            stack, self._stop = self._stop, None
+        """Safe stop: drivers first (zero torque / PASSIVE), then emulators and the world.
+        Idempotent; in the main thread SIGINT and SIGTERM are blocked while it runs (a signal
+        that comes meanwhile is delivered after it), so no Ctrl-C cuts it short."""
+        if self._stop is None:
+            return
+        stack, self._stop = self._stop, None
+        main = threading.current_thread() is threading.main_thread()
+        blocked = {signal.SIGINT, signal.SIGTERM}
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked) if main else None
+        try:
             stack.close()
+        finally:
+            if previous is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+    def positions(self) -> np.ndarray:
+        """The devices' measured joint positions, policy order (hil/real)."""
+        n = self.hand.num_actuators
+        arm, fingers = self.devices["z1"].state(), self.devices["allegro"].state()
+        for name, st in (("Z1 arm", arm), ("Allegro hand", fingers)):
+            if st.fault is not None:
+                raise StationFault(f"{name} fault: {st.fault} (driver is in its safe stop)")
+        measured = np.concatenate([arm.q, arm.dq, fingers.q, fingers.dq])
+        return (_bus_maps(self.hand)[1] @ measured)[:n]
+
+    def send(self, q: np.ndarray) -> None:
+        """Joint set-points (policy order) straight to the drivers, past the workspace box
+        (StationFault when they leave it): the moves around a real episode."""
+        if self.workspace is not None:
+            why = self.workspace.violation(q)
+            if why is not None:
+                raise StationFault(why)
+        n_arm = len(self.hand.arm_joints)
+        devices = _bus_maps(self.hand)[0] @ np.asarray(q, float)
+        self.devices["z1"].command_positions(devices[:n_arm])
+        self.devices["allegro"].command_positions(devices[n_arm:])
 
     def __enter__(self) -> Station:
         return self
@@ -611,6 +662,15 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
     if world is not None:  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
+    executor = None
+    cam = scenario.drivers.camera
+    if cam.kind != "sim":
+        from dexdrake.objects.library import get_object
+
+        executor = perception_executor(str(get_object(scenario.object).mesh_path))
+        stack.callback(executor.shutdown, wait=False, cancel_futures=True)
+        if start:  # its process's spawn, imports and model set-up, before any driver loop runs
+            executor.submit(time.monotonic).result()
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
@@ -636,6 +696,16 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     S, A = _bus_maps(hand)
     builder = DiagramBuilder()
     select = builder.AddNamedSystem("command_to_devices", MatrixGain(S))
+    workspace = None
+    if scenario.mode == "real":  # every set-point the controller sends keeps the hand in the box
+        from dexdrake.systems.workspace import WorkspaceBox, WorkspaceGuard
+
+        workspace = WorkspaceBox(hand, scenario.real.workspace_lower, scenario.real.workspace_upper)
+        guard = builder.AddNamedSystem("workspace_guard", WorkspaceGuard(workspace, n, StationFault))
+        builder.Connect(guard.get_output_port(), select.get_input_port())
+        builder.ExportInput(guard.get_input_port(), "command")
+    else:
+        builder.ExportInput(select.get_input_port(), "command")
     arm_sys = builder.AddNamedSystem("z1_driver", DriverSystem(z1, n_arm, period, "Z1 arm"))
     hand_sys = builder.AddNamedSystem("allegro_driver",
                                       DriverSystem(allegro, len(hand.hardware_joints), period, "Allegro hand"))
@@ -648,23 +718,18 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     builder.Connect(hand_sys.get_output_port(), mux.get_input_port(1))
     assemble = builder.AddNamedSystem("devices_to_hand_state", MatrixGain(A))
     builder.Connect(mux.get_output_port(), assemble.get_input_port())
-    builder.ExportInput(select.get_input_port(), "command")
     builder.ExportOutput(assemble.get_output_port(), "hand_state")
 
     perception = None
-    cam = scenario.drivers.camera
-    if cam.kind == "sim":
+    if executor is None:
         pose_sys = builder.AddNamedSystem("world_pose", WorldPoseSystem(world, period))
     else:
-        from dexdrake.objects.library import get_object
-
-        read_frame = _camera_reader(scenario, world, stack) if start else _unopened_camera
-        executor = perception_executor(str(get_object(scenario.object).mesh_path))
-        stack.callback(executor.shutdown, wait=False, cancel_futures=True)
+        read_frame = camera_reader(scenario, world, stack) if start else _unopened_camera
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
             read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
-    station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception)
+    station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception,
+                      workspace=workspace)
     station._stop = stack.pop_all()
     return station
 
@@ -679,7 +744,7 @@ def _camera_pose(cam: CameraDriver) -> RigidTransform:
     return look_at(cam.eye, cam.target)
 
 
-def _camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Callable[[], object]:
+def camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Callable[[], object]:
     """A function returning the next RgbdFrame of the configured camera."""
     from dexdrake.hardware.kinect import (
         DepthNoiseModel, DrakeRenderedCamera, K4ADevice, LatestFrame, RecordedSequence,
@@ -688,13 +753,16 @@ def _camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Ca
 
     cam = scenario.drivers.camera
     X_WC = _camera_pose(cam)
-    if cam.kind == "rendered":
+    if cam.kind == "rendered":  # hil: the world's object; real (emulated_process): a static scene
+        from dexdrake.systems.scene import ObjectPlacement
+
         info = get_object(scenario.object)
         source = DrakeRenderedCamera(X_WC, {info.name: info.mesh_path}, cam.width, cam.height,
                                      DepthNoiseModel() if cam.depth_noise else None, scenario.seed)
+        static = ObjectPlacement.from_seed(scenario.seed).pose(info)
 
         def read():
-            source.set_object_pose(info.name, world.object_pose())
+            source.set_object_pose(info.name, static if world is None else world.object_pose())
             return source.read()
 
         return read

@@ -129,7 +129,7 @@ BAD = [
     (["demos", "replay", "--hand", "adroit", "--demos", "d", "--out", "folder"], "--out"),
     (["encoder", "train", "--lr", "0"], "--lr"),
     (["real", "--config", "bad.yaml"], "bad.yaml"),
-    (["real", "--config", REAL_YAML], "moves the robot; check it first with --dry-run"),
+    (["real", "--config", REAL_YAML], "a real episode moves the robot and waits for the operator's Enter"),
     (["hil", "--config", "missing.yaml"], "missing.yaml"),
     (["eval", "--policy", "missing.pt"], "missing.pt"),
     (["train", "dagger", "--out", "o", "--hand", "nohand", "--objects", "can_soda"], "unknown hand"),

@@ -22,9 +22,9 @@ def _shipped(hand: str) -> str:
 
 
 def _real(path: Path) -> None:
-    """`dexdrake real` runs no episode in this version (dry run only): the station logger in
-    real mode is fed the measured states of a short simulated Allegro-on-Z1 episode, as the
-    real loop would feed it (no world truth: the task is scored on the perceived pose)."""
+    """The station logger in real mode fed the measured states of a short simulated
+    Allegro-on-Z1 episode, as the real loop feeds it (no world truth: the task is scored on
+    the perceived pose); tests/test_real_episode.py records a real episode end to end."""
     from dexdrake.hands.description import load_hand
     from dexdrake.hardware.safety import period_stats
     from dexdrake.systems.grasp_env import GraspEnv

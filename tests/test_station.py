@@ -29,7 +29,7 @@ def test_shipped_scenarios_load():
 
 @pytest.mark.parametrize("text, message", [
     ("drivers: {hand: {kindd: sim}}", "unknown to the schema"),
-    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, hardware"),
+    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, emulated_process, hardware"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: sim}}", "must match"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: k4a}}",
      "not available in hil mode"),
@@ -652,7 +652,7 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
     for line in ("CAN virtual", "Z1 127.0.0.1", "controller port bound",
                  "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
-                 "diagram (built, not run): station (real: command_to_devices, z1_driver, allegro_driver, "
+                 "diagram (built, not run): station (real: command_to_devices, workspace_guard, z1_driver, allegro_driver, "
                  "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
                  "all devices answered"):
         assert line in out, out
@@ -992,7 +992,8 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
             Path(path).write_text(Path(path).read_text().replace(  # normal scheduling: no privilege
                 "interface: virtual", f"interface: udp_multicast\n    port: {port}").replace(
                 "realtime_priority: 50", "realtime_priority: null").replace(  # a loaded host
-                "watchdog_timeout_s: 0.05", "watchdog_timeout_s: 1.0"))
+                "watchdog_timeout_s: 0.05", "watchdog_timeout_s: 1.0").replace(  # the emulated arm rests
+                "workspace_lower: [-0.45, -0.35, 0.0]", "workspace_lower: [-0.7, -0.35, -0.3]"))  # hand hanging
             scenario = load_scenario(path)
             with make_station(scenario) as station:
                 drivers = [station.devices["allegro"], station.devices["z1"]]

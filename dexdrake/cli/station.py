@@ -1,10 +1,14 @@
 """Sub-commands `hil` (a full grasp episode against the emulated devices) and `real`
 (`--dry-run`: connectivity checks, the plan and the mode's whole diagram, built around
-drivers that are never started; moves nothing)."""
+drivers that are never started; moves nothing. Without it: the dry run's checks, the plan,
+the operator's confirmation, then a supervised episode, systems/real_episode.py, ending in
+the safe stop; exit 0 finished, 1 fault stop, 130 interrupted)."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +33,10 @@ def add_parser(subparsers) -> None:
     real.add_argument("--config", required=True, help="scenario (mode real): a packaged name (real) or a YAML path")
     real.add_argument("--dry-run", action="store_true",
                       help="check connectivity, print limits, the plan and the diagram; move nothing")
+    real.add_argument("--yes", action="store_true",
+                      help="start the episode without asking (scripted use); else Enter on a terminal confirms")
+    real.add_argument("--steps", type=argtypes.count, help="control steps of the episode (default: the scenario's real.steps)")
+    real.add_argument("--rrd", type=argtypes.output_file(".rrd"), help="write a rerun recording of the episode to this .rrd file")
     real.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     real.set_defaults(func=run_real)
 
@@ -87,15 +95,113 @@ def run_hil(args: argparse.Namespace) -> int:
 
 
 def run_real(args: argparse.Namespace) -> int:
+    from dexdrake.systems.emulated_devices import Emulators, running_emulators
     from dexdrake.systems.scenario import ScenarioError, load_scenario
 
     scenario = load_scenario(args.config)
     if scenario.mode != "real":
         raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `real` needs hardware drivers")
-    if not args.dry_run:
-        raise DexdrakeError("running the real station moves the robot; check it first with --dry-run "
-                            "(a supervised real episode is not enabled in this version)")
-    return dry_run(scenario, args.allow_scenario_mismatch)
+    if not (args.dry_run or args.yes or (sys.stdin is not None and sys.stdin.isatty())):
+        raise DexdrakeError("a real episode moves the robot and waits for the operator's Enter: run it "
+                            "from a terminal, or pass --yes for scripted use")
+    emulators = Emulators() if scenario.drivers.hand.kind == "emulated_process" else None
+    outcome = None
+    try:
+        with contextlib.ExitStack() as stack:
+            if emulators is not None:
+                scenario = stack.enter_context(running_emulators(scenario, emulators))
+                print(f"emulators started in their own processes (pids {emulators.pids}): Allegro on "
+                      f"{scenario.drivers.hand.interface}:{scenario.drivers.hand.channel} port "
+                      f"{scenario.drivers.hand.port}, Z1 on UDP {scenario.drivers.arm.controller_port} -> "
+                      f"{scenario.drivers.arm.local_port}")
+            code = dry_run(scenario, args.allow_scenario_mismatch)
+            if args.dry_run or code != 0:
+                return code
+            outcome = _supervised(scenario, args)
+    except KeyboardInterrupt:
+        _report_stop(emulators)
+        print("dexdrake real: interrupted: the devices were stopped safely", file=sys.stderr)
+        return 130
+    _report_stop(emulators)
+    if outcome.fault is not None:
+        print(f"dexdrake real: fault stop in {outcome.phase}: {outcome.fault}", file=sys.stderr)
+        return 1
+    print("real: finished; the devices were stopped safely")
+    return 0
+
+
+def _report_stop(emulators) -> None:
+    """What the safe stop did, and for emulated devices the state they were left in."""
+    print("safe stop: hand zero torque, then servo off; arm held, then PASSIVE")
+    if emulators is not None and emulators.processes:
+        final = emulators.final
+        hand, arm = final.get("hand"), final.get("arm")
+        print("  emulated devices after it: hand " + ("not reported" if hand is None else
+              f"servo {'ON' if hand['servo_on'] else 'off'}, max |PWM| {hand['max_abs_pwm']:.0f}")
+              + "; arm " + ("not reported" if arm is None else arm["fsm"]))
+
+
+def _confirm(yes: bool) -> None:
+    """The operator's Enter (or --yes); DexdrakeError when stdin gives none."""
+    if yes:
+        print("confirmed by --yes")
+        return
+    try:
+        input("press Enter to start (Ctrl-C aborts): ")
+    except EOFError:
+        raise DexdrakeError("no confirmation (stdin closed); nothing was moved") from None
+
+
+def _supervised(scenario, args: argparse.Namespace):
+    """The plan, the confirmation, and the supervised episode in the station's context (its
+    exit is the safe stop, whatever happens inside)."""
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.controllers import make_controller
+    from dexdrake.systems.real_episode import run_supervised
+    from dexdrake.systems.station import make_station
+    from dexdrake.systems.workspace import WorkspaceBox
+
+    real, hand = scenario.real, load_hand(scenario.hand)
+    steps = args.steps or real.steps
+    rrd = args.rrd or scenario.rrd
+    # the dry run has printed this policy's warnings already
+    controller, description = make_controller(scenario, args.allow_scenario_mismatch, warn=lambda line: None)
+    start = hand.pregrasp_vector()
+    box = WorkspaceBox(hand, real.workspace_lower, real.workspace_upper)
+    n_arm = len(hand.arm_joints)
+    print(f"plan: object {scenario.object} (seed {scenario.seed}), controller {description}")
+    print(f"  start pose: arm {np.round(start[:n_arm], 3).tolist()} rad, hand open (pre-grasp); palm centre at "
+          f"{np.round(box.positions(start)['palm'], 3).tolist()} m")
+    print(f"  workspace box {real.workspace_lower} .. {real.workspace_upper} m (palm centre and fingertips; "
+          "a set-point outside it is a fault stop)")
+    print(f"  moves: the Z1 arm ({n_arm} joints) and the Allegro hand ({hand.num_actuators - n_arm} joints): to the "
+          f"start pose at {real.move_speed} rad/s, {steps} control steps ({steps * scenario.control_period:.1f} s), "
+          "then retreat (hand opens, arm back to the start pose), then the safe stop")
+    why = box.violation(start)
+    if why is not None:
+        raise DexdrakeError(f"the start pose leaves the workspace box: {why}")
+    _confirm(args.yes)
+    logger = None
+    if rrd:
+        from dexdrake.systems.rerun_logger import RerunLogger
+
+        logger = RerunLogger(rrd, scenario.mode, scenario=scenario)
+    try:
+        with make_station(scenario) as station:
+            if logger is not None:
+                logger.attach(station)
+            outcome = run_supervised(station, controller, steps, logger)
+    finally:
+        if logger is not None:
+            logger.close()
+    if outcome.episode is not None:
+        stats = outcome.episode.stats
+        for key, name in (("can", "CAN (Allegro PD loop)"), ("z1", "Z1 UDP loop"), ("policy", "policy/control")):
+            if key in stats:
+                print("  " + _fmt_rate(name, stats[key]))
+    if rrd:
+        print(f"  recording: {rrd}")
+    return outcome
 
 
 def dry_run(scenario, allow_scenario_mismatch: bool = False) -> int:
@@ -174,16 +280,13 @@ def dry_run(scenario, allow_scenario_mismatch: bool = False) -> int:
     except HardwareError as err:
         ok = False
         print(f"  {where}: FAILED: {err}")
-    # camera: one frame
+    # camera: one frame, read as the station reads it
     try:
-        from dexdrake.hardware.kinect import K4ADevice, RecordedSequence
+        from dexdrake.systems.station import camera_reader
 
-        source = RecordedSequence(c.recording) if c.kind == "recorded" else K4ADevice(c.device_id, warmup_frames=1)
-        try:
-            frame = source.read()
+        with contextlib.ExitStack() as camera:
+            frame = camera_reader(scenario, None, camera)()
             print(f"  camera {c.kind}: OK, frame {frame.color.shape[1]}x{frame.color.shape[0]}")
-        finally:
-            source.close()
     except DexdrakeError as err:
         ok = False
         print(f"  camera {c.kind}: FAILED: {err}")

@@ -18,7 +18,7 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
     checkpoints): the plant step and control period (s), the drivers' target limits in
     policy order (systems/target_limits.py: lower, upper, max_rate (inf: none),
     velocity_feedforward), the perception model the features see the object pose through
-(dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
+    (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
     lower, upper, rate, feedforward = target_limits(s, load_hand(s.hand))
     return {"time_step": s.time_step, "control_period": s.control_period,
             "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),

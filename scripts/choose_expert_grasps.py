@@ -4,7 +4,8 @@
 
 Each variant (overrides of the hand's GraspScript: the open and closed poses, how far the
 fingers close, the grasp centre's depth, reach and floor) runs the expert (ReactiveGrasp) on every training
-object for the given seeds; the variant with the most successes wins (ties: the earlier
+object for the given seeds (the variants whose named grasp poses the hand has); the variant
+with the most successes wins (ties: the earlier
 variant, the hand's default first). A variant stops trying seeds once it can no longer beat
 the best so far (`best_variant`), which chooses exactly as trying every seed would.
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
@@ -84,7 +85,13 @@ def _trial_object(args: tuple[str, str, list[int], int]) -> tuple[str, str, dict
         script = replace(default, **VARIANTS[variant])
         return env.rollout(lambda e: ReactiveGrasp(e, script), seed).success
 
-    return name, *best_variant(list(VARIANTS), seeds, succeeds)
+    return name, *best_variant(hand_variants(env.scene.hand), seeds, succeeds)
+
+
+def hand_variants(hand) -> list[str]:
+    """The variants `hand` can take: those whose named grasp poses its description has."""
+    return [name for name, v in VARIANTS.items()
+            if all(v.get(key, "") in ("", *hand.grasp_poses) for key in ("closed_pose", "open_pose"))]
 
 
 def main() -> None:
@@ -99,6 +106,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
 
+    from dexdrake.hands.description import load_hand
     from dexdrake.objects.library import list_objects
     from dexdrake.systems.reactive_grasp import expert_grasps_path
 
@@ -112,13 +120,15 @@ def main() -> None:
                              "tries": {v: len(ok) for v, ok in tried.items()}}
     objects = {name: objects[name] for name in names}
     for name, o in objects.items():
-        print(f"{name:18s} {o['variant']:10s} " + " ".join(f"{v}={o['successes'][v]}/{o['tries'][v]}" for v in VARIANTS))
+        print(f"{name:18s} {o['variant']:10s} " + " ".join(f"{v}={o['successes'][v]}/{o['tries'][v]}"
+                                                          for v in o["successes"]))
     chosen = sum(o["successes"][o["variant"]] for o in objects.values())
     tries = sum(sum(o["tries"].values()) for o in objects.values())
-    print(f"chosen per object: {chosen}/{len(names) * len(seeds)}; {tries} of {len(names) * len(seeds) * len(VARIANTS)} "
+    variants = {v: VARIANTS[v] for v in hand_variants(load_hand(args.hand))}
+    print(f"chosen per object: {chosen}/{len(names) * len(seeds)}; {tries} of {len(names) * len(seeds) * len(variants)} "
           "trials run (the rest could not change a choice)")
     table = {"hand": args.hand, "command": f"python {' '.join(sys.argv)}", "seeds": seeds,
-             "horizon": args.horizon, "variants": VARIANTS, "objects": objects}
+             "horizon": args.horizon, "variants": variants, "objects": objects}
     out = expert_grasps_path(args.hand)
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(table, indent=1) + "\n")

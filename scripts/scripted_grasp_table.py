@@ -5,7 +5,7 @@
 
 Writes a markdown table (object, category, successes / seeds, mean max lift, CPU ms per
 controller call) with per-category summary rows, names the command which made
-it, and prints it.
+it, and prints it; with --out also OUT.csv (one row per object, then one per category).
 """
 
 from __future__ import annotations
@@ -64,6 +64,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from dexdrake.objects.library import get_object, list_objects
+    from dexdrake.systems.env_factory import training_scenario
 
     names = args.objects.split(",") if args.objects else [o.name for o in list_objects(args.split)]
     jobs = [(args.hand, args.controller, n, args.seeds, args.horizon) for n in names]
@@ -74,6 +75,7 @@ def main() -> None:
             rows[name] = (ok, lifts, ms)
     wall = time.perf_counter() - start
 
+    scenario = training_scenario(args.hand)
     title = "Scripted grasp" if args.controller == "scripted" else "State-driven expert (ReactiveGrasp)"
     lines = [
         f"# {title} success ({args.hand}, {args.split if not args.objects else 'selected'} objects)",
@@ -83,6 +85,10 @@ def main() -> None:
         f"control steps at 50 Hz; success = object within 10 cm of the target 0.15 m above its start "
         f"for 50 consecutive steps. Wall time {wall / 60:.1f} min with {args.workers} workers; "
         "ms = CPU time per controller call.",
+        "",
+        f"Scenario: training's (`training_scenario`: {1e3 * scenario.time_step:g} ms plant step, "
+        f"{1e3 * scenario.control_period:g} ms control period, the drivers' target limits); the expert's "
+        f"grasp variants: models/weights/{args.hand}_expert_grasps.json (none: the hand's default).",
         "",
         "| object | category | success | rate | mean max lift (m) | ms |",
         "|---|---|---|---|---|---|",
@@ -106,9 +112,16 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.out:
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.out)
+        csv_rows = ["kind,name,category,successes,episodes,success_pct,mean_max_lift_m,ms_per_call"]
+        for name in names:
+            ok, lifts, ms = rows[name]
+            csv_rows.append(f"object,{name},{get_object(name).category},{sum(ok)},{len(ok)},"
+                            f"{100 * sum(ok) / len(ok):.1f},{sum(lifts) / len(lifts):.4f},{ms:.3f}")
+        csv_rows += [f"category,,{c},{sum(ok)},{len(ok)},{100 * sum(ok) / len(ok):.1f},," for c, ok in sorted(by_category.items())]
+        for path, body in ((args.out, text), (args.out.with_suffix(".csv"), "\n".join(csv_rows) + "\n")):
+            tmp = path.with_suffix(path.suffix + ".tmp")
+            tmp.write_text(body)
+            tmp.replace(path)
 
 
 if __name__ == "__main__":

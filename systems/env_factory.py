@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.task import TaskSpec
 
 
@@ -22,6 +23,7 @@ class GraspEnvFactory:
     horizon: int = 200
     object_from_seed: bool = False  # reset(seed) runs objects[seed % len(objects)] (balanced training batches)
     task: TaskSpec = TaskSpec()  # reward and success criterion
+    perception: PerceptionModel = PerceptionModel()  # how the features see the object pose
 
     def __post_init__(self) -> None:
         if not self.objects:
@@ -32,8 +34,9 @@ class GraspEnvFactory:
     @property
     def scenario(self):
         """The sim Scenario the envs run (the defaults' plant step, control period and driver
-        limits for `hand`); what training records in its checkpoints (`scenario_record`)."""
-        return training_scenario(self.hand, self.objects[0])
+        limits for `hand`, this factory's perception model); what training records in its
+        checkpoints (`scenario_record`)."""
+        return training_scenario(self.hand, self.objects[0], self.perception)
 
     def __call__(self):
         from dexdrake.systems.grasp_env import GraspEnv
@@ -43,12 +46,14 @@ class GraspEnvFactory:
         return ObjectFromSeed(env) if self.object_from_seed else env
 
 
-def training_scenario(hand: str, object_name: str | None = None):
+def training_scenario(hand: str, object_name: str | None = None, perception: PerceptionModel = PerceptionModel()):
     """The sim Scenario of training, evaluation and the demo for `hand` and `object_name`
-    (None: the default object): the Scenario defaults (systems/scenario.py) for the rest."""
+    (None: the default object) seeing the object through `perception` (default: the true
+    pose): the Scenario defaults (systems/scenario.py) for the rest."""
     from dexdrake.systems.scenario import Scenario
 
-    return Scenario(name="training", hand=hand, **({} if object_name is None else {"object": object_name}))
+    return Scenario(name="training", hand=hand, perception=perception,
+                    **({} if object_name is None else {"object": object_name}))
 
 
 class ObjectFromSeed:
@@ -65,11 +70,13 @@ class ObjectFromSeed:
 
 
 def env_factory_for_policy(
-    policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec()
+    policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec(),
+    perception: PerceptionModel = PerceptionModel(),
 ) -> GraspEnvFactory:
-    """The factory matching a policy's recorded hand and feature set (`check_policy_fits`)."""
+    """The factory matching a policy's recorded hand and feature set (`check_policy_fits`),
+    its envs seeing the object through `perception`."""
     from dexdrake.learn.policy import check_policy_fits
 
     hand, feature_set = policy_config.hand, policy_config.feature_set
     check_policy_fits(policy_config, hand, feature_set, "the policy")
-    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task)
+    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task, perception)

@@ -3,8 +3,11 @@
 Built from a sim Scenario (systems/scenario.py): the sim station of every mode, its plant
 step, control period and the drivers' target limits. Actions are normalised joint
 set-points in [-1, 1] over each joint's range (policy order). Each `step` holds the
-set-point for one control period of the plant and scores the step with `dexdrake.task`. Observations are the selected DexRep feature set (hand state always
-included); with `feature_set=None` the observation is the hand state [q; v] alone.
+set-point for one control period of the plant and scores the step with `dexdrake.task`.
+Observations are the selected DexRep feature set (hand state always included), computed at
+the object pose the scenario's perception model delivers (dexdrake/perceived_pose.py: pose
+noise, frame period and latency, drawn from the episode seed); the reward and success use
+the true pose. With `feature_set=None` the observation is the hand state [q; v] alone.
 """
 
 from __future__ import annotations
@@ -12,12 +15,13 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import Simulator
 
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
+from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.systems.command_guard import CommandGuard
 from dexdrake.systems.diagram import BuiltDiagram, build_diagram
@@ -46,6 +50,8 @@ class GraspEnv:
         self.scenario, self.feature_set, self.horizon, self.task = scenario, feature_set, horizon, task
         self.objects = objects or [scenario.object]
         self._scenes: dict[str, tuple[BuiltDiagram, Simulator, ObjectGeometry]] = {}
+        self._perceived = (None if scenario.perception.is_exact
+                           else PerceivedPose(scenario.perception, scenario.control_period))
         self._use(self.objects[0])
         self._mid, self._half = self.scene.hand.action_map()
         self.command_guard = CommandGuard(*self.scene.hand.joint_limits())  # counts bad commands of the current episode
@@ -88,6 +94,8 @@ class GraspEnv:
         self.steps = 0
         self.q_command = self.scene.hand_positions(self.plant_context)
         self.command_guard.reset_counts()
+        if self._perceived is not None:
+            self._perceived.reset(seed)
         self._observation = self.observation()
         return self._observation
 
@@ -149,12 +157,14 @@ class GraspEnv:
         state without a feature set. Its extractor runs on the plant's own context, whose
         kinematics the reward then reuses: reading the port would evaluate them again on the
         system's private context, about 6 % more CPU per step (scripts/bench_features_port.py).
-        On the fast path its closest-point query also gives the fingertip distances (the
-        fingertips are DexRep points), so the reward makes no query of its own."""
+        On the fast path at the true pose its closest-point query also gives the fingertip
+        distances (the fingertips are DexRep points), so the reward makes no query of its own.
+        Called once per control step (the perception model takes its frames here)."""
         if self._features is None:
             return self.hand_state()
-        features, closest = self._features.with_closest(self.plant_context, self.scene.object_pose(self.plant_context))
-        if closest is not None and self._tip_rows is not None and self._features.path == "fast":
+        features, closest = self._features.with_closest(self.plant_context, self.seen_object_pose())
+        if (closest is not None and self._tip_rows is not None and self._features.path == "fast"
+                and self._perceived is None):
             self._tips = np.maximum(closest.distance[self._tip_rows], 0.0)
             self._tips_at = self.scene.plant.GetPositions(self.plant_context)
         return features
@@ -169,6 +179,14 @@ class GraspEnv:
 
     def object_pose(self) -> RigidTransform:
         return self.scene.object_pose(self.plant_context)
+
+    def seen_object_pose(self) -> RigidTransform:
+        """The object pose the features see now: the true one, or the perception model's."""
+        X_WO = self.object_pose()
+        if self._perceived is None:
+            return X_WO
+        p, R = self._perceived(self.context.get_time(), X_WO.translation(), X_WO.rotation().matrix())
+        return RigidTransform(RotationMatrix(R), p)
 
     def object_position(self) -> np.ndarray:
         return self.object_pose().translation().copy()

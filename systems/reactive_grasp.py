@@ -7,7 +7,9 @@ fingertip-to-surface distances, object height), so it can label any state a lear
 visits (DAgger) and re-tries when a grasp fails:
 
 - fingers closed on the object near the grasp point (thumb and another fingertip touching,
-  or settled well closed), or the object already lifted: lift up from where the hand is,
+  or settled well closed), or the object already lifted (above its start and, where the
+  hand's rules say so, near a fingertip: one dropped onto its side rests higher without
+  being in the hand, and a lift that steers it back would chase it): lift up from where the hand is,
   back over the placement range if the object has left it, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
   object or the table): close the fingers; fingers that have started closing keep closing
@@ -71,7 +73,8 @@ class ReactiveRules:
     closed: float = 0.35  # closure fraction above which the fingers count as closed
     missed: float = 0.9  # fingers this closed without holding have missed
     settled_speed: float = 1.0  # fingers slower than this (rad/s, largest joint) have settled
-    lifted: float = 0.01  # object this far above its start is lifted (m)
+    lifted: float = 0.01  # object this far above its start is lifted (m) ...
+    in_hand: float = float("inf")  # ... with a fingertip within this of its surface (m; inf: its height alone)
     replan_shift: float = 0.003  # re-plan when the grasp point moved this far (m) ...
     replan_turn: float = 0.03  # ... or the palm's grasp rotation turned this far (rad), until the fingers close
     lift_steps: int = 3  # IK steps of the lift set-point
@@ -146,11 +149,12 @@ class ReactiveGrasp(ScriptedGrasp):
         n = len(self.q_open)
         q, v = state[:n], state[n:]
         p_obj = env.object_position()
-        lifted = p_obj[2] - self.p_start[2] > r.lifted
+        tips = env.fingertip_distances()
+        lifted = p_obj[2] - self.p_start[2] > r.lifted and float(np.min(tips)) < r.in_hand
         closure = self.closure(q)
         offset = self.ik.palm_pose(q[: self.n_arm])[0] - self.grasp_point
         above, aside = offset[2], float(np.linalg.norm(offset[:2]))
-        touch = env.fingertip_distances() < r.touch
+        touch = tips < r.touch
         thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
         settled = float(np.max(np.abs(v[self._fingers]))) < r.settled_speed
         arm_stopped = float(np.max(np.abs(v[: self.n_arm]))) < r.stopped_speed

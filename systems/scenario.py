@@ -11,7 +11,7 @@ emulator whose joint dynamics come from a Drake plant) or real hardware.
 Every mode steps its plant (the sim station, the HIL world, training's GraspEnv) at the
 scenario's `time_step` (5 ms by default) and runs its controller every `control_period`
 (20 ms). `scenario_record` is the part a policy's behaviour depends on (step, period, the
-drivers' target limits, noise); training stores it in the checkpoint and
+drivers' target limits, the perception model, noise); training stores it in the checkpoint and
 `check_policy_scenario` compares it with the scenario a policy is run under (both in
 systems/scenario_record.py).
 
@@ -37,6 +37,7 @@ import yaml
 from pydrake.common.yaml import yaml_load_typed
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.hands.allegro_units import NUM_JOINTS as NUM_HAND_JOINTS
 from dexdrake.hands.allegro_units import NM_PER_PWM
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
@@ -193,6 +194,10 @@ class Scenario:
     drivers: Drivers = dc.field(default_factory=Drivers)
     hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
     real: RealEpisode = dc.field(default_factory=RealEpisode)
+    # how the features see the object pose in sim mode (dexdrake/perceived_pose.py: the paper's
+    # pose noise, the perception pipeline's frame period and latency); in hil and real the
+    # camera pipeline is the perception and this entry is what its policy was trained under
+    perception: PerceptionModel = dc.field(default_factory=PerceptionModel)
     policy: Optional[PolicyEntry] = None
     rrd: Optional[str] = None  # write a rerun recording of the loop here
 
@@ -438,6 +443,8 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     _check_vector(r.workspace_upper, 3, "real.workspace_upper", source)
     _require(all(lo < hi for lo, hi in zip(r.workspace_lower, r.workspace_upper)), source,
              f"real.workspace_lower {r.workspace_lower} must be below real.workspace_upper {r.workspace_upper}")
+    problems = s.perception.problems(s.control_period)
+    _require(not problems, source, "perception." + "; perception.".join(problems))
     w = s.hil
     _require(w.pwm_torque_scale > 0 and w.max_lag_s > 0 and w.reply_timeout_s > 0, source,
              "hil.pwm_torque_scale, .max_lag_s and .reply_timeout_s must be > 0")

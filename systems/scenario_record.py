@@ -3,10 +3,12 @@ check of it against the scenario the policy is about to run under."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 from dexdrake.hands.description import load_hand
+from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.systems.scenario import Scenario, ScenarioError
 from dexdrake.systems.target_limits import target_limits
 
@@ -15,11 +17,13 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
     """What a policy trained or run under `s` depends on, as plain data (stored in policy
     checkpoints): the plant step and control period (s), the drivers' target limits in
     policy order (systems/target_limits.py: lower, upper, max_rate (inf: none),
-    velocity_feedforward) and the camera's depth noise (rendered cameras only)."""
+    velocity_feedforward), the perception model the features see the object pose through
+    (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
     lower, upper, rate, feedforward = target_limits(s, load_hand(s.hand))
     return {"time_step": s.time_step, "control_period": s.control_period,
             "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),
                               "velocity_feedforward": feedforward.tolist()},
+            "perception": dataclasses.asdict(s.perception),
             "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise}
 
 
@@ -29,7 +33,8 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     `scenario_record`) with `s`, the one it is about to run under. A different plant step or
     control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
     warning lines to print: those overridden mismatches, and a difference in the target
-    limits (which the policy may tolerate)."""
+    limits or the perception model (which the policy may tolerate; a record without one was
+    trained on the exact pose)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
             for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]
@@ -44,4 +49,7 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     elif trained["target_limits"] != run["target_limits"]:
         warnings.append(f"warning: {checkpoint} was trained under other target limits or rates "
                         "than this scenario's drivers apply")
+    if trained.get("perception", dataclasses.asdict(PerceptionModel())) != run["perception"]:
+        warnings.append(f"warning: {checkpoint} was trained under another perception model (pose noise, "
+                        f"frame period, latency) than this scenario's: {trained.get('perception')}")
     return warnings

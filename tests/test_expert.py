@@ -131,6 +131,29 @@ def test_a_hand_blocked_above_the_grasp_closes_though_its_arm_jitters(can_env):
     assert phases == ["close", "descend"]
 
 
+def test_an_object_resting_higher_away_from_the_fingers_is_not_lifted_for_the_allegro():
+    # Dropped onto its side a box rests higher than it started; the Allegro's rules count it
+    # lifted only near a fingertip, so its expert re-grasps instead of lifting an empty hand
+    # and steering it after the object (which ran away from it).
+    from dataclasses import replace
+
+    env = GraspEnv(training_scenario("allegro_z1", "box_cube"), horizon=5)
+    env.reset(0)
+    expert = ReactiveGrasp(env)
+    by_height = ReactiveGrasp(env, rules=replace(expert.rules, in_hand=float("inf")))  # the height alone
+    plant, ctx = env.scene.plant, env.plant_context
+    X = plant.GetFreeBodyPose(ctx, env.scene.object_body)
+    plant.SetFreeBodyPose(ctx, env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0.0, 0.0, 0.02]))
+    q = plant.GetPositions(ctx)
+    q[env.scene.q_index] = expert.q_open + 0.4 * (expert.q_closed - expert.q_open)  # fingers half closed, in the air
+    plant.SetPositions(ctx, q)
+    assert env.fingertip_distances().min() > expert.rules.in_hand == 0.03
+    expert(env)
+    assert expert.phase != "lift"
+    by_height(env)
+    assert by_height.phase == "lift"
+
+
 def test_ik_steps_keep_joints_on_their_limits_and_still_reach(can_env):
     # A grasp low on the table needs ARTy on its lower limit and the palm tilted: a step that
     # ignored the limit would turn the palm back and leave the grasp centre high.
@@ -253,17 +276,19 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
         reactive_grasp._expert_grasps.cache_clear()
 
 
-def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant():
+@pytest.mark.parametrize("hand_name", ["adroit", "allegro_z1"])
+def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant(hand_name, load_script):
     from dexdrake.hands.description import load_hand
     from dexdrake.objects.library import list_objects
     from dexdrake.systems import reactive_grasp
 
     reactive_grasp._expert_grasps.cache_clear()
-    table = reactive_grasp._expert_grasps("adroit")
+    table = reactive_grasp._expert_grasps(hand_name)
     assert table["command"].startswith("python scripts/choose_expert_grasps.py")
     assert not set(table["seeds"]) & set(range(10))  # the expert table's seeds 0..9 stay unseen by the choice
     assert {o.name for o in list_objects("train")} == set(table["objects"])
-    hand = load_hand("adroit")
+    hand = load_hand(hand_name)
+    assert list(table["variants"]) == load_script("choose_expert_grasps").hand_variants(hand)
     for name, entry in table["objects"].items():
         counts = entry["successes"]
         assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())

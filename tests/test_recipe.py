@@ -52,6 +52,16 @@ def test_a_recipe_mistake_is_refused_in_one_line_before_any_work(tmp_path, capsy
     assert not out.exists()
 
 
+def test_a_perception_model_the_control_loop_cannot_run_is_refused_in_one_line_before_any_work(tmp_path, capsys):
+    path, out = tmp_path / "r.yaml", tmp_path / "run"
+    path.write_text("perception: {period_s: 0.03}")  # frames between control steps
+    assert main(["train", "recipe", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dexdrake train recipe: error: recipe field: perception.period_s (0.03) must be 0 or a whole "
+                          "multiple of the control period (0.02)") and err.count("\n") == 1
+    assert not out.exists()
+
+
 def test_changed_fields_are_named_and_attributed_to_the_stages_that_read_them():
     old = recipe_dict(load_recipe(TINY))
     new = json.loads(json.dumps(old))
@@ -107,6 +117,10 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     assert (weights / "tiny_policy.pt").read_bytes() == (out / "choose" / "chosen.pt").read_bytes()
     _, meta = load_policy(weights / "tiny_policy.pt")
     assert meta["updates"] == 1 and "validation seeds" in meta["selection"] and meta["recipe_stage"] == "dapg1"
+    perception = recipe_dict(recipe)["perception"]  # the training scenario, its noise included, recorded
+    assert perception["pose_noise_position_m"] == 0.02 and perception["latency_s"] == 0.04
+    assert meta["scenario"]["perception"] == perception and manifest["scenario"] == meta["scenario"]
+    assert load_policy(out / "dagger" / "dagger_policy.pt")[1]["scenario"] == meta["scenario"]
     for name in ("eval_tiny_seen.md", "eval_tiny_unseen.csv", "tiny_policy_expert.md", "tiny_policy_dagger.png",
                  "tiny_policy_dapg.csv", "tiny_policy_choice.png"):
         assert (weights / name).stat().st_size > 0, name

@@ -9,6 +9,7 @@ import argparse
 import hashlib
 import json
 import shlex
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -189,12 +190,18 @@ def policy_config_from_metadata(metadata: dict[str, Any], action_dim: int, obs_d
     return config
 
 
-def _scenario_record(hand: str) -> dict[str, Any]:
-    """The record of the sim scenario training runs `hand` under (stored in checkpoints)."""
+def _scenario_record(hand: str, perception=None, source: str = "the training scenario") -> dict[str, Any]:
+    """The record of the sim scenario training runs `hand` under, seeing the object through
+    `perception` (a PerceptionModel; None: the true pose), stored in checkpoints; a
+    perception model the scenario refuses is refused here, before any work."""
+    from dexdrake.perceived_pose import PerceptionModel
     from dexdrake.systems.env_factory import training_scenario
+    from dexdrake.systems.scenario import validate_scenario
     from dexdrake.systems.scenario_record import scenario_record
 
-    return scenario_record(training_scenario(hand))
+    scenario = training_scenario(hand, perception=perception or PerceptionModel())
+    validate_scenario(scenario, source)
+    return scenario_record(scenario)
 
 
 def dataset_summary(metadata: dict[str, Any]) -> dict[str, Any]:
@@ -370,8 +377,9 @@ def cmd_train_recipe(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     command = command_line(["train", "recipe", str(args.recipe)], args,
                            ["out", "ship", "weights", "workers", "backend", "address", "threads"])
-    runtime = Runtime(GraspEnvFactory, env_factory_for_policy, ReactiveGrasp, args.workers, args.backend, args.address,
-                      command)
+    runtime = Runtime(partial(GraspEnvFactory, perception=recipe.perception),
+                      partial(env_factory_for_policy, perception=recipe.perception), ReactiveGrasp, args.workers,
+                      args.backend, args.address, command, scenario=_scenario_record(recipe.hand, recipe.perception, "recipe field"))
     chosen = run_recipe(recipe, args.recipe, args.out, runtime)
     print(f"recipe done: {chosen}; tables in {args.out / 'test'}")
     if args.ship:

@@ -28,7 +28,7 @@ import platform
 import re
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,8 +47,9 @@ DONE_FILE = "done.json"
 
 @dataclass(frozen=True)
 class Runtime:
-    """What the command line passes in: picklable env factories and expert (systems/), and
-    where rollouts run."""
+    """What the command line passes in: picklable env factories (under the recipe's
+    perception model) and expert (systems/), the record of the training scenario, and where
+    rollouts run."""
 
     make_env: MakeEnvFactory  # systems.env_factory.GraspEnvFactory
     env_for_policy: Callable[..., EnvFactory]  # systems.env_factory.env_factory_for_policy
@@ -58,6 +59,7 @@ class Runtime:
     address: str | None = None
     command: str = ""  # the command line, recorded with every stage it finishes
     progress: bool = True
+    scenario: dict[str, Any] = field(default_factory=dict)  # systems.scenario_record, in every checkpoint
 
     @property
     def eval_workers(self) -> int:
@@ -173,7 +175,8 @@ def run_dagger(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
     probes = resolve_objects("validation")[1] if config.probe_per_object else []
     folder = out / stage.name
     final = train_dagger(objects, folder, rt.make_env, rt.make_expert, config,
-                         {"command": rt.command, "recipe_stage": stage.name}, rt.address, probes)
+                         {"command": rt.command, "recipe_stage": stage.name, "scenario": rt.scenario}, rt.address,
+                         probes)
     plot_curves(folder / "dagger_log.csv", folder / "dagger_log.png", "iteration", ["success_rate", "val_loss"],
                 title="DAgger")
     return {"policy": final.name, "objects": len(objects), "config": asdict(config)}
@@ -205,7 +208,8 @@ def run_dapg(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[s
                            config.seed)
     factory = rt.env_for_policy(policy.config, objects, spec.horizon, object_from_seed=True,
                                 task=TaskSpec(reward=config.reward))
-    meta = {"command": rt.command, "recipe_stage": stage.name, "init": str(init), "init_sha256": sha256(init),
+    meta = {"command": rt.command, "recipe_stage": stage.name, "scenario": rt.scenario, "init": str(init),
+            "init_sha256": sha256(init),
             "demos": str(out / "dagger"), "dataset_metadata": demos.metadata, "demo_pairs": len(demos),
             "objects": objects, "init_metadata": {k: v for k, v in init_meta.items()
                                                   if k in ("command", "epoch", "iteration", "updates")}}
@@ -338,7 +342,7 @@ def ship_run(recipe: Recipe, out: Path, weights: Path, command: str) -> Path:
             shipped = weights / f"{name}_{suffix}{Path(rel).suffix}"
             write_atomic(shipped, (out / rel).read_bytes())
             files[stage].append(f"models/weights/{shipped.name}")
-    net, _ = load_policy(target)
+    net, net_meta = load_policy(target)
     record = json.loads((out / RECIPE_FILE).read_text())
     stages = []
     for stage in plan:
@@ -348,6 +352,7 @@ def ship_run(recipe: Recipe, out: Path, weights: Path, command: str) -> Path:
     manifest = {
         "policy": shown, "sha256": sha256(target), "hand": net.config.hand, "feature_set": net.config.feature_set,
         "observation_blocks": dict(net.config.blocks), "parameters": sum(p.numel() for p in net.parameters()),
+        "scenario": net_meta["scenario"],
         "recipe": {"source": record["source"], "sha256": record["sha256"], "settings": record["recipe"]},
         "commands": [{"command": command, "note": "ran (or resumed) every stage of the recipe and shipped"}],
         "stages": stages,

@@ -2,7 +2,7 @@
 
 A recipe is a YAML mapping read into the `Recipe` dataclass tree: augment (optional) ->
 expert table -> DAgger -> DAPG stages -> choice of iterate on validation seeds -> test
-evaluation -> ship. Each stage's training settings are the training code's own config
+evaluation -> ship, every env seeing the object pose through the recipe's `perception` model. Each stage's training settings are the training code's own config
 dataclasses (`dagger.DaggerConfig`, `dapg.DAPGConfig`); the recipe adds only what those
 configs leave to the command line (objects, episodes per object, horizon). Unknown keys,
 wrong types and fields the pipeline derives itself are refused in one line naming the field.
@@ -29,6 +29,7 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.eval.evaluate import EVAL_HORIZON
 from dexdrake.learn.dagger import DaggerConfig
 from dexdrake.learn.dapg import DAPGConfig
+from dexdrake.perceived_pose import PerceptionModel
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,9 @@ class Recipe:
     test: TestStage = TestStage()
     augment: Augment | None = None
     ship: Ship = Ship()
+    # how the features see the object pose in every training and evaluation env (the
+    # deployed scenario's: dexdrake/perceived_pose.py); default the true pose
+    perception: PerceptionModel = PerceptionModel()
     description: str = ""
 
     @property
@@ -267,9 +271,10 @@ def stage_plan(recipe: Recipe) -> list[StagePlan]:
     """The stages in order. A stage reads its own section and what shapes its input: the
     expert runs on DAgger's hand and objects; the choice of iterate on the last DAPG stage."""
     plan = [StagePlan("augment", ("augment",))] if recipe.augment else []
-    plan += [StagePlan("expert", ("expert", "dagger.objects", "dagger.config.hand")), StagePlan("dagger", ("dagger",))]
-    plan += [StagePlan(f"dapg{k + 1}", (f"dapg.{k}",)) for k in range(len(recipe.dapg))]
-    return plan + [StagePlan("choose", ("choose", "dapg")), StagePlan("test", ("test",))]
+    plan += [StagePlan("expert", ("expert", "dagger.objects", "dagger.config.hand")),
+             StagePlan("dagger", ("dagger", "perception"))]
+    plan += [StagePlan(f"dapg{k + 1}", (f"dapg.{k}", "perception")) for k in range(len(recipe.dapg))]
+    return plan + [StagePlan("choose", ("choose", "dapg", "perception")), StagePlan("test", ("test", "perception"))]
 
 
 def reads(stage: StagePlan, dotted: str) -> bool:

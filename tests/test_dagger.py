@@ -1,4 +1,4 @@
-"""The state-driven grasp expert and DAgger on it (`dexdrake train dagger`)."""
+"""The expert (ReactiveGrasp) and DAgger on it (`dexdrake train dagger`)."""
 
 from __future__ import annotations
 

@@ -455,7 +455,7 @@ def test_feature_sizes_and_describe(capsys):
     assert observation_blocks(load_hand("allegro_z1"), "DexRep")["hand"] == 91
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
-    args = parser.parse_args(["features", "describe", "--hand", "adroit", "--set", "DexRep"])
+    args = parser.parse_args(["features", "describe", "--hand", "adroit", "--feature-set", "DexRep"])
     assert args.func(args) == 0
     assert "occ_surf 1088" in capsys.readouterr().out
 

@@ -1,4 +1,4 @@
-"""The grasp plan shared by the scripted grasp and the state-driven expert, the expert's label
+"""The grasp plan shared by the scripted grasp and the expert (ReactiveGrasp), the expert's label
 as a function of the state, and the cost of its lift label (a few Jacobian steps, not an IK solve)."""
 
 import numpy as np

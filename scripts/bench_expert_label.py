@@ -1,4 +1,4 @@
-"""CPU cost of one expert (ReactiveGrasp) label, against the full IK solve its lift replaced, in one run.
+"""CPU cost of one expert (ReactiveGrasp) label, against a full IK solve of the same lift, in one run.
 
     python scripts/bench_expert_label.py [--objects sphere_small,can_soda,box_cube,bottle_wine,cylinder_lying,egg_large]
         [--seeds 3] [--horizon 150]

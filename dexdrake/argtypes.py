@@ -55,7 +55,6 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True) -> Calla
 
 seed = int_at_least(0)
 count = int_at_least(1)
-non_negative_count = int_at_least(0)
 
 
 def seed_list(text: str) -> list[int]:

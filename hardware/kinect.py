@@ -539,11 +539,6 @@ class DrakeRenderedCamera(CameraSource):
         for name in self._objects:  # park every object far below the table
             self.hide_object(name)
 
-    @property
-    def object_names(self) -> list[str]:
-        """Names of the objects in the scene."""
-        return list(self._objects)
-
     def set_object_pose(self, name: str, X_WO: RigidTransform) -> None:
         """Place object `name` (its mesh frame) at X_WO in the world."""
         if name not in self._objects:

@@ -1,6 +1,6 @@
 """CPU per arm IK solve (`ArmIK.solve`, the expert's way-points: bounded Levenberg-Marquardt
 with the analytic Jacobian) against scipy's least_squares on the same residual with
-finite-difference Jacobians (the method it replaced), in one run.
+finite-difference Jacobians, in one run.
 
 Both solve the same random grasp-centre targets around the pre-grasp pose (palm rotation
 kept), interleaved target by target, from the pre-grasp arm; prints ms per solve

@@ -1,9 +1,9 @@
-"""CPU cost of one state-driven expert label, against the full IK solve its lift replaced, in one run.
+"""CPU cost of one expert (ReactiveGrasp) label, against a full IK solve of the same lift, in one run.
 
     python scripts/bench_expert_label.py [--objects sphere_small,can_soda,box_cube,bottle_wine,cylinder_lying,egg_large]
         [--seeds 3] [--horizon 150]
 
-Each episode is driven by `ReactiveGrasp` (the DAgger expert: lift set-points from a few
+Each episode is driven by `ReactiveGrasp` (the expert: lift set-points from a few
 Jacobian steps); on every visited state a twin expert whose lift runs the full least-squares
 IK (`ArmIK.solve`, the previous method) labels the same state. Prints ms per label
 (time.process_time) of both, their ratio, the phases' shares and how often and where the two

@@ -4,7 +4,7 @@
         [--horizon 100] [--envs 1,8] [--repeats 2] [--bc-samples 8000] [--workers 1,2]
 
 Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_lockstep`:
-Drake physics, DexRep features, the task's reward and the state-driven expert's label, K envs
+Drake physics, DexRep features, the task's reward and the expert's label, K envs
 in lockstep with one policy call per step for the K observations):
 - start-up: importing the stack (what the sampler's forkserver imports once for all workers,
   and the rest) and building the env for one object, in a fresh process;

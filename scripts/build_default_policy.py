@@ -1,4 +1,4 @@
-"""Build the shipped default policy: DAgger with the state-driven expert -> eval -> models/weights.
+"""Build the shipped default policy: DAgger with the expert (ReactiveGrasp) -> eval -> models/weights.
 
 The whole pipeline from a recipe (expert, DAgger, DAPG stages, choice on validation seeds,
 test tables, shipping) is `dexdrake train recipe`; this script ships runs made by hand.
@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = {sys.executable: "python", str(Path(sys.executable).with_name("dexdrake")): "dexdrake"}
 EVAL_SEED = {"validation": FIRST_VALIDATION_SEED, "test": FIRST_TEST_SEED}  # first seed per --seeds
 HELD_OUT = {"validation": "validation", "test": "unseen"}  # the held-out objects per --seeds
-DATA_SOURCE = ("DAgger on the training objects: states visited by the state-driven expert (iteration 0) and by "
+DATA_SOURCE = ("DAgger on the training objects: states visited by the expert (ReactiveGrasp) (iteration 0) and by "
                "the policy (later iterations), labelled by the expert (systems/reactive_grasp.py ReactiveGrasp); "
                "not the human-demo replay")
 

@@ -1,6 +1,6 @@
 """The controllers of the diagram's slot (systems/diagram.py): the scenario's torch policy
 (PolicySystem and the map of its normalised actions to joint set-points), the scripted grasp
-and the state-driven expert (env controllers driven by the station's measurements through a
+and the expert (ReactiveGrasp) (env controllers driven by the station's measurements through a
 mirroring GraspEnv). Every one outputs "command" and reads some of "features",
 "hand_state" and "object_pose"."""
 
@@ -72,7 +72,7 @@ def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_
 
 class OnMeasurements:
     """An env controller (`make(env)` once, then `controller(env) -> set-points`: the
-    scripted grasp, the state-driven expert) driven by the station's measurements, as a
+    scripted grasp, the expert (ReactiveGrasp)) driven by the station's measurements, as a
     ControllerSystem callback: a GraspEnv without features mirrors the measured hand state
     and the perceived object pose (the scripted grasp plans on the first one); the env's
     clock starts at the first call."""
@@ -113,5 +113,5 @@ def make_controller(scenario: Scenario, allow_scenario_mismatch: bool = False,
 
 
 def expert_controller(scenario: Scenario) -> ControllerSystem:
-    """The state-driven grasp expert (systems/reactive_grasp.py) in the slot."""
+    """The expert (systems/reactive_grasp.ReactiveGrasp) in the slot."""
     return ControllerSystem(OnMeasurements(scenario, ReactiveGrasp), load_hand(scenario.hand), scenario.control_period)

@@ -192,6 +192,13 @@ def featurise(raw: RawEpisodes, feature_set: str, progress: bool = False,
     return obs, blocks
 
 
+def featurise_labelled(hand: str, data, feature_set: str, workers: int = 1) -> tuple[np.ndarray, dict[str, int]]:
+    """`featurise` of expert-labelled DAgger states (dexdrake.learn.dagger.DaggerData) of `hand`,
+    with progress bars (`eval.ablations.Featurise`)."""
+    raw = RawEpisodes(hand, data.objects, data.seeds, data.success, data.episode_starts, data.states, data.labels)
+    return featurise(raw, feature_set, progress=True, workers=workers)
+
+
 def dataset_metadata(recorded: RawEpisodes, kept: RawEpisodes, raw_meta: dict[str, Any], feature_set: str,
                      blocks: dict[str, int]) -> dict[str, Any]:
     """Metadata of a featurised dataset (of the `kept` episodes) in the shape `dexdrake train bc` reads."""

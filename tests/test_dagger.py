@@ -1,9 +1,8 @@
-"""The state-driven grasp expert and DAgger on it (`dexdrake train dagger`)."""
+"""The expert (ReactiveGrasp) and DAgger on it (`dexdrake train dagger`)."""
 
 from __future__ import annotations
 
 import hashlib
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -234,29 +233,6 @@ def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one
     assert float(row["unseen_loss"]) == pytest.approx(float(err.sum(1).mean()), rel=1e-5)
 
 
-def test_bc_study_fits_scores_and_tables_each_variant_on_a_runs_states(tmp_path, monkeypatch, load_script,
-                                                                       one_torch_thread):
-    config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, workers=1,
-                          probe_per_object=1, residual_arm=True)
-    train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config, probe_objects=["apple"])
-    study = load_script("bc_study")
-    with pytest.raises(SystemExit, match="unknown variant setting 'wd'"):
-        study.parse_variant("wd")
-    assert study.parse_variant("wd=0.1+noise=0.2+absolute") == ({"weight_decay": 0.1, "obs_noise": 0.2}, True)
-    assert study.parse_variant("keep") == ({"keep_function": True}, False)
-    monkeypatch.setattr(sys, "argv", ["bc_study.py", "--run", str(tmp_path / "d"), "--out", str(tmp_path / "s"),
-                                      "--variants", "base,absolute+noise=0.1", "--epochs", "1", "--episodes", "1",
-                                      "--validation-episodes", "1", "--workers", "1"])
-    study.main()
-    rows = read_csv(tmp_path / "s" / "bc_study.csv")
-    assert [r["variant"] for r in rows] == ["base", "absolute+noise=0.1"]
-    assert all(float(r["held_out_loss"]) > 0 and float(r["validation_probe_loss"]) > 0 for r in rows)
-    assert all(0 <= float(r["seen_success_pct"]) <= 100 for r in rows)
-    assert load_policy(tmp_path / "s" / "policy_base.pt")[0].config.residual_arm
-    assert not load_policy(tmp_path / "s" / "policy_absolute+noise=0.1.pt")[0].config.residual_arm
-    assert "| absolute+noise=0.1 |" in (tmp_path / "s" / "bc_study.md").read_text()
-
-
 def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import hold_still_loss
@@ -299,22 +275,47 @@ def test_hand_descriptions_override_the_grasp_geometry_and_expert_rules():
         script_for(replace(allegro, grasp_script={"palm_dept": 0.02}))
 
 
-def test_ablation_goes_on_with_the_sets_a_run_of_its_settings_left_and_refuses_other_settings(tmp_path, load_script):
-    import argparse
+def test_ablation_goes_on_with_the_sets_a_run_of_its_settings_left_and_refuses_other_settings(tmp_path):
     import json
+    from dataclasses import asdict
 
-    ablations = load_script("ablations")
-    args = argparse.Namespace(dagger=tmp_path / "run", out=tmp_path / "abl", stride=10, epochs=20, lr=1e-4, episodes=2,
-                              objects="paper", seed=0, eval_seed=7, workers=2, sets="all")
-    assert ablations.finished_rows(args) == {}  # nothing run yet
-    args.out.mkdir()
+    from dexdrake.eval.ablations import AblationSettings, AblationSettingsError, finished_rows
+
+    settings = AblationSettings(str(tmp_path / "run"), stride=10, epochs=20, episodes=2, eval_seed=7)
+    out = tmp_path / "abl"
+    assert finished_rows(out, settings) == {}  # nothing run yet
+    out.mkdir()
     row = {"feature_set": "DexRep", "ours_all_pct": "12.0"}
-    (args.out / "ablations.json").write_text(json.dumps({"settings": ablations.settings(args), "rows": {"DexRep": row}}))
-    args.workers, args.sets = 1, "DexRep,Surf"  # neither changes a row
-    assert ablations.finished_rows(args) == {"DexRep": row}
-    args.epochs = 40
-    with pytest.raises(SystemExit, match=r"other settings: epochs 20 \(now 40\); use another --out"):
-        ablations.finished_rows(args)
+    (out / "ablations.json").write_text(json.dumps({"settings": asdict(settings), "rows": {"DexRep": row}}))
+    assert finished_rows(out, settings) == {"DexRep": row}  # workers and the sets asked for are not settings
+    with pytest.raises(AblationSettingsError, match=r"other settings: epochs 20 \(now 40\); use another --out"):
+        finished_rows(out, replace(settings, epochs=40))
+
+
+def test_every_nth_step_keeps_each_episodes_start_and_every_nth_step_after_it():
+    from dexdrake.eval.ablations import every_nth_step
+
+    starts = np.array([1, 0, 0, 0, 0, 1, 0, 0], bool)  # episodes of 5 and 3 steps
+    n = len(starts)
+    data = DaggerData(["a", "b"], np.array([0, 1]), np.array([True, False]), starts, np.arange(n)[:, None] * 1.0,
+                      np.zeros((n, 2), np.float32), np.arange(n, dtype=np.float32)[:, None])
+    kept = every_nth_step(data, 2)
+    assert kept.labels[:, 0].tolist() == [0, 2, 4, 5, 7]
+    assert kept.episode_starts.tolist() == [True, False, False, True, False]
+
+
+def test_the_ablation_command_tables_each_feature_set_on_a_dagger_runs_states(tmp_path, one_torch_thread, capsys):
+    config = DaggerConfig(feature_set="Hand2obj", iterations=1, episodes_per_object=1, epochs=1, workers=1)
+    train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config)
+    out = tmp_path / "abl"
+    assert main(["ablations", "--dagger", str(tmp_path / "d"), "--out", str(out), "--feature-sets", "Hand2obj",
+                 "--stride", "5", "--epochs", "1", "--episodes", "1", "--objects", "apple", "--workers", "1"]) == 0
+    rows = read_csv(out / "ablations.csv")
+    assert [r["feature_set"] for r in rows] == ["Hand2obj"]
+    assert float(rows[0]["unseen_open_loop_mse"]) > 0 and 0 <= float(rows[0]["ours_all_pct"]) <= 100
+    table = (out / "ablations.md").read_text()
+    assert "- command: `dexdrake ablations --dagger" in table and "| Hand2obj |" in table
+    assert table in capsys.readouterr().out
 
 
 def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(load_script, one_torch_thread):

@@ -294,7 +294,8 @@ def test_surface_on_sphere(geometries):
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     radii = np.r_[np.linspace(0.0, 0.04, 6), [R_SPHERE] * 4, np.linspace(0.051, 0.5, 12)]
     p_W = (dirs * radii[:, None]) @ X_WO[:3, :3].T + X_WO[:3, 3]
-    fs = F.surface(p_W, X_WO, g).reshape(22, 4)
+    cp = F.closest_points(p_W, X_WO, g)
+    fs = F.surface_from_closest(cp).reshape(22, 4)
     assert np.all(np.isfinite(fs))
     expect = np.clip(radii - R_SPHERE, 0, 0.2)
     np.testing.assert_allclose(fs[:, 0], expect, atol=2e-4)
@@ -303,14 +304,12 @@ def test_surface_on_sphere(geometries):
     ok = radii > 0.01  # at the centre every direction is a nearest one
     assert np.all(np.einsum("ij,ij->i", fs[ok, 1:], n_W[ok]) > 0.99)
     # the public code's scaling multiplies the distances only
-    np.testing.assert_allclose(F.surface(p_W, X_WO, g, scale=10.0).reshape(22, 4), np.c_[10 * fs[:, 0], fs[:, 1:]])
-    # unscaled by default also from closest points (the feature extractor's path)
-    np.testing.assert_array_equal(F.surface_from_closest(F.closest_points(p_W, X_WO, g)), fs.ravel())
+    np.testing.assert_allclose(F.surface_from_closest(cp, scale=10.0).reshape(22, 4), np.c_[10 * fs[:, 0], fs[:, 1:]])
     with pytest.raises(DexdrakeError, match=r"hand points must be a finite \(n, 3\) array, got shape \(22, 2\)"):
-        F.surface(p_W[:, :2], X_WO, g)
+        F.closest_points(p_W[:, :2], X_WO, g)
     # hand-frame normals are the world normals rotated
     R = Rotation.from_euler("z", 0.7).as_matrix()
-    np.testing.assert_allclose(F.surface(p_W, X_WO, g, R_WH=R).reshape(22, 4)[:, 1:], fs[:, 1:] @ R, atol=1e-12)
+    np.testing.assert_allclose(F.surface_from_closest(cp, R_WH=R).reshape(22, 4)[:, 1:], fs[:, 1:] @ R, atol=1e-12)
 
 
 @pytest.mark.parametrize("shape", ["box", "torus"])
@@ -362,8 +361,9 @@ def test_local_geo_is_feature_of_nearest_sample(geometries):
     rng = np.random.default_rng(4)
     X_WO = random_pose(rng)
     p_W = rng.uniform(-0.15, 0.15, (22, 3))
-    fl = F.local_geo(p_W, X_WO, g).reshape(22, 64)
-    c_W = F.closest_points(p_W, X_WO, g).points
+    cp = F.closest_points(p_W, X_WO, g)
+    fl = F.local_geo_from_closest(cp, X_WO, g).reshape(22, 64)
+    c_W = cp.points
     c_O = (c_W - X_WO[:3, 3]) @ X_WO[:3, :3]
     nearest = np.argmin(np.linalg.norm(g.samples[None] - c_O[:, None], axis=2), axis=1)
     np.testing.assert_array_equal(fl, g.local_features[nearest])
@@ -455,7 +455,7 @@ def test_feature_sizes_and_describe(capsys):
     assert observation_blocks(load_hand("allegro_z1"), "DexRep")["hand"] == 91
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
-    args = parser.parse_args(["features", "describe", "--hand", "adroit", "--set", "DexRep"])
+    args = parser.parse_args(["features", "describe", "--hand", "adroit", "--feature-set", "DexRep"])
     assert args.func(args) == 0
     assert "occ_surf 1088" in capsys.readouterr().out
 

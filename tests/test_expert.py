@@ -1,4 +1,4 @@
-"""The grasp plan shared by the scripted grasp and the state-driven expert, the expert's label
+"""The grasp plan shared by the scripted grasp and the expert (ReactiveGrasp), the expert's label
 as a function of the state, and the cost of its lift label (a few Jacobian steps, not an IK solve)."""
 
 import numpy as np
@@ -309,13 +309,3 @@ def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_tr
         assert len(calls) == sum(map(len, tried.values()))
     best, tried = chooser.best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
     assert best == "a" and [len(tried[v]) for v in variants] == [4, 0, 0, 0]
-
-
-def test_rule_sweep_reads_overrides_and_names_a_mistake(load_script):
-    sweep = load_script("expert_rule_sweep")
-    assert sweep.parse_spec("") == {}
-    assert sweep.parse_spec("max_lead=0.4,lift_steps=2") == {"max_lead": 0.4, "lift_steps": 2}
-    with pytest.raises(ValueError, match="unknown rule 'lead'"):
-        sweep.parse_spec("lead=0.4")
-    with pytest.raises(ValueError, match="lift_steps takes an integer"):
-        sweep.parse_spec("lift_steps=2.5")

@@ -194,9 +194,9 @@ def test_run_replay_errors_clearly(tmp_path, demo_dir):
     from dexdrake.cli.replay import find_demos, run_replay
 
     with pytest.raises(DexdrakeError, match="does not exist"):
-        find_demos(tmp_path / "missing")
+        find_demos(tmp_path / "missing", None)
     with pytest.raises(DexdrakeError, match="no demo-format"):
-        find_demos(tmp_path)
+        find_demos(tmp_path, None)
     with pytest.raises(DexdrakeError, match="no demos of"):
         find_demos(demo_dir, ["mug"])
     with pytest.raises(DexdrakeError, match="unknown feature set"):
@@ -229,10 +229,10 @@ def test_parallel_workers_match_serial(demo_dir, tmp_path):
 
 def test_demos_made_for_an_episode_are_replayed_at_its_placement(demo_dir):
     from dexdrake.demos.format import load_demo
-    from dexdrake.cli.replay import _find_demos
+    from dexdrake.cli.replay import find_demos
     from dexdrake.systems.demo_replay import DemoReplayer
 
-    ((path, name, made_for),) = _find_demos(demo_dir, None)
+    ((path, name, made_for),) = find_demos(demo_dir, None)
     demo = load_demo(path)
     assert name == "sphere_small" and made_for == demo.meta.extra["episode_seed"]
     plan = DemoReplayer("adroit", config=ReplayConfig(attempts=0)).plan(demo, made_for)

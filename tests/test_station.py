@@ -717,7 +717,7 @@ def test_hil_scripted_grasp_plans_on_the_perceived_pose_not_the_default_one(tmp_
 
 
 def test_expert_in_the_controller_slot_reaches_for_the_object():
-    """The state-driven expert as a slot controller (measured state, object pose from the
+    """The expert (ReactiveGrasp) as a slot controller (measured state, object pose from the
     station) on the sim station: the grasp centre closes in on the object."""
     from dexdrake.systems.controllers import expert_controller
     from dexdrake.systems.diagram import run_station_episode

@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     "dexdrake.cli.dexrep",
     "dexdrake.cli.station",
     "dexdrake.cli.learn", "dexdrake.cli.demo",
+    "dexdrake.cli.ablations",
 ]
 
 

@@ -14,7 +14,7 @@ def _describe(args: argparse.Namespace) -> int:
     from dexdrake.hands.description import load_hand
 
     hand = load_hand(args.hand)
-    for name in [args.set] if args.set else feature_set_names():
+    for name in [args.feature_set] if args.feature_set else feature_set_names():
         blocks = observation_blocks(hand, name)
         parts = ", ".join(f"{g} {n}" for g, n in blocks.items())
         print(f"{hand.name} {name}: {parts} (total {sum(blocks.values())})")
@@ -59,7 +59,7 @@ def add_parser(subparsers) -> None:
     feat = subparsers.add_parser("features", help="DexRep feature sets").add_subparsers(dest="action", required=True)
     d = feat.add_parser("describe", help="print each observation block's size")
     d.add_argument("--hand", default="adroit")
-    d.add_argument("--set", default=None, help="one feature set (default: all)")
+    d.add_argument("--feature-set", default=None, help="one feature set (default: all)")
     d.set_defaults(func=_describe)
     s = feat.add_parser("show", help="record a scripted-grasp episode to rerun (its DexRep in the DexRep tab)")
     s.add_argument("--object", required=True, help="object library name")

@@ -45,13 +45,7 @@ def add_parser(subparsers) -> None:
 
 
 # -- inputs ------------------------------------------------------------------------------
-def find_demos(folder: Path, objects: list[str] | None = None) -> list[tuple[Path, str]]:
-    """(path, object name) of every demo-format .npz in `folder`, sorted by path, optionally
-    only those of `objects`. Other .npz files (e.g. retargeted joint trajectories) are skipped."""
-    return [(p, name) for p, name, _ in _find_demos(folder, objects)]
-
-
-def _find_demos(folder: Path, objects: list[str] | None) -> list[tuple[Path, str, int | None]]:
+def find_demos(folder: Path, objects: list[str] | None) -> list[tuple[Path, str, int | None]]:
     """(path, object name, the episode seed the demo was made for or None) per demo; a demo
     file that cannot be used (damaged, NaN keypoints, an unknown object) is named in a warning
     and skipped."""
@@ -227,7 +221,7 @@ def run_replay(demos_dir: Path, out: Path, hand: str, config, feature_set: str |
     from dexdrake.systems.demo_replay import observation_blocks_for
 
     blocks = observation_blocks_for(hand, feature_set)  # fails early on a bad name
-    demos = _find_demos(demos_dir, objects)
+    demos = find_demos(demos_dir, objects)
     jobs = [(i, str(p), demo_seed(seed, i) if made_for is None else made_for)
             for i, (p, _, made_for) in enumerate(demos)]
     results = replay_demos(jobs, hand, feature_set, config, workers, progress)

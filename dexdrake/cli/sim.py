@@ -122,7 +122,7 @@ def _run_station(scenario, args: argparse.Namespace, logger) -> str:
     elif args.controller is not None:
         scenario = replace(scenario, policy=None)
     if args.controller == "expert":
-        controller, description = expert_controller(scenario), "state-driven expert"
+        controller, description = expert_controller(scenario), "expert (ReactiveGrasp)"
     else:
         controller, description = make_controller(scenario, args.allow_scenario_mismatch)
     station = make_station(scenario)

@@ -1,9 +1,4 @@
-"""Demo loaders: keypoint files (MediaPipe or MANO order; .npy/.npz/.pkl/.json/.csv) and
-GRAB sequences.
-
-GRAB needs the optional extra `smplx` (pip install 'dexdrake[grab]') and the licence-gated
-MANO model files, which the user supplies; nothing else in dexdrake requires them.
-"""
+"""Demo loaders: keypoint files (MediaPipe or MANO order; .npy/.npz/.pkl/.json/.csv)."""
 
 from __future__ import annotations
 
@@ -20,7 +15,6 @@ from dexdrake.errors import DexdrakeError
 # mediapipe[i] = mano21[MANO_TO_MEDIAPIPE[i]]; MANO's 16 joints then tips thumb..little
 MANO_TO_MEDIAPIPE = np.array([0, 13, 14, 15, 16, 1, 2, 3, 17, 4, 5, 6, 18, 10, 11, 12, 19, 7,
                               8, 9, 20])
-MANO_TIP_VERTICES = (744, 320, 443, 554, 671)  # thumb, index, middle, ring, little (smplx)
 ORDERS = ("mediapipe", "mano")
 UNITS = ("auto", "m", "mm")
 HANDS = ("right", "left")
@@ -322,60 +316,3 @@ def load_keypoint_array(path: str | Path, order: str = "mediapipe", fps: float =
         notes.extend(done)
     return demo
 
-
-def load_grab_sequence(seq_path: str | Path, mano_model_dir: str | Path,
-                       grab_root: str | Path | None = None) -> HumanDemo:
-    """A GRAB right-hand sequence (e.g. grab/s1/mug_drink_1.npz) as a demo.
-
-    Runs the MANO right-hand layer (smplx) on GRAB's rhand parameters, takes the 16 joints
-    and the 5 fingertip vertices, and reorders them to MediaPipe. mano_model_dir holds
-    MANO_RIGHT.pkl; grab_root (default: three levels above seq_path) resolves the
-    subject-specific hand template. The demo is untrimmed: pass it to
-    dexdrake.demos.trim.trim_demo / canonicalize with the object's mesh.
-    """
-    try:
-        import smplx
-        import torch
-    except ImportError as e:
-        raise DexdrakeError(f"GRAB loading needs the optional package {e.name!r}: "
-                            "pip install 'dexdrake[grab]' (smplx) and supply the MANO model "
-                            "files (MANO_RIGHT.pkl, licence from mano.is.tue.mpg.de)") from e
-    seq_path, mano_model_dir = Path(seq_path), Path(mano_model_dir)
-    if not (mano_model_dir / "MANO_RIGHT.pkl").is_file():
-        raise DexdrakeError(f"{mano_model_dir}: MANO_RIGHT.pkl not found (the MANO model "
-                            "files are licence-gated; download them yourself)")
-    seq = np.load(seq_path, allow_pickle=True)
-    seq = {k: seq[k].item() if seq[k].dtype == object and seq[k].shape == () else seq[k]
-           for k in seq.files}
-    rh = seq["rhand"]["params"]
-    T = int(seq["n_frames"])
-    root = Path(grab_root) if grab_root else seq_path.parents[2]
-    vtemp = None
-    if seq["rhand"].get("vtemp"):
-        import trimesh
-
-        vtemp = trimesh.load(root / str(seq["rhand"]["vtemp"]), process=False).vertices
-    layer = smplx.create(str(mano_model_dir), model_type="mano", is_rhand=True,
-                         use_pca=False, flat_hand_mean=True, batch_size=T,
-                         v_template=vtemp)
-    with torch.no_grad():
-        out = layer(global_orient=torch.as_tensor(rh["global_orient"], dtype=torch.float32),
-                    hand_pose=torch.as_tensor(rh["fullpose"], dtype=torch.float32),
-                    transl=torch.as_tensor(rh["transl"], dtype=torch.float32))
-    joints, verts = out.joints.numpy()[:, :16], out.vertices.numpy()
-    mano21 = np.concatenate([joints, verts[:, list(MANO_TIP_VERTICES)]], axis=1)
-    from scipy.spatial.transform import Rotation
-
-    op = seq["object"]["params"]
-    quat = Rotation.from_rotvec(op["global_orient"]).as_quat()[:, [3, 0, 1, 2]]
-    fps = float(seq.get("framerate", 120.0))
-    betas = np.zeros(10)
-    pose48 = np.concatenate([rh["global_orient"], rh["fullpose"]], axis=1)
-    demo = HumanDemo(
-        reorder_keypoints(mano21, "mano"), np.arange(T) / fps,
-        Path(str(seq["obj_name"])).stem, np.asarray(op["transl"], float), quat,
-        DemoMeta(subject=str(seq.get("sbj_id", "")), fps=fps, source=f"grab:{seq_path.name}"),
-        mano_pose=pose48, mano_trans=np.asarray(rh["transl"], float), mano_betas=betas,
-    )
-    demo.validate()
-    return demo

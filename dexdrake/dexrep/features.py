@@ -78,22 +78,11 @@ def surface_from_closest(cp: ClosestPoints, clip: float = SURFACE_CLIP, R_WH: np
     return np.column_stack([d, n]).ravel()
 
 
-def surface(p_W: np.ndarray, X_WO, geometry: ObjectGeometry, clip: float = SURFACE_CLIP,
-            R_WH: np.ndarray | None = None, scale: float = 1.0) -> np.ndarray:
-    """Fast-path surface feature f_s (4n,), layout [d, nx, ny, nz] per point."""
-    return surface_from_closest(closest_points(p_W, X_WO, geometry), clip, R_WH, scale)
-
-
 def local_geo_from_closest(cp: ClosestPoints, X_WO, geometry: ObjectGeometry) -> np.ndarray:
     """f_l (64n,): cached per-point features of the samples nearest to the closest points."""
     X = as_matrix(X_WO)
     c_O = (cp.points - X[:3, 3]) @ X[:3, :3]
     return geometry.local_features[geometry.nearest_samples(c_O)].astype(np.float64).ravel()
-
-
-def local_geo(p_W: np.ndarray, X_WO, geometry: ObjectGeometry) -> np.ndarray:
-    """Fast-path local-geo feature f_l (64n,)."""
-    return local_geo_from_closest(closest_points(p_W, X_WO, geometry), X_WO, geometry)
 
 
 def hand_state(q: np.ndarray, p_W: np.ndarray, X_WH) -> np.ndarray:

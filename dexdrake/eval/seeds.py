@@ -7,9 +7,8 @@ demo recorders by a check at their start: `check_training_seeds`). Evaluations
 
 - VALIDATION_SEEDS [1.5e9, 2e9): every choice (iterate, variant, setting) is measured here;
 - TEST_SEEDS [2e9, 2.1e9): measured once per shipped policy, for its published tables only;
-- the rest, [1e9, 1.5e9), "custom": the blocks from 1000000000 and 1000000100 chose
-  between candidate policies before validation and test were kept apart; they stay
-  evaluable, to reproduce the tables measured on them, but report neither.
+- the rest, [1e9, 1.5e9), "custom": evaluable (to reproduce tables measured there) but
+  neither validation nor test.
 
 A block of seeds S..S+N-1 lies in one part or is refused. All ranges end below 2**31.
 """

@@ -1,4 +1,4 @@
-"""DAgger with a state-driven grasp expert (the command line passes in
+"""DAgger with the grasp expert (the command line passes in
 `systems.reactive_grasp.ReactiveGrasp`).
 
 Iteration 0 runs the expert itself (optionally with DART-style correlated action noise);

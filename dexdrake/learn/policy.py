@@ -9,8 +9,7 @@ output is the action mean (no tanh; the env clips actions to [-1, 1]). With `res
 the arm's actions are the MLP's output added to the arm joints' current positions (the hand
 block's first entries), normalised like the actions: the network learns how far its
 set-point leads the arm instead of rebuilding the arm's position from its input (a departure
-from the paper's absolute set-points; on the same 657k DAgger states it cut the held-out arm
-error by 13 %; `scripts/bc_study.py --variants base,absolute` compares them). For RL the
+from the paper's absolute set-points, which `residual_arm=False` keeps). For RL the
 policy is a diagonal Gaussian around that mean with a learned, state-independent log-std,
 kept in [min_log_std, max_log_std] by clamping the parameter itself after each update
 (`clamp_log_std_`), so its gradient never vanishes. Before RL the log-std is set from the

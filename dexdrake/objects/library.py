@@ -26,10 +26,9 @@ import numpy as np
 from dexdrake.errors import DexdrakeError, DexdrakeWarning, UnknownNameError
 from dexdrake.objects import importer, store
 from dexdrake.objects.convex import cached_pieces, piece_files, pieces_key
-from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj, write_atomic
+from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj
 from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
-from dexdrake.paths import cache_dir
 
 SPLITS = ("train", "unseen", "validation", "near", "user", store.AUGMENTED_SPLIT)
 HELD_OUT_SPLITS = ("unseen", "validation", "near")  # never trained on
@@ -74,15 +73,6 @@ class ObjectInfo:
     def footprint_widths(self) -> np.ndarray:
         """Widths (m) of the horizontal footprint, resting pose, across 90 directions in [0, pi)."""
         return _footprint_widths(self.mesh_path, self.content_hash)
-
-    def sdf_path(self) -> Path:
-        """A Drake SDF model of the object (written under cache_dir()/objects/, absolute paths)."""
-        sub = "user" if self.split == "user" else "shipped"
-        path = cache_dir() / "objects" / "sdf" / sub / f"{self.name}.sdf"
-        text = self.sdf_text()
-        if not path.is_file() or path.read_text() != text:
-            write_atomic(path, text.encode())
-        return path
 
     def sdf_text(self, model_name: str | None = None) -> str:
         """The SDF text, with the model (and link) named `model_name` (default: the object name)."""

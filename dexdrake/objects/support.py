@@ -3,13 +3,11 @@
 Drake's point contact gives one witness point per pair of convex shapes. An object resting
 on a face is then held at a single point of that face, away from its centre of mass: it
 rocks, and each step the witness moves to the deeper side. Objects sink into the table
-that way (a phone 1 cm, its top below the table surface; a 7 cm cube 3 mm and still going
-after 0.3 s), whatever the penetration allowance. A few spheres at each piece's extreme
+that way, whatever the penetration allowance. A few spheres at each piece's extreme
 vertices give a resting face several contact points at its corners (the usual remedy for
 boxes under point contact). Each sphere lies inside the piece, tangent to the faces at its
-vertex, so the object's shape is unchanged. Hydroelastic contact with the table was measured
-too: objects rest as well, but a control step costs 2-4x as much (one SAP constraint per
-contact polygon).
+vertex, so the object's shape is unchanged. Hydroelastic contact would hold objects too,
+at one SAP constraint per contact polygon instead of per point.
 """
 
 from __future__ import annotations

@@ -353,12 +353,6 @@ class Retargeter:
         """World positions of the config's robot points [wrist, tips..., bases...]."""
         return np.asarray(self.fk(np.asarray(q, float)))[: len(self.points)]
 
-    def palm_point(self, q: np.ndarray) -> np.ndarray:
-        """World position of the palm term's robot point (config `palm`)."""
-        if self.config.palm is None:
-            raise DexdrakeError(f"retarget config {self.hand.name} has no palm term")
-        return np.asarray(self.fk(np.asarray(q, float)))[-1]
-
     def residuals(self, keypoints: np.ndarray, q: np.ndarray) -> dict[str, np.ndarray]:
         """Key-vector residuals ||v^R - k v^H|| (m) without pinch projection: 'wrist'
         (wrist->tip/base), 'finger' (tip->tip), and 'thumb' (vectors that involve the thumb)."""

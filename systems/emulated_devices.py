@@ -69,13 +69,15 @@ def running_emulators(scenario: Scenario, emulators: Emulators | None = None) ->
     client = SDK_PORT if arm.local_port is None else arm.local_port
     controller = CONTROLLER_PORT if arm.controller_port is None else arm.controller_port
     with contextlib.ExitStack() as stack:
+        # each emulator stands for a device with its own processor: it runs at its driver
+        # entry's realtime priority (0: normal scheduling)
         hand = EmulatorProcess(functools.partial(allegro_emulator, can_bus_args(scenario), EmulatorConfig()),
-                               name="allegro-emulator")
+                               scenario.drivers.hand.realtime_priority or 0, name="allegro-emulator")
         emulators.processes["hand"] = hand
         stack.enter_context(hand)
         z1 = EmulatorProcess(functools.partial(z1_emulator, Z1EmulatorConfig(host=arm.host, port=controller,
                                                                               client_port=client)),
-                             name="z1-emulator")
+                             arm.realtime_priority or 0, name="z1-emulator")
         emulators.processes["arm"] = z1
         stack.enter_context(z1)
         yield dc.replace(scenario, drivers=dc.replace(

@@ -11,6 +11,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -263,7 +264,9 @@ def test_help_states_the_bound(capsys, words, flag):
     assert f"at most {bound})" in after[:None if end < 0 else end], after[:300]
 
 
-def test_a_non_finite_dapg_objective_stops_with_nothing_written(world, capsys, one_torch_thread):
+@pytest.mark.parametrize("init, demos, objective", [("policy.pt", "huge.npz", "-inf"), ("big.pt", "data.npz", "nan")],
+                         ids=["huge-demo-actions", "huge-policy-weights"])
+def test_a_non_finite_dapg_objective_stops_with_nothing_written(world, capsys, one_torch_thread, init, demos, objective):
     from dexdrake.dexrep.feature_sets import observation_blocks
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.demo_dataset import save_demo_dataset
@@ -273,10 +276,15 @@ def test_a_non_finite_dapg_objective_stops_with_nothing_written(world, capsys, o
     huge = np.full((8, HAND_ACTIONS), 1e30, np.float32)  # finite, but its squared distance overflows
     save_demo_dataset(world / "huge.npz", obs, huge, None,
                       {"hand": "adroit", "feature_set": "Hand2obj", "observation_blocks": blocks})
-    err = _fails(["train", "dapg", "--init", "policy.pt", "--demos", "huge.npz", "--out", "run", "--objects",
-                  "sphere_small", "--per-object", "1", "--horizon", "3", "--iterations", "1", "--backend",
-                  "sequential", "--workers", "1"], capsys, world)
-    assert "DAPG iteration 0: the objective or its gradient is not finite (objective -inf)" in err, err
+    state = torch.load(world / "policy.pt", weights_only=True)
+    for name, weights in state["state_dict"].items():  # finite weights whose actions overflow to nan
+        if name.endswith("weight") and weights.is_floating_point():
+            weights.fill_(1e30)
+    torch.save(state, world / "big.pt")
+    err = _fails(["train", "dapg", "--init", init, "--demos", demos, "--out", "run", "--objects", "sphere_small",
+                  "--per-object", "1", "--horizon", "3", "--iterations", "1", "--backend", "sequential",
+                  "--workers", "1"], capsys, world)
+    assert f"DAPG iteration 0: the objective or its gradient is not finite (objective {objective})" in err, err
 
 
 def test_a_retarget_config_field_that_is_no_number_is_named(world):
@@ -405,6 +413,71 @@ def test_ctrl_c_during_a_replay_with_workers(world):
     lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and not PROGRESS.search(line)]
     assert process.returncode == 130 and lines == [lines[0]] and "interrupted" in lines[0], err
     assert not (world / "r.npz").exists()
+
+
+def _group_alive(pgid: int) -> list[int]:
+    """Processes of process group `pgid` still running (zombies, dead but unreaped, excluded)."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            alive.append(int(stat.parent.name))
+    return alive
+
+
+def _interrupt(argv: list[str], cwd: Path, ready) -> tuple[int, list[str]]:
+    """Run `dexdrake argv` in its own process group (SIGINT at its default, as in a terminal),
+    send the group SIGINT once `ready()` holds; (exit status, stderr lines but progress bars).
+    Asserts no process of the group outlives it."""
+    process = subprocess.Popen([sys.executable, "-m", "dexdrake.cli", *argv], cwd=cwd, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 180
+    while not ready() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert process.poll() is None, "finished before the interrupt"
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+    err = process.communicate(timeout=120)[1]
+    time.sleep(1)
+    assert not _group_alive(process.pid), "a worker outlived the command"
+    return process.returncode, [l for l in err.replace("\r", "\n").splitlines() if l.strip() and not PROGRESS.search(l)]
+
+
+DAGGER_RUN = ["train", "dagger", "--out", "run", "--objects", "sphere_small", "--feature-set", "Hand2obj",
+              "--iterations", "3", "--per-object", "1", "--horizon", "5", "--epochs", "1"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", [["--backend", "process", "--workers", "2"], ["--backend", "sequential"]],
+                         ids=["process", "sequential"])
+def test_ctrl_c_during_dagger_then_it_resumes(world, backend):
+    code, lines = _interrupt([*DAGGER_RUN, *backend], world, lambda: (world / "run" / "data_01.npz").exists())
+    assert code == 130 and len(lines) == 1 and "dexdrake train dagger: interrupted" in lines[0], lines
+    assert not (world / "run" / ".dexdrake.lock").exists()
+    done = subprocess.run([sys.executable, "-m", "dexdrake.cli", *DAGGER_RUN, *backend], cwd=world,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    with open(world / "run" / "dagger_log.csv") as log:
+        assert [row.split(",")[0] for row in log.read().splitlines()[1:]] == ["0", "1", "2"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_dapg_with_workers(world):
+    code, lines = _interrupt(["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--objects",
+                              "sphere_small", "--per-object", "2", "--horizon", "20", "--iterations", "500",
+                              "--workers", "2"], world, lambda: (world / "run" / "dapg_log.csv").exists())
+    assert code == 130 and len(lines) == 1 and "dexdrake train dapg: interrupted" in lines[0], lines
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_eval_with_workers(world):
+    start = time.monotonic()
+    code, lines = _interrupt(["eval", "--policy", "policy.pt", "--objects", "apple,sphere_small", "--episodes", "200",
+                              "--workers", "2"], world, lambda: time.monotonic() > start + 15)
+    assert code == 130 and len(lines) == 1 and "dexdrake eval: interrupted" in lines[0], lines
 
 
 def test_a_broken_user_object_is_named_with_the_fix(world, capsys):

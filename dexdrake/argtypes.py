@@ -55,6 +55,10 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True) -> Calla
 
 seed = int_at_least(0)
 count = int_at_least(1)
+MAX_STEPS = 10_000  # control steps of one episode or run: 200 s of simulated time at 50 Hz
+MAX_EPISODES = 10_000  # episodes per object of one command
+steps = int_at_least(1, MAX_STEPS)
+episodes = int_at_least(1, MAX_EPISODES)
 
 
 def seed_list(text: str) -> list[int]:

@@ -9,6 +9,8 @@ two writers out of one named thing (a run folder, a user object).
 - `check_not_an_input(outputs, inputs)`: no output is one of the command's input files.
 - `WriterLock(folder)`: a lock file holding the owner's pid; a second writer is refused in
   one line, a lock left by a dead process is taken over.
+- `check_run_kind(folder, kind)`: a run folder is never given to a run of another kind
+  (each kind is known by the log it writes first, `RUN_LOGS`).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 from dexdrake.errors import DexdrakeError
 
 LOCK_FILE = ".dexdrake.lock"
+RUN_LOGS = {"BC": "bc_log.csv", "DAgger": "dagger_log.csv", "DAPG": "dapg_log.csv"}  # kind -> its log
 
 
 class OutputError(DexdrakeError):
@@ -68,6 +71,13 @@ def check_not_an_input(outputs: Iterable[tuple[str, Path]], inputs: Iterable[tup
             if _same(Path(out), Path(given)):
                 raise OutputError(f"{out_flag} {out} is the input {in_flag}: it would be overwritten; "
                                   f"write to another file")
+
+
+def check_run_kind(folder: Path, kind: str) -> None:
+    """OutputError if `folder` holds the log of a run of a kind (`RUN_LOGS`) other than `kind`."""
+    for other, log in RUN_LOGS.items():
+        if other != kind and (Path(folder) / log).exists():
+            raise OutputError(f"--out {folder} holds a {other} run ({log}); give this {kind} run another folder")
 
 
 def _pid_alive(pid: int) -> bool:

@@ -11,6 +11,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -175,6 +176,23 @@ def test_a_stale_lock_is_taken_over_and_a_killed_import_cleaned(world):
             pass
 
 
+@pytest.mark.parametrize("argv, held", [
+    (["train", "bc", "--data", "data.npz", "--out", "run"], "DAgger"),
+    (["train", "bc", "--data", "data.npz", "--out", "run"], "DAPG"),
+    (["train", "dagger", "--objects", "sphere_small", "--out", "run"], "BC"),
+    (["train", "dagger", "--objects", "sphere_small", "--out", "run"], "DAPG"),
+    (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run"], "BC"),
+    (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run"], "DAgger"),
+])
+def test_a_run_folder_of_another_kind_is_refused(world, capsys, argv, held):
+    from dexdrake.outputs import RUN_LOGS
+
+    (world / "run").mkdir()
+    (world / "run" / RUN_LOGS[held]).write_text("iteration\n")
+    err = _fails(argv, capsys, world)
+    assert f"--out run holds a {held} run ({RUN_LOGS[held]}); give this" in err, err
+
+
 def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
     from dataclasses import asdict, replace
 
@@ -206,11 +224,87 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
     (["objects", "augment", "--shapes", "5000"], "at most 999"),
     (["sim", "--time-step", "1e-9"], "--time-step"),
     (["features", "show", "--object", "apple", "--steps", "0"], "--steps"),
+    (["sim", "--steps", "10001"], "argument --steps: must be at most 10000"),
+    (["features", "show", "--object", "apple", "--steps", "1000000"], "argument --steps: must be at most 10000"),
+    (["demo", "--steps", "10001"], "argument --steps: must be at most 10000"),
+    (["eval", "--policy", "policy.pt", "--episodes", "100000000"], "argument --episodes: must be at most 10000"),
+    (["eval", "--policy", "policy.pt", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
+    (["train", "dagger", "--out", "run", "--horizon", "99999"], "argument --horizon: must be at most 10000"),
+    (["train", "dagger", "--out", "run", "--per-object", "99999"], "argument --per-object: must be at most 10000"),
+    (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--horizon", "99999"],
+     "argument --horizon: must be at most 10000"),
+    (["demos", "replay", "--hand", "adroit", "--demos", "demos", "--out", "r.npz", "--horizon", "99999"],
+     "argument --horizon: must be at most 10000"),
+    (["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "99999"],
+     "argument --per-object: must be at most 10000"),
 ], ids=["bc-nan", "eval-nan", "dagger-init-nan", "dapg-init-nan", "encoder-nan", "augment-copies",
-        "augment-shapes", "sim-time-step", "features-steps"])
+        "augment-shapes", "sim-time-step", "features-steps", "sim-steps", "features-steps-bound", "demo-steps",
+        "eval-episodes", "eval-horizon", "dagger-horizon", "dagger-per-object", "dapg-horizon", "replay-horizon",
+        "synth-per-object"])
 def test_numbers_that_would_lose_work_or_never_finish(world, capsys, argv, message, one_torch_thread):
     err = _fails(argv, capsys, world, log="run/bc/bc_log.csv")  # BC's log keeps the epochs it ran
     assert message in err, err
+
+
+@pytest.mark.parametrize("words, flag", [(["sim"], "--steps"), (["features", "show"], "--steps"), (["demo"], "--steps"),
+                                         (["eval"], "--episodes"), (["eval"], "--horizon"),
+                                         (["train", "dagger"], "--horizon"), (["train", "dagger"], "--per-object"),
+                                         (["train", "dapg"], "--horizon"), (["train", "dapg"], "--per-object"),
+                                         (["demos", "replay"], "--horizon"), (["demos", "synth"], "--per-object")])
+def test_help_states_the_bound(capsys, words, flag):
+    from dexdrake import argtypes
+
+    with pytest.raises(SystemExit):
+        main([*words, "--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps the help
+    bound = argtypes.MAX_EPISODES if flag == "--per-object" or flag == "--episodes" else argtypes.MAX_STEPS
+    options = text[text.index("options:"):]
+    after = options[options.index(flag + " "):]
+    end = after.find(" --", len(flag))
+    assert f"at most {bound})" in after[:None if end < 0 else end], after[:300]
+
+
+@pytest.mark.parametrize("init, demos, objective", [("policy.pt", "huge.npz", "-inf"), ("big.pt", "data.npz", "nan")],
+                         ids=["huge-demo-actions", "huge-policy-weights"])
+def test_a_non_finite_dapg_objective_stops_with_nothing_written(world, capsys, one_torch_thread, init, demos, objective):
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.hands.description import load_hand
+    from dexdrake.learn.demo_dataset import save_demo_dataset
+
+    blocks = observation_blocks(load_hand("adroit"), "Hand2obj")
+    obs = np.zeros((8, sum(blocks.values())), np.float32)
+    huge = np.full((8, HAND_ACTIONS), 1e30, np.float32)  # finite, but its squared distance overflows
+    save_demo_dataset(world / "huge.npz", obs, huge, None,
+                      {"hand": "adroit", "feature_set": "Hand2obj", "observation_blocks": blocks})
+    state = torch.load(world / "policy.pt", weights_only=True)
+    for name, weights in state["state_dict"].items():  # finite weights whose actions overflow to nan
+        if name.endswith("weight") and weights.is_floating_point():
+            weights.fill_(1e30)
+    torch.save(state, world / "big.pt")
+    err = _fails(["train", "dapg", "--init", init, "--demos", demos, "--out", "run", "--objects", "sphere_small",
+                  "--per-object", "1", "--horizon", "3", "--iterations", "1", "--backend", "sequential",
+                  "--workers", "1"], capsys, world)
+    assert f"DAPG iteration 0: the objective or its gradient is not finite (objective {objective})" in err, err
+
+
+def test_a_retarget_config_field_that_is_no_number_is_named(world):
+    import yaml
+
+    from dexdrake.hands.description import load_hand
+    from dexdrake.retarget.config import CONFIG_DIR, load_config
+
+    hand = load_hand("allegro")
+    shipped = yaml.safe_load((CONFIG_DIR / "allegro.yaml").read_text())
+    for field, value, message in [("filter", "fast", "solver.filter must be a number, got 'fast'"),
+                                  ("filter", 2.0, "solver.filter must be in (0, 1], got 2.0"),
+                                  ("filter_speed", [1], "solver.filter_speed must be a number, got [1]"),
+                                  ("iterations", "ten", "solver.iterations must be an integer, got 'ten'"),
+                                  ("damping", None, "solver.damping must be a number, got None")]:
+        config = {**shipped, "solver": {**(shipped.get("solver") or {}), field: value}}
+        (world / "config.yaml").write_text(yaml.safe_dump(config))
+        with pytest.raises(DexdrakeError) as err:
+            load_config(hand, world / "config.yaml")
+        assert str(err.value) == f"retarget config allegro: {message}"
 
 
 def test_no_non_finite_policy_is_saved_and_the_bc_loss_check_stops_early(world):
@@ -319,6 +413,71 @@ def test_ctrl_c_during_a_replay_with_workers(world):
     lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and not PROGRESS.search(line)]
     assert process.returncode == 130 and lines == [lines[0]] and "interrupted" in lines[0], err
     assert not (world / "r.npz").exists()
+
+
+def _group_alive(pgid: int) -> list[int]:
+    """Processes of process group `pgid` still running (zombies, dead but unreaped, excluded)."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            alive.append(int(stat.parent.name))
+    return alive
+
+
+def _interrupt(argv: list[str], cwd: Path, ready) -> tuple[int, list[str]]:
+    """Run `dexdrake argv` in its own process group (SIGINT at its default, as in a terminal),
+    send the group SIGINT once `ready()` holds; (exit status, stderr lines but progress bars).
+    Asserts no process of the group outlives it."""
+    process = subprocess.Popen([sys.executable, "-m", "dexdrake.cli", *argv], cwd=cwd, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 180
+    while not ready() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert process.poll() is None, "finished before the interrupt"
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+    err = process.communicate(timeout=120)[1]
+    time.sleep(1)
+    assert not _group_alive(process.pid), "a worker outlived the command"
+    return process.returncode, [l for l in err.replace("\r", "\n").splitlines() if l.strip() and not PROGRESS.search(l)]
+
+
+DAGGER_RUN = ["train", "dagger", "--out", "run", "--objects", "sphere_small", "--feature-set", "Hand2obj",
+              "--iterations", "3", "--per-object", "1", "--horizon", "5", "--epochs", "1"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", [["--backend", "process", "--workers", "2"], ["--backend", "sequential"]],
+                         ids=["process", "sequential"])
+def test_ctrl_c_during_dagger_then_it_resumes(world, backend):
+    code, lines = _interrupt([*DAGGER_RUN, *backend], world, lambda: (world / "run" / "data_01.npz").exists())
+    assert code == 130 and len(lines) == 1 and "dexdrake train dagger: interrupted" in lines[0], lines
+    assert not (world / "run" / ".dexdrake.lock").exists()
+    done = subprocess.run([sys.executable, "-m", "dexdrake.cli", *DAGGER_RUN, *backend], cwd=world,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    with open(world / "run" / "dagger_log.csv") as log:
+        assert [row.split(",")[0] for row in log.read().splitlines()[1:]] == ["0", "1", "2"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_dapg_with_workers(world):
+    code, lines = _interrupt(["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--objects",
+                              "sphere_small", "--per-object", "2", "--horizon", "20", "--iterations", "500",
+                              "--workers", "2"], world, lambda: (world / "run" / "dapg_log.csv").exists())
+    assert code == 130 and len(lines) == 1 and "dexdrake train dapg: interrupted" in lines[0], lines
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_eval_with_workers(world):
+    start = time.monotonic()
+    code, lines = _interrupt(["eval", "--policy", "policy.pt", "--objects", "apple,sphere_small", "--episodes", "200",
+                              "--workers", "2"], world, lambda: time.monotonic() > start + 15)
+    assert code == 130 and len(lines) == 1 and "dexdrake eval: interrupted" in lines[0], lines
 
 
 def test_a_broken_user_object_is_named_with_the_fix(world, capsys):

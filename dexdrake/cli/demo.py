@@ -83,7 +83,8 @@ def add_parser(subparsers) -> None:
                                                          "the manifest records a success on the object, else 0)")
     demo.add_argument("--rrd", type=argtypes.output_file(".rrd"), default=Path("demo.rrd"), help="rerun recording to write")
     demo.add_argument("--policy", type=Path, help="policy checkpoint (default: the shipped one)")
-    demo.add_argument("--steps", type=argtypes.count, default=100, help="control steps (50 Hz; paper evaluation: 100)")
+    demo.add_argument("--steps", type=argtypes.steps, default=100,
+                      help=f"control steps (50 Hz; paper evaluation: 100; at most {argtypes.MAX_STEPS})")
     demo.set_defaults(func=cmd_demo)
 
 

@@ -47,7 +47,8 @@ def add_parser(subparsers) -> None:
     synth.add_argument("--objects", required=True,
                        help="'train', 'unseen' or comma-separated object names")
     synth.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder")
-    synth.add_argument("--per-object", type=argtypes.count, default=3, help="demos per object")
+    synth.add_argument("--per-object", type=argtypes.episodes, default=3,
+                       help=f"demos per object (at most {argtypes.MAX_EPISODES})")
     synth.add_argument("--seed", type=argtypes.seed, default=0)
     synth.set_defaults(func=cmd_synth)
     imp = sub.add_parser("import", help="convert a keypoint file (.npy/.npz/.pkl/.json/.csv) "

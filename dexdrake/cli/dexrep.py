@@ -67,7 +67,8 @@ def add_parser(subparsers) -> None:
     s.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                    help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
     s.add_argument("--seed", type=argtypes.seed, default=0)
-    s.add_argument("--steps", type=argtypes.count, default=200, help="control steps (20 ms each)")
+    s.add_argument("--steps", type=argtypes.steps, default=200,
+                   help=f"control steps (20 ms each; at most {argtypes.MAX_STEPS})")
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
     s.set_defaults(func=_show)
 

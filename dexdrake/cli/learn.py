@@ -16,7 +16,7 @@ from typing import Any
 from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RANGES, check_evaluation_seeds, describe
-from dexdrake.outputs import WriterLock
+from dexdrake.outputs import WriterLock, check_run_kind
 from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
 
@@ -98,9 +98,11 @@ def add_parser(subparsers) -> None:
                            "(see dexdrake.task)")
     dapg.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder (dapg_state.pt, checkpoints, curves)")
     dapg.add_argument("--iterations", type=argtypes.count, default=500)
-    dapg.add_argument("--per-object", type=argtypes.count, default=10, help="trajectories per object per iteration")
+    dapg.add_argument("--per-object", type=argtypes.episodes, default=10,
+                      help=f"trajectories per object per iteration (at most {argtypes.MAX_EPISODES})")
     dapg.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
-    dapg.add_argument("--horizon", type=argtypes.count, default=200, help="control steps per trajectory")
+    dapg.add_argument("--horizon", type=argtypes.steps, default=200,
+                      help=f"control steps per trajectory (at most {argtypes.MAX_STEPS})")
     dapg.add_argument("--workers", type=argtypes.count, default=2)
     _add_envs_per_worker(dapg, "environments")
     _add_backend_options(dapg)
@@ -114,8 +116,10 @@ def add_parser(subparsers) -> None:
     dagger.add_argument("--feature-set", default="DexRep")
     dagger.add_argument("--objects", default="train", help=TRAINING_OBJECTS_HELP)
     dagger.add_argument("--iterations", type=argtypes.count, default=6)
-    dagger.add_argument("--per-object", type=argtypes.count, default=2, help="episodes per object per iteration")
-    dagger.add_argument("--horizon", type=argtypes.count, default=100)
+    dagger.add_argument("--per-object", type=argtypes.episodes, default=2,
+                        help=f"episodes per object per iteration (at most {argtypes.MAX_EPISODES})")
+    dagger.add_argument("--horizon", type=argtypes.steps, default=100,
+                        help=f"control steps per episode (at most {argtypes.MAX_STEPS})")
     dagger.add_argument("--expert-noise", type=argtypes.float_in(0.0, 1.0, low_open=False), default=0.0,
                         help="DART-style correlated (OU) action-noise std on the expert's iteration 0 "
                              "(normalised action units; the labels stay clean)")
@@ -159,14 +163,16 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen",
                     help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")
-    ev.add_argument("--episodes", type=argtypes.count, default=10, help="episodes per object (seeds S..S+N-1)")
+    ev.add_argument("--episodes", type=argtypes.episodes, default=10,
+                    help=f"episodes per object (seeds S..S+N-1; at most {argtypes.MAX_EPISODES})")
     ev.add_argument("--seed", type=argtypes.seed, default=FIRST_VALIDATION_SEED,
                     help="first episode seed S (default: the first validation seed); the seeds must lie in one of "
                          + ", ".join(f"{n} {describe(r)}" for n, r in SEED_RANGES.items())
                          + f": validation for every choice, test (from {FIRST_TEST_SEED}) once per shipped policy")
     ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
     _add_envs_per_worker(ev, "objects (one environment each)", "; 1 with --rrd")
-    ev.add_argument("--horizon", type=argtypes.count, default=100, help="control steps per episode (paper: 100)")
+    ev.add_argument("--horizon", type=argtypes.steps, default=100,
+                    help=f"control steps per episode (paper: 100; at most {argtypes.MAX_STEPS})")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
     ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
     ev.add_argument("--rrd", type=argtypes.output_file(".rrd"),
@@ -221,6 +227,7 @@ def cmd_train_bc(args: argparse.Namespace) -> int:
     from dexdrake.learn.demo_dataset import load_demo_dataset
     from dexdrake.learn.policy import DexRepNetPolicy
 
+    check_run_kind(args.out, "BC")
     if (args.out / "bc_best.pt").is_file():
         raise DexdrakeError(f"{args.out} already holds a BC run (bc_best.pt); choose another --out or delete it")
     torch.set_num_threads(args.threads)
@@ -249,6 +256,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     from dexdrake.objects.library import training_objects
     from dexdrake.systems.env_factory import env_factory_for_policy
 
+    check_run_kind(args.out, "DAPG")
     args.envs_per_worker = _envs_per_worker(args)
     if args.demo_std_fraction is None:
         args.demo_std_fraction = DEMO_STD_FRACTION
@@ -299,6 +307,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
+    check_run_kind(args.out, "DAgger")
     objects = training_objects(args.objects)
 
     observation_blocks(load_hand(args.hand), args.feature_set)  # unknown names: refused before workers start

@@ -32,7 +32,8 @@ def add_parser(subparsers) -> None:
     sim.add_argument("--allow-scenario-mismatch", action="store_true",
                      help="run a policy trained under another plant step or control period (with a warning)")
     sim.add_argument("--seed", type=argtypes.seed, help="episode seed (default: the scenario's; without --config: 0)")
-    sim.add_argument("--steps", type=argtypes.count, default=150, help="control steps (50 Hz)")
+    sim.add_argument("--steps", type=argtypes.steps, default=150,
+                     help=f"control steps (50 Hz; at most {argtypes.MAX_STEPS})")
     sim.add_argument("--time-step", type=argtypes.float_in(MIN_TIME_STEP, 0.02, low_open=False),
                      help="plant step (s); default: the scenario's (5 ms); must divide the 0.02 s control period, "
                           f"at least {MIN_TIME_STEP:g} s")

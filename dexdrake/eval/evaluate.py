@@ -15,6 +15,7 @@ the episodes of up to `envs_per_worker` objects in lockstep with one policy call
 from __future__ import annotations
 
 import multiprocessing as mp
+import signal
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -162,6 +163,7 @@ _RUNNER: _EpisodeRunner | None = None
 
 def _init_worker(policy_path: str, horizon: int, env_factory_for: PolicyEnvFactory) -> None:
     global _RUNNER
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     _RUNNER = _EpisodeRunner(policy_path, horizon, env_factory_for)
 
 
@@ -210,24 +212,37 @@ def evaluate_policy(
                         envs_per_worker=k, hand=policy.config.hand, feature_set=policy.config.feature_set)
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
-    if workers == 1:
-        runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for, record)
-        for group in groups:
-            report.episodes.extend(runner(group))
-            bar.update(len(group))
-    else:
-        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        with ProcessPoolExecutor(workers, mp.get_context(method), initializer=_init_worker,
-                                 initargs=(str(policy_path), horizon, env_factory_for)) as pool:
-            futures = [pool.submit(_run_in_worker, group) for group in groups]
+    try:  # the bar's line ends before any message that follows (an error, Ctrl-C)
+        if workers == 1:
+            runner = _EpisodeRunner(str(policy_path), horizon, env_factory_for, record)
+            for group in groups:
+                report.episodes.extend(runner(group))
+                bar.update(len(group))
+        else:
+            method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers inherit it: Ctrl-C is ours
+            try:
+                pool = ProcessPoolExecutor(workers, mp.get_context(method), initializer=_init_worker,
+                                           initargs=(str(policy_path), horizon, env_factory_for))
+                futures = [pool.submit(_run_in_worker, group) for group in groups]
+            finally:
+                signal.signal(signal.SIGINT, previous)
             try:
                 for fut in as_completed(futures):
                     results = fut.result()
                     report.episodes.extend(results)
                     bar.update(len(results))
-            except BrokenProcessPool as exc:
-                raise DexdrakeError("an evaluation worker died; rerun with --workers 1 to see the error") from exc
-    bar.close()
+            except BaseException as exc:  # Ctrl-C or an error: drop the queued jobs, end the running ones
+                running = list(pool._processes.values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                for process in running:
+                    process.terminate()
+                if isinstance(exc, BrokenProcessPool):
+                    raise DexdrakeError("an evaluation worker died; rerun with --workers 1 to see the error") from exc
+                raise
+            pool.shutdown()
+    finally:
+        bar.close()
     report.wall_s = time.perf_counter() - start
     order = {job: k for k, job in enumerate(jobs)}
     report.episodes.sort(key=lambda e: order[(e.object, e.seed)])

@@ -20,6 +20,7 @@ from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.learn.curves import CsvLog, plot_curves
 from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset, save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, save_policy
+from dexdrake.outputs import RUN_LOGS
 
 __all__ = ["BCConfig", "BCResult", "bc_loss", "train_bc", "split_train_val", "load_demo_dataset", "save_demo_dataset"]
 
@@ -182,7 +183,7 @@ def train_bc(
     optimiser = torch.optim.AdamW(policy.trainable_parameters(), lr=config.lr, weight_decay=config.weight_decay)
     gen = torch.Generator().manual_seed(config.seed)
     meta = {"stage": "bc", "bc_config": asdict(config), **dict(metadata or {})}
-    result = BCResult(log_csv=out_dir / "bc_log.csv", val_indices=val_idx)
+    result = BCResult(log_csv=out_dir / RUN_LOGS["BC"], val_indices=val_idx)
     log = CsvLog(result.log_csv, ["epoch", "train_loss", "val_loss", "seconds"])
     bar = tqdm(range(1, config.epochs + 1), desc="BC", unit="epoch", disable=not config.progress)
     for epoch in bar:

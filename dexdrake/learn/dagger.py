@@ -45,6 +45,7 @@ from dexdrake.learn.demo_dataset import DemoDataset
 from dexdrake.learn.env_protocol import MakeEnvFactory
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy, widened
 from dexdrake.learn.samplers import ENVS_PER_WORKER, Sampler, check_backend, make_sampler
+from dexdrake.outputs import RUN_LOGS
 
 DATA_FORMAT = "dexdrake.dagger/2"  # /1 kept plant positions only
 PROBE_SEEDS = 5000  # probe episode seeds start this far above the iteration's training seeds
@@ -391,7 +392,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     out_dir.mkdir(parents=True, exist_ok=True)
     finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
                     config.iterations)
-    log = CsvLog(out_dir / "dagger_log.csv", ["iteration", "driver", "episodes", "success_rate", "samples_total",
+    log = CsvLog(out_dir / RUN_LOGS["DAgger"], ["iteration", "driver", "episodes", "success_rate", "samples_total",
                                                "train_loss", "val_loss", "hold_val_loss", "unseen_success", "unseen_loss",
                                                "collect_s", "train_s"],
                  resume=True, key="iteration", resume_from=finished)
@@ -467,7 +468,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                   f"; unseen: executed success {unseen['unseen_success']:.1%}, loss {unseen['unseen_loss']:.4g}"),
                   flush=True)
     assert policy is not None
-    best = best_measured_iteration(out_dir / "dagger_log.csv", config.iterations)
+    best = best_measured_iteration(out_dir / RUN_LOGS["DAgger"], config.iterations)
     chosen = policy if best == config.iterations - 1 else load_policy(out_dir / f"policy_{best:02d}.pt")[0]
     final = out_dir / "dagger_policy.pt"
     save_policy(final, chosen, {**meta, "iteration": best, "selection": SELECTION})

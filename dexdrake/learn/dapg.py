@@ -46,6 +46,7 @@ from dexdrake.learn.npg import flat_grad, natural_gradient_step
 from dexdrake.learn.policy import DEMO_STD_FRACTION, DexRepNetPolicy, policy_payload, save_payload, save_policy
 from dexdrake.learn.samplers import Sampler
 from dexdrake.learn.trajectory import Trajectory
+from dexdrake.outputs import RUN_LOGS
 from dexdrake.task import TaskSpec
 
 STATE_FORMAT = "dexdrake.dapg/2"
@@ -188,7 +189,7 @@ class DAPGTrainer:
         self.saved_config: dict[str, Any] = {}  # the config a loaded state was made with
         self.rng = np.random.default_rng(config.seed)
         self.state_path = self.out_dir / "dapg_state.pt"
-        self.log_csv, self.plot_png = self.out_dir / "dapg_log.csv", self.out_dir / "dapg_log.png"
+        self.log_csv, self.plot_png = self.out_dir / RUN_LOGS["DAPG"], self.out_dir / "dapg_log.png"
         self.objects_csv = self.out_dir / "dapg_objects.csv"
         self.manifest_path = self.out_dir / "dapg_manifest.json"
         self._rerun: _RerunCurves | None = None

@@ -149,30 +149,35 @@ def config_from_dict(hand: HandDescription, d: dict) -> RetargetConfig:
         scales=dict(d.get("scales") or {}), weights=dict(d.get("weights") or {}),
         pinch=PinchParams(**(d.get("pinch") or {})),
         palm=_palm(hand, d["palm"]) if d.get("palm") is not None else None,
-        iterations=int(s.get("iterations", 10)),
-        first_iterations=int(s.get("first_iterations", 80)),
-        damping=float(s.get("damping", 1e-6)),
+        iterations=_number(hand, "solver.iterations", s.get("iterations", 10), int),
+        first_iterations=_number(hand, "solver.first_iterations", s.get("first_iterations", 80), int),
+        damping=_number(hand, "solver.damping", s.get("damping", 1e-6)),
         filter=_alpha(hand, s.get("filter", 1.0)),
         filter_speed=_speed(hand, s.get("filter_speed", np.inf)),
     )
 
 
+def _number(hand: HandDescription, field: str, value, kind: type = float) -> float:
+    """`value` as a `kind` (float or int); else one line naming the field."""
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise DexdrakeError(f"retarget config {hand.name}: {field} must be "
+                            f"{'an integer' if kind is int else 'a number'}, got {value!r}") from None
+
+
 def _alpha(hand: HandDescription, value) -> float:
-    alpha = float(value)
+    alpha = _number(hand, "solver.filter", value)
     if not 0.0 < alpha <= 1.0:
-        raise DexdrakeError(f"retarget config {hand.name}: solver.filter must be in (0, 1], "
-                            f"got {value}")
+        raise DexdrakeError(f"retarget config {hand.name}: solver.filter must be in (0, 1], got {value!r}")
     return alpha
 
 
 def _speed(hand: HandDescription, value) -> float:
-    try:
-        speed = float(value)
-    except (TypeError, ValueError):
-        speed = float("nan")
+    speed = _number(hand, "solver.filter_speed", value)
     if not speed > 0.0:
         raise DexdrakeError(f"retarget config {hand.name}: solver.filter_speed must be a "
-                            f"positive number of rad/frame, got {value}")
+                            f"positive number of rad/frame, got {value!r}")
     return speed
 
 

@@ -124,7 +124,8 @@ def replay_demos(jobs: list[tuple[int, str, int]], hand: str, feature_set: str |
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
-            ctx = mp.get_context("spawn")  # Drake objects don't pickle or survive fork
+            # Drake objects don't pickle or survive fork; the forkserver's workers start clean
+            ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
             previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers inherit it: Ctrl-C is ours
             try:
                 pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,

@@ -1,7 +1,11 @@
 """Fixtures shared by the test modules."""
 
 import importlib.util
+import os
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -32,3 +36,19 @@ def load_script(monkeypatch):
         return module
 
     return load
+
+
+@pytest.fixture
+def sigint_storm():
+    """A thread (not started) that sends this process SIGINT 200 times ~1 ms apart, as a
+    held Ctrl-C; the test's SIGINT handler meanwhile only counts them, and is restored after."""
+    counted = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
+
+    def storm():
+        for _ in range(200):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.001)
+
+    yield threading.Thread(target=storm)
+    signal.signal(signal.SIGINT, previous)

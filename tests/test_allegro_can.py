@@ -4,7 +4,6 @@ import contextlib
 import itertools
 import os
 import signal
-import threading
 import time
 import uuid
 
@@ -644,7 +643,7 @@ def test_ctrl_c_leads_to_safe_stop(rig):
     assert wait_for(lambda: not emu.servo_on and emu.periods.position_ms == 0, 1.0)
 
 
-def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(rig):
+def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(rig, sigint_storm):
     """SIGINT 200 times ~1 ms apart while the hand pushes hard on a busy bus: one KeyboardInterrupt, and
     the stop runs to its end: zero torque first (no other torque after it), then the
     stream off (period 0) and servo off."""
@@ -657,26 +656,14 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(rig):
         return send(msg, timeout)
 
     hand.bus.send = slow_send
-    counted = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
-
-    def storm():
-        for _ in range(200):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.001)
-
-    sender = threading.Thread(target=storm)
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            with hand:
-                hand.command_positions(UPPER)
-                assert wait_for(lambda: np.max(np.abs(emu.pwm)) > 100, 1.0)
-                n = len(emu.log)
-                sender.start()
-                time.sleep(5.0)
-        sender.join()
-    finally:
-        signal.signal(signal.SIGINT, previous)
+    with pytest.raises(KeyboardInterrupt):
+        with hand:
+            hand.command_positions(UPPER)
+            assert wait_for(lambda: np.max(np.abs(emu.pwm)) > 100, 1.0)
+            n = len(emu.log)
+            sigint_storm.start()
+            time.sleep(5.0)
+    sigint_storm.join()
     assert not hand.running
     assert wait_for(lambda: not emu.servo_on and emu.periods.position_ms == 0, 1.0)
     assert not np.any(emu.pwm)

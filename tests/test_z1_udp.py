@@ -842,24 +842,11 @@ def test_a_joint_reported_beyond_its_velocity_limit_trips():
         emu.stop()
 
 
-def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop():
+def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(sigint_storm):
     """SIGINT 200 times ~1 ms apart while moving: one KeyboardInterrupt, and the stop runs
     to its end: a hold at the measured position (zero velocity) first, nothing else of the
     mode after it, then PASSIVE; the socket closed."""
-    import os
-    import signal
-    import threading
-
     emu = quiet_emulator()
-    counted = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: counted.append(signum))
-
-    def storm():
-        for _ in range(200):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.001)
-
-    sender = threading.Thread(target=storm)
     arm = make_arm(emu)
     try:
         with pytest.raises(KeyboardInterrupt):
@@ -867,9 +854,9 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop():
                 arm.command_positions(UPPER)  # 0.8 s of ramp at pi rad/s: every command moving
                 time.sleep(0.2)
                 n = len(emu.log)
-                sender.start()
+                sigint_storm.start()
                 time.sleep(5.0)
-        sender.join()
+        sigint_storm.join()
         assert not arm.running
         assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 1.0)
         after = list(emu.log)[n:]
@@ -879,5 +866,4 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop():
         with pytest.raises(HardwareError, match="Z1: not started"):
             arm.local_port
     finally:
-        signal.signal(signal.SIGINT, previous)
         emu.stop()

@@ -99,8 +99,9 @@ def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
         assert arm.running and arm.state().fault is None
         target = np.array([0.0, 0.3, -0.3, 0.0, 0.0, 0.0])
         arm.command_positions(target)
-        assert wait_for(lambda: np.allclose(arm.state().q, target, atol=0.02), 15.0)
-        np.testing.assert_allclose(emu.q, target, atol=0.02)
+        # the driver's reading lags the emulator's joints by a reply: both settle at the target
+        assert wait_for(lambda: np.allclose(arm.state().q, target, atol=0.02)
+                        and np.allclose(emu.q, target, atol=0.02), 15.0)
         assert arm.stats()["cycles"] > 10
         with pytest.raises(HardwareError, match="6 joint targets"):
             arm.command_positions(np.zeros(5))

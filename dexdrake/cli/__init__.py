@@ -99,7 +99,14 @@ class _Warnings:
         self.held.clear()
 
 
+# The resource tracker process (multiprocessing) frees the semaphores of workers ended on
+# Ctrl-C, which is its job, and warns of each; it takes its warning filters from these options.
+RESOURCE_TRACKER_QUIET = "ignore:resource_tracker:UserWarning"
+
+
 def main(argv: list[str] | None = None) -> int:
+    if RESOURCE_TRACKER_QUIET not in sys.warnoptions:
+        sys.warnoptions.append(RESOURCE_TRACKER_QUIET)
     shown = _Warnings()
     with warnings.catch_warnings():
         warnings.showwarning = shown.show

@@ -23,7 +23,7 @@ from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
-from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.diagram import BuiltDiagram, build_diagram
 from dexdrake.systems.scenario import Scenario, ScenarioError, validate_scenario
 from dexdrake.systems.scene import ObjectPlacement, SimulationDiverged

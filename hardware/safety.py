@@ -26,10 +26,9 @@ from dexdrake.errors import DexdrakeError
 
 Clock = Callable[[], float]
 
-# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault:
-# targets may move at the limit itself and tracking overshoots them (Z1 emulator, steps at
-# pi rad/s: peaks +31 %); a speed from frame times is noisy (Allegro emulator capped at its
-# limit, 15 % of frames lost: +15 %)
+# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault: the
+# margin covers tracking that overshoots targets moving at the limit itself, and the noise of
+# a speed computed from the times of frames with some frames lost
 OVERSPEED_TOLERANCE = 0.5
 MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder temperature reading is a broken sensor: a fault
 

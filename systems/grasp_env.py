@@ -156,7 +156,7 @@ class GraspEnv:
         """The features of the diagram's DexRepSystem (its "features" output), or the hand
         state without a feature set. Its extractor runs on the plant's own context, whose
         kinematics the reward then reuses: reading the port would evaluate them again on the
-        system's private context, about 6 % more CPU per step (scripts/bench_features_port.py).
+        system's private context (scripts/bench_features_port.py measures both).
         On the fast path at the true pose its closest-point query also gives the fingertip
         distances (the fingertips are DexRep points), so the reward makes no query of its own.
         Called once per control step (the perception model takes its frames here)."""

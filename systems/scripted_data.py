@@ -41,9 +41,9 @@ class ScriptTiming:
 
 
 FAST_SCRIPT = ScriptTiming()
-# Lift finished by 0.9 s (step 45) and a 0.35 s close: the 50-step hold ends by step ~95 of the
-# paper's 100-step episode, where FAST_SCRIPT's first success comes at step ~98 (no slack
-# for a policy that lags the expert by a few steps).
+# Lift finished by 0.9 s (step 45) after a 0.35 s close: the 50-step hold ends by step ~95 of the
+# paper's 100-step episode, leaving slack for a policy that lags the expert by a few steps
+# (FAST_SCRIPT's hold ends with the episode).
 EARLY_LIFT = ScriptTiming(approach_end=0.2, descend_end=0.35, close_end=0.7, lift_end=0.9)
 TIMINGS: dict[str, ScriptTiming] = {"fast": FAST_SCRIPT, "early_lift": EARLY_LIFT}
 

@@ -1,5 +1,6 @@
 """The one episode loop and its result, in every mode: training rollouts, DAgger labelling,
-evaluation, the scripted grasp in simulation, the demo, and the station (hil, real).
+evaluation, the scripted grasp in simulation and its recorded data, the replay of
+retargeted demonstrations, the demo, and the station (hil, real).
 
 The loop runs an env of the learning protocol (learn/env_protocol.py): `reset(seed)`, then
 `step(act(observation))` until the env says done, its info carries a "fault", or `horizon`

@@ -668,7 +668,7 @@ class AllegroHand(SafeStopContext):
         out: dict[str, object] = period_stats(list(self._stats.cycle_times))
         out.update(frame_errors=dict(self._stats.frame_errors), duplicates=self._stats.duplicates,
                    ignored_frames=self._stats.ignored,
-                   rejected_commands=self.limits.rejected, clamped_commands=self.limits.clamped,
+                   rejected_commands=self.limits.non_finite, clamped_commands=self.limits.clipped,
                    fault=self.fault.reason)
         return out
 

@@ -1,6 +1,7 @@
 """Safety building blocks shared by every hardware driver.
 
-Joint-limit clamps with non-finite rejection, a rate limiter on commanded targets, a
+Joint-limit clamps with non-finite rejection (the one bad-command rule of
+dexdrake/command_guard.py), a rate limiter on commanded targets, a
 watchdog fed by received frames, a latch that keeps the first fault, and a context manager
 that routes Ctrl-C, SIGTERM and exceptions to the driver's safe stop, plus the loop-period
 statistics every driver reports. Pure Python + numpy;
@@ -20,14 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dexdrake.command_guard import CommandGuard
 from dexdrake.errors import DexdrakeError
 
 Clock = Callable[[], float]
 
-# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault:
-# targets may move at the limit itself and tracking overshoots them (Z1 emulator, steps at
-# pi rad/s: peaks +31 %); a speed from frame times is noisy (Allegro emulator capped at its
-# limit, 15 % of frames lost: +15 %)
+# a joint measured faster than its velocity limit times (1 + this) is an overspeed fault: the
+# margin covers tracking that overshoots targets moving at the limit itself, and the noise of
+# a speed computed from the times of frames with some frames lost
 OVERSPEED_TOLERANCE = 0.5
 MIN_PLAUSIBLE_TEMPERATURE_C = -40  # a colder temperature reading is a broken sensor: a fault
 
@@ -68,12 +69,12 @@ def check_limit_margin(device: str, margin: float, lower: np.ndarray, upper: np.
                             f"range (narrowest {float(np.min(upper - lower)):g} rad)")
 
 
-class JointLimits:
-    """Clamps position commands into [lower, upper]; holds the last safe command on NaN/inf.
-
-    `apply(q)` returns the command to send. A command with any non-finite element is
-    rejected as a whole: the last safe command is returned instead, `rejected` counts it
-    and `last_rejected` is set until the next accepted command.
+class JointLimits(CommandGuard):
+    """The one bad-command rule (dexdrake/command_guard.py) on a driver's position commands,
+    with the held command its own: `apply(q)` returns the command to send, `q` clipped into
+    [lower, upper], or, when `q` has a non-finite element, the last safe command
+    (`last_rejected` is then set until the next accepted command); `non_finite` and
+    `clipped` count them. A command of the wrong size is the caller's error (HardwareError).
     """
 
     def __init__(self, lower: Sequence[float] | np.ndarray, upper: Sequence[float] | np.ndarray,
@@ -85,11 +86,9 @@ class JointLimits:
             raise HardwareError("limits: lower and upper must be finite")
         if np.any(lo > hi):
             raise HardwareError(f"limits: lower > upper at joints {np.flatnonzero(lo > hi).tolist()}")
-        self.lower, self.upper = lo, hi
+        super().__init__(lo, hi)
         start = np.clip(0.0, lo, hi) if initial is None else _vector(initial, lo.size, "initial")
         self._last_safe = np.clip(start, lo, hi) if np.all(np.isfinite(start)) else np.clip(0.0, lo, hi)
-        self.rejected = 0
-        self.clamped = 0
         self.last_rejected = False
 
     @property
@@ -109,17 +108,10 @@ class JointLimits:
 
     def apply(self, q: Sequence[float] | np.ndarray) -> np.ndarray:
         """The safe version of command `q` (clamped, or the last safe one if non-finite)."""
-        q = _vector(q, self.size, "command")
-        if not np.all(np.isfinite(q)):
-            self.rejected += 1
-            self.last_rejected = True
-            return self._last_safe.copy()
-        self.last_rejected = False
-        safe = np.clip(q, self.lower, self.upper)
-        if np.any(safe != q):
-            self.clamped += 1
-        self._last_safe = safe
-        return safe.copy()
+        held = self.non_finite
+        self._last_safe = self(_vector(q, self.size, "command"), self._last_safe)
+        self.last_rejected = self.non_finite > held
+        return self._last_safe.copy()
 
 
 class RateLimiter:

@@ -552,7 +552,7 @@ class Z1Arm(SafeStopContext):
         """Loop rate/jitter (period mean/p50/p99/max in ms) and packet counters."""
         out: dict[str, object] = period_stats(list(self._tick_times))
         out.update(packets_received=self.packets_received, packet_errors=dict(self.packet_errors),
-                   rejected_commands=self.limits.rejected, clamped_commands=self.limits.clamped,
+                   rejected_commands=self.limits.non_finite, clamped_commands=self.limits.clipped,
                    torque_clamped=self.torque_clamped, fault=self.fault.reason)
         return out
 

@@ -1,4 +1,4 @@
-"""Choose the state-driven expert's grasp variant per training object by simulated trials.
+"""Choose the grasp expert's (ReactiveGrasp's) grasp variant per training object by simulated trials.
 
     python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,...,111] [--workers 2] [--horizon 100]
 
@@ -11,8 +11,8 @@ the best so far (`best_variant`), which chooses exactly as trying every seed wou
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
 reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
-measured on the seeds the choice was fitted to. Twelve seeds: with six, most variants could
-not be told apart (the choice made 68.9 % on its own seeds and 63.2 % on the table's).
+measured on the seeds the choice was fitted to. The default is twelve seeds, as fewer cannot
+tell most variants apart (the comparison: models/weights/expert_grasp_table.md).
 """
 
 from __future__ import annotations

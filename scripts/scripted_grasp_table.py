@@ -1,4 +1,4 @@
-"""Success rate of the scripted grasp or the state-driven expert per object over seeds.
+"""Success rate of the scripted grasp or the grasp expert per object over seeds.
 
     python scripts/scripted_grasp_table.py [--hand adroit] [--split train] [--seeds 20]
         [--controller scripted|expert] [--workers 2] [--out models/weights/scripted_grasp_table.md]
@@ -56,7 +56,7 @@ def main() -> None:
     parser.add_argument("--split", default="train")
     parser.add_argument("--objects", help="comma-separated names (overrides --split)")
     parser.add_argument("--controller", choices=("scripted", "expert"), default="scripted",
-                        help="the timed ScriptedGrasp or the state-driven ReactiveGrasp (the DAgger expert)")
+                        help="the timed ScriptedGrasp or the grasp expert (ReactiveGrasp)")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
@@ -76,7 +76,7 @@ def main() -> None:
     wall = time.perf_counter() - start
 
     scenario = training_scenario(args.hand)
-    title = "Scripted grasp" if args.controller == "scripted" else "State-driven expert (ReactiveGrasp)"
+    title = "Scripted grasp" if args.controller == "scripted" else "Grasp expert (ReactiveGrasp)"
     lines = [
         f"# {title} success ({args.hand}, {args.split if not args.objects else 'selected'} objects)",
         "",

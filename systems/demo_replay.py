@@ -28,6 +28,7 @@ from pydrake.math import RollPitchYaw
 
 from dexdrake.demos.format import HumanDemo
 from dexdrake.demos.trim import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.objects.library import ObjectInfo, get_object
@@ -188,6 +189,21 @@ class DemoReplayResult:
 
 
 # -- the replayer ------------------------------------------------------------------------
+class _SetPoints:
+    """A GraspEnv as the episode loop's env for a replay: actions are joint set-points
+    (`step_positions`), and every episode starts with the hand at `q_hand`."""
+
+    def __init__(self, env: GraspEnv, q_hand: np.ndarray):
+        self.env, self.q_hand = env, q_hand
+        self.horizon, self.object_name = env.horizon, env.object_name
+
+    def reset(self, seed: int) -> np.ndarray:
+        return self.env.reset(seed, q_hand=self.q_hand)
+
+    def step(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
+        return self.env.step_positions(q_command)
+
+
 class DemoReplayer:
     """Retargets, replays and perturbs demos of one hand; one GraspEnv per object, built lazily."""
 
@@ -232,23 +248,25 @@ class DemoReplayer:
 
     # execution -----------------------------------------------------------------------
     def run(self, env: GraspEnv, plan: ReplayPlan, offsets: np.ndarray | None = None, attempt: int = 0) -> Episode:
-        """Execute one attempt for `config.horizon` steps; `offsets` (horizon, n) are added to
-        every set-point (None: the raw replay)."""
+        """Execute one attempt for `config.horizon` steps (the one episode loop,
+        dexdrake/episode.py, over `GraspEnv.step_positions`); `offsets` (horizon, n) are added
+        to every set-point (None: the raw replay)."""
         H = self.config.horizon
         if offsets is not None and offsets.shape != (H, self.hand.num_actuators):
             raise DexdrakeError(f"offsets must have shape {(H, self.hand.num_actuators)}, got {offsets.shape}")
-        env.reset(plan.seed, q_hand=plan.q_demo[0])
         demo_steps = min(len(plan.q_demo) - 1, H)
         raise_steps = max(1, int(round(self.config.raise_time / env.scenario.control_period)))
+        q_end = plan.q_demo[demo_steps]
+        q_lift: np.ndarray | None = None  # arm set-points of the lift, solved when the demo ends
         obs, act = [], []
-        q_lift = None
-        for k in range(H):
+
+        def command(observation: np.ndarray) -> np.ndarray:
+            nonlocal q_lift
+            k = len(obs)
             if k < demo_steps:
                 q = plan.q_demo[k + 1].copy()
             else:
-                if q_lift is None:
-                    q_end = plan.q_demo[demo_steps].copy()
-                    q_lift = self._lift_pose(env, q_end)
+                q_lift = self._lift_pose(env, q_end) if q_lift is None else q_lift
                 s = _smooth(np.array((k - demo_steps + 1) / raise_steps))
                 q = q_end.copy()
                 q[: self.n_arm] = q_end[: self.n_arm] + s * (q_lift - q_end[: self.n_arm])
@@ -256,11 +274,13 @@ class DemoReplayer:
                 q = q + plan.squeeze[k]
             if offsets is not None:
                 q = q + offsets[k]
-            obs.append(env.observation())
-            env.step_positions(q)
-            act.append(env.normalise(env.q_command))
-        return Episode(np.asarray(obs, np.float32), np.asarray(act, np.float32), bool(env.tracker.success),
-                       float(env.tracker.max_lift), attempt, demo_steps)
+            obs.append(observation)
+            return q
+
+        result = run_episode(_SetPoints(env, plan.q_demo[0]), command, plan.seed, H,
+                             on_step=lambda reward, info: act.append(env.normalise(env.q_command)))
+        return Episode(np.asarray(obs, np.float32), np.asarray(act, np.float32), result.success, result.max_lift,
+                       attempt, demo_steps)
 
     def _lift_pose(self, env: GraspEnv, q_end: np.ndarray) -> np.ndarray:
         """Arm set-points moving the commanded palm grasp centre by (target - object now),

@@ -85,7 +85,7 @@ class BuiltDiagram:
 
     @property
     def command_counts(self) -> dict[str, int]:
-        """Bad commands the slot held or clipped (systems/command_guard.py)."""
+        """Bad commands the slot held or clipped (dexdrake/command_guard.py)."""
         return (self.policy_system or self.controller).guard.counts
 
 

@@ -23,7 +23,7 @@ from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
-from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.diagram import BuiltDiagram, build_diagram
 from dexdrake.systems.scenario import Scenario, ScenarioError, validate_scenario
 from dexdrake.systems.scene import ObjectPlacement, SimulationDiverged
@@ -156,7 +156,7 @@ class GraspEnv:
         """The features of the diagram's DexRepSystem (its "features" output), or the hand
         state without a feature set. Its extractor runs on the plant's own context, whose
         kinematics the reward then reuses: reading the port would evaluate them again on the
-        system's private context, about 6 % more CPU per step (scripts/bench_features_port.py).
+        system's private context (scripts/bench_features_port.py measures both).
         On the fast path at the true pose its closest-point query also gives the fingertip
         distances (the fingertips are DexRep points), so the reward makes no query of its own.
         Called once per control step (the perception model takes its frames here)."""

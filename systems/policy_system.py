@@ -3,7 +3,7 @@
 Ports: input "observation" (the env observation vector, obs_dim) -> output "action"
 (action_dim, normalised to [-1, 1]). The action is discrete state updated by a periodic
 event every `control_period` seconds (a zero-order hold between updates; zeros, or
-`initial_action`, before the first update). Actions pass `guard` (systems/command_guard.py:
+`initial_action`, before the first update). Actions pass `guard` (dexdrake/command_guard.py:
 a non-finite action holds the last one, one outside [-1, 1] is clipped; `guard.counts`).
 """
 
@@ -18,7 +18,7 @@ from pydrake.systems.framework import BasicVector, Context, DiscreteValues, Leaf
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
-from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.station import LoopTimer
 
 

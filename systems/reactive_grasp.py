@@ -1,10 +1,9 @@
-"""A state-driven grasp expert: the scripted grasp's way-points, chosen from the current state.
+"""The grasp expert (`ReactiveGrasp`): the scripted grasp's way-points, chosen from the current state.
 
-`ScriptedGrasp` follows a clock, so its set-point at a given hand state depends on time the
-policy cannot observe; a policy cloned from it learns "stay where you are" at the start pose.
-`ReactiveGrasp` decides its phase from the state alone (hand joints, grasp-centre position,
-fingertip-to-surface distances, object height), so it can label any state a learning policy
-visits (DAgger) and re-tries when a grasp fails:
+`ScriptedGrasp` follows a clock: its set-point at a hand state depends on the time, which a
+policy does not observe. The grasp expert decides its phase from the state alone (hand
+joints, grasp-centre position, fingertip-to-surface distances, object height), so it labels
+any state a learning policy visits (DAgger) and re-tries when a grasp fails:
 
 - fingers closed on the object near the grasp point (thumb and another fingertip touching,
   or settled well closed), or the object already lifted (above its start and, where the
@@ -23,12 +22,10 @@ visits (DAgger) and re-tries when a grasp fails:
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
 toward the phase's way-point, so the label always says which way to move. The label is a
 function of the state, not of the episode's past, so a policy can clone it: the way-points
-are solved from one fixed arm seed (the pre-grasp pose) and re-planned whenever the grasp for
-the object's pose has moved or turned (`replan_shift`, `replan_turn`) before the fingers
-close; the lift keeps the palm's rotation and rises to a height set by the object's resting
-height. (Way-points moved a few IK steps from the old ones, and a lift toward the plan's
-rotation, made the arm label depend on the episode's history: along policy rollouts an expert
-planned afresh at the same state disagreed on 40 % of the steps.) The grasp geometry is
+are solved from one fixed arm seed (the pre-grasp pose), never from the previous way-points,
+and re-planned whenever the grasp for the object's pose has moved or turned (`replan_shift`,
+`replan_turn`) before the fingers close; the lift keeps the palm's current rotation (not the
+plan's) and rises to a height set by the object's resting height. The grasp geometry is
 the hand's `GraspScript` with the variant chosen for the object by simulated trials
 (`models/weights/<hand>_expert_grasps.json`, scripts/choose_expert_grasps.py).
 """
@@ -54,12 +51,11 @@ from dexdrake.systems.scripted_grasp import (GraspPlan, GraspScript, ScriptedGra
 class ReactiveRules:
     """Thresholds of the phase rules and the arm's set-point lead."""
 
-    max_lead: float = 0.5  # largest arm set-point lead per joint (normalised action units; 0.3 reached
-    # the grasp later: see models/weights/expert_grasp_table.md)
+    max_lead: float = 0.5  # largest arm set-point lead per joint (normalised action units; its trials:
+    # models/weights/expert_grasp_table.md)
     at_grasp: float = 0.015  # grasp centre within this of the grasp point: close (m)
     blocked_height: float = 0.03  # ... or within this above it with the arm stopped (blocked) (m)
-    stopped_speed: float = 0.15  # arm joints slower than this (m/s or rad/s) have stopped (a policy's
-    # arm blocked above the grasp jitters at about 0.17; 0.05 never let it close there)
+    stopped_speed: float = 0.15  # arm joints slower than this (m/s or rad/s) have stopped
     above_xy: float = 0.015  # horizontally within this of the grasp point: descend (m) ...
     descend_cone: float = 0.0  # ... plus this much per metre above it (arms whose joint-space descent bows)
     funnel: float = 0.02  # beyond that tolerance the target rises to the approach way-point over this (m)
@@ -101,7 +97,8 @@ def expert_script(hand: HandDescription, object_name: str) -> GraspScript:
 
 
 class ReactiveGrasp(ScriptedGrasp):
-    """Callable controller for `GraspEnv` (like ScriptedGrasp) whose output depends on the state only."""
+    """The grasp expert: a callable controller for `GraspEnv` (like ScriptedGrasp) whose output
+    depends on the state only."""
 
     def __init__(self, env, script: GraspScript | None = None, rules: ReactiveRules | None = None):
         hand = env.scene.hand

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.action_noise import DEFAULT_RHO, OUActionNoise
 
@@ -40,9 +41,9 @@ class ScriptTiming:
 
 
 FAST_SCRIPT = ScriptTiming()
-# Lift finished by 0.9 s (step 45) and a 0.35 s close: the 50-step hold ends by step ~95 of the
-# paper's 100-step episode, where FAST_SCRIPT's first success comes at step ~98 (no slack
-# for a policy that lags the expert by a few steps).
+# Lift finished by 0.9 s (step 45) after a 0.35 s close: the 50-step hold ends by step ~95 of the
+# paper's 100-step episode, leaving slack for a policy that lags the expert by a few steps
+# (FAST_SCRIPT's hold ends with the episode).
 EARLY_LIFT = ScriptTiming(approach_end=0.2, descend_end=0.35, close_end=0.7, lift_end=0.9)
 TIMINGS: dict[str, ScriptTiming] = {"fast": FAST_SCRIPT, "early_lift": EARLY_LIFT}
 
@@ -89,7 +90,7 @@ def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
     """
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.env_factory import training_scenario
-    from dexdrake.systems.scripted_grasp import GraspScript, ScriptedGrasp
+    from dexdrake.systems.scripted_grasp import GraspScript
 
     if horizon < 1:
         raise DexdrakeError(f"horizon must be >= 1, got {horizon}")
@@ -97,25 +98,38 @@ def record_object(hand: str, name: str, seeds: list[int], horizon: int = 100,
         raise DexdrakeError(f"noise std must be >= 0, got {noise}")
     env = GraspEnv(training_scenario(hand, name), feature_set=None, horizon=horizon)
     script = GraspScript(**asdict(timing))
-    states, actions, starts, success = [], [], [], []
+    states: list[np.ndarray] = []
+    actions: list[np.ndarray] = []
+    starts: list[bool] = []
+    success = []
     for seed in seeds:
-        env.reset(int(seed))
-        controller = ScriptedGrasp(env, script)
         perturb = OUActionNoise(env.action_dim, noise, noise_rho, seed=[int(noise_seed), int(seed)]) if noise > 0 else None
-        ok = False
-        for t in range(horizon):
-            states.append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
-            a = np.clip(env.normalise(controller(env)), -1.0, 1.0)
-            actions.append(a.astype(np.float32))
-            starts.append(t == 0)
-            executed = a if perturb is None else np.clip(a + perturb.sample(), -1.0, 1.0)
-            _, _, done, info = env.step(executed)
-            ok = ok or bool(info["success"])
-            if done:
-                break
-        success.append(ok)
+        first = len(actions)
+        success.append(_scripted_episode(env, script, int(seed), perturb, states, actions))
+        starts += [True] + [False] * (len(actions) - first - 1)
     return RawEpisodes(hand, [name] * len(seeds), np.asarray(seeds, dtype=np.int64), np.asarray(success, bool),
                        np.asarray(starts, bool), np.asarray(states), np.asarray(actions, np.float32))
+
+
+def _scripted_episode(env, script, seed: int, perturb: OUActionNoise | None, states: list[np.ndarray],
+                      actions: list[np.ndarray]) -> bool:
+    """One episode of the scripted grasp (the one episode loop, dexdrake/episode.py), its
+    controller made after the reset: appends the plant state before each step to `states`
+    and the clean expert action to `actions`, executes it plus `perturb`'s noise (clipped);
+    returns whether it succeeded."""
+    from dexdrake.systems.scripted_grasp import ScriptedGrasp
+
+    controller: ScriptedGrasp | None = None
+
+    def act(observation: np.ndarray) -> np.ndarray:
+        nonlocal controller
+        controller = ScriptedGrasp(env, script) if controller is None else controller
+        states.append(env.scene.plant.GetPositionsAndVelocities(env.plant_context).copy())
+        a = np.clip(env.normalise(controller(env)), -1.0, 1.0)
+        actions.append(a.astype(np.float32))
+        return a if perturb is None else np.clip(a + perturb.sample(), -1.0, 1.0)
+
+    return run_episode(env, act, seed).success
 
 
 def concat(parts: list[RawEpisodes]) -> RawEpisodes:

@@ -29,7 +29,7 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
 - A driver that latches a fault (e.g. a stalled stream) makes its system raise
   StationFault at its next update, which ends the episode and triggers the safe stop.
 - A non-finite controller output is never sent: ControllerSystem holds the last command
-  (systems/command_guard.py, the rule of every mode).
+  (dexdrake/command_guard.py, the rule of every mode).
 - real: every command passes `workspace_guard` (systems/workspace.py) before the drivers: one
   whose palm centre or a fingertip leaves the scenario's workspace box raises StationFault;
   `Station.send`, the moves around a real episode (systems/real_episode.py), checks the same.
@@ -68,7 +68,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
-from dexdrake.systems.command_guard import CommandGuard
+from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
@@ -407,7 +407,7 @@ class ControllerSystem(LeafSystem):
     """Runs `controller(t, hand_state, object_pose) -> q_command` every `period`.
 
     Inputs "hand_state", "object_pose"; output "command". The command starts at the
-    measured position; controller outputs pass `guard` (systems/command_guard.py: a
+    measured position; controller outputs pass `guard` (dexdrake/command_guard.py: a
     non-finite one holds the last command, one beyond the hand's joint limits is clipped;
     `guard.counts`). The update times give the policy rate (`timer`)."""
 

@@ -31,13 +31,13 @@ class FakeClock:
 def test_joint_limits_clamp_and_hold_on_nan():
     lim = JointLimits([-1.0, 0.0], [1.0, 2.0])
     np.testing.assert_array_equal(lim.apply([5.0, -3.0]), [1.0, 0.0])
-    assert lim.clamped == 1
+    assert lim.clipped == 1
     np.testing.assert_array_equal(lim.apply([0.5, 1.5]), [0.5, 1.5])
     held = lim.apply([np.nan, 1.0])
     np.testing.assert_array_equal(held, [0.5, 1.5])
-    assert lim.rejected == 1 and lim.last_rejected
+    assert lim.non_finite == 1 and lim.last_rejected
     np.testing.assert_array_equal(lim.apply([np.inf, -np.inf]), [0.5, 1.5])
-    assert lim.rejected == 2
+    assert lim.non_finite == 2
     lim.apply([0.0, 0.0])
     assert not lim.last_rejected
 
@@ -177,7 +177,7 @@ def test_joint_limits_initial_reset_and_copies():
     out = lim.apply([0.5, 0.5])
     out[:] = 7.0
     np.testing.assert_array_equal(lim.apply([np.nan, np.nan]), [0.5, 0.5])
-    assert lim.size == 2 and lim.clamped == 0 and lim.rejected == 3
+    assert lim.size == 2 and lim.clipped == 0 and lim.non_finite == 3
     with pytest.raises(HardwareError, match="must be equal 1-D"):
         JointLimits(np.zeros((2, 2)), np.ones((2, 2)))
     with pytest.raises(HardwareError, match=r"lower > upper at joints \[1\]"):
@@ -298,7 +298,7 @@ def test_joint_limits_more_edges():
     np.testing.assert_array_equal(lim.apply([np.nan, 0.0]), [0.0, 1.0])
     lim.apply([2.0, 0.0])
     lim.apply([0.0, -2.0])
-    assert lim.clamped == 2
+    assert lim.clipped == 2
     for bad, name in (("reset", "reset"), ("apply", "command")):
         with pytest.raises(HardwareError, match=rf"^{name}: expected 2 values, got shape \(3,\)$"):
             getattr(lim, bad)([0.0, 0.0, 0.0])

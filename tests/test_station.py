@@ -232,7 +232,7 @@ def test_hil_episode_driven_by_the_shipped_policy():
 
 
 def test_controller_slot_holds_non_finite_and_clips_out_of_range_commands():
-    """The station's controller slot applies the one bad-command rule (systems/command_guard.py)."""
+    """The station's controller slot applies the one bad-command rule (dexdrake/command_guard.py)."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource

@@ -13,7 +13,7 @@ objects are procedural stand-ins, not scans. Splits:
 - "validation": probes and choices (DAgger probes, candidate policies); builders and
   categories shared with no other split;
 - "near": namesakes of the DexRepNet paper's unseen GRAB objects (mug, camera, apple, ...),
-  the unseen split of the earlier tables, kept to reproduce them; some are near training
+  reported in a table of their own (models/weights/eval_block2_near.md); some are near training
   objects (the small pyramid is the training pyramid's builder scaled down).
 """
 

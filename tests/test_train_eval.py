@@ -58,7 +58,7 @@ def _random_policy(path, blocks, action_dim, seed=0):
 def test_train_bc_cli_writes_checkpoints_and_curves(tmp_path, env_blocks):
     blocks, a = env_blocks
     data = _dataset(tmp_path / "d.npz", blocks, a)
-    rc = main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "2", "--batch", "16",
+    rc = main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "2", "--batch-size", "16",
                "--lr", "1e-3"])
     assert rc == 0
     for name in ("bc_best.pt", "bc_last.pt", "bc_log.csv", "bc_log.png"):

@@ -31,7 +31,7 @@ class BCConfig:
     """A behaviour-cloning fit's settings; those with a "help" are `dexdrake train bc`'s flags."""
 
     epochs: int = field(default=150, metadata={"help": "training epochs", "type": argtypes.count})
-    batch_size: int = field(default=64, metadata={"flag": "batch", "help": "minibatch size", "type": argtypes.count})
+    batch_size: int = field(default=64, metadata={"help": "minibatch size", "type": argtypes.count})
     lr: float = field(default=1e-5, metadata={"help": "Adam(W) learning rate", "type": argtypes.positive})
     weight_decay: float = field(default=0.0, metadata={"type": argtypes.non_negative,
                                                        "help": "decoupled weight decay of the BC fits (AdamW; 0: Adam)"})

@@ -4,8 +4,8 @@ line a run records.
 A settings dataclass marks each field a command line sets with
 `field(metadata={"help": ...})`; optional metadata: "flag" (its name without the leading
 dashes, default the field's name with '-' for '_'), "type" (an argparse value type, e.g.
-from dexdrake.argtypes; default str), "choices" and "metavar". A bool field is a switch, a
-tuple field takes one or more values. The field's default is the flag's default.
+from dexdrake.argtypes; default str), "choices" and "metavar". A bool field (off by default)
+is a switch, a tuple field takes one or more values. The field's default is the flag's default.
 """
 
 from __future__ import annotations
@@ -89,8 +89,10 @@ def command_line(words: list[str], args: argparse.Namespace, options: list[str])
 
 
 def add_backend_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--backend", choices=("process", "ray", "sequential"), default="process",
-                        help="where rollout workers run: local processes, Ray actors, or in this process")
+    from dexdrake.learn.samplers import BACKENDS
+
+    parser.add_argument("--backend", choices=BACKENDS, default="process",
+                        help="where rollout workers run: in this process, local processes or Ray actors")
     parser.add_argument("--address", help="Ray cluster to join (e.g. auto or HEAD_IP:6379; needs --backend ray; "
                         "default: a local Ray instance); see configs/ray_cluster.md")
 

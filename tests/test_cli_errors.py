@@ -163,6 +163,5 @@ def test_dagger_refuses_to_resume_a_folder_made_with_other_arguments(tmp_path, c
     out.mkdir()
     meta = {"format": "x", "objects": ["can_soda", "can_soda"], "config": asdict(DaggerConfig(hand="adroit"))}
     np.savez(out / "data_00.npz", metadata=np.array(json.dumps(meta)))
-    err = _run(["train", "dagger", "--out", str(out), "--hand", "allegro", "--objects",
-                "can_soda,banana", "--iterations", "5"], capsys)
+    err = _run(["train", "dagger", "--out", str(out), "--hand", "allegro", "--objects", "can_soda,banana"], capsys)
     assert "hand 'adroit' (now 'allegro')" in err and "objects can_soda (now banana,can_soda)" in err

@@ -444,7 +444,7 @@ def test_pointnet_shapes_and_chamfer():
 
 
 def test_feature_sizes_and_describe(capsys):
-    from dexdrake.cli.dexrep import add_parser
+    from dexdrake.cli.features import add_parser
     from dexdrake.dexrep.feature_sets import FEATURE_SETS, observation_blocks
     from dexdrake.hands.description import load_hand
 
@@ -604,7 +604,7 @@ def _last_row(path, entity: str, column: str) -> list:
 
 
 def test_features_show_logs_dexrep_each_step(tmp_path):
-    from dexdrake.cli.dexrep import add_parser
+    from dexdrake.cli.features import add_parser
     from dexdrake.dexrep.feature_sets import FeatureExtractor
     from dexdrake.dexrep.geometry import object_geometry
     from dexdrake.systems.grasp_env import GraspEnv

@@ -58,7 +58,7 @@ def _random_policy(path, blocks, action_dim, seed=0):
 def test_train_bc_cli_writes_checkpoints_and_curves(tmp_path, env_blocks):
     blocks, a = env_blocks
     data = _dataset(tmp_path / "d.npz", blocks, a)
-    rc = main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "2", "--batch", "16",
+    rc = main(["train", "bc", "--data", str(data), "--out", str(tmp_path / "bc"), "--epochs", "2", "--batch-size", "16",
                "--lr", "1e-3"])
     assert rc == 0
     for name in ("bc_best.pt", "bc_last.pt", "bc_log.csv", "bc_log.png"):
@@ -95,6 +95,43 @@ def test_cli_argument_errors_exit_with_usage(argv):
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
+
+
+def test_the_train_flags_are_the_settings_dataclasses_fields(capsys):
+    """Without flags `train bc|dagger|dapg` and `encoder train` make their settings
+    dataclasses' defaults; a flag reaches its field (named apart, a path as a string)."""
+    from dataclasses import replace
+
+    from dexdrake.cli import build_parser
+    from dexdrake.cli.flags import settings_from_args
+    from dexdrake.dexrep.train_encoder import TrainConfig
+    from dexdrake.learn.bc import BCConfig
+    from dexdrake.learn.dagger import DaggerConfig
+    from dexdrake.learn.dapg import DAPGConfig
+    from dexdrake.learn.recipe import DaggerStage, DapgStage
+
+    parse = build_parser().parse_args
+    assert settings_from_args(BCConfig, parse(["train", "bc", "--data", "d.npz", "--out", "o"])) == BCConfig()
+    assert settings_from_args(TrainConfig, parse(["encoder", "train"])) == TrainConfig()
+    where = {"envs_per_worker": DaggerConfig.envs_per_worker, "backend": DaggerConfig.backend}
+    args = parse(["train", "dagger", "--out", "o"])
+    assert settings_from_args(DaggerConfig, args, **where) == DaggerConfig() and args.objects == DaggerStage.objects
+    args = parse(["train", "dagger", "--out", "o", "--per-object", "3", "--init", "p.pt", "--prior", "a", "b",
+                  "--residual-arm", "--weight-decay", "0.01"])
+    assert settings_from_args(DaggerConfig, args, **where) == replace(
+        DaggerConfig(), episodes_per_object=3, init="p.pt", prior=("a", "b"), residual_arm=True, weight_decay=0.01)
+    args = parse(["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o"])
+    assert settings_from_args(DAPGConfig, args) == DAPGConfig()
+    assert (args.objects, args.per_object, args.demo_samples) == (DapgStage.objects, DapgStage.per_object,
+                                                                    DapgStage.demo_pairs)
+    args = parse(["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o", "--demo-weight", "0.2",
+                  "--horizon", "50", "--reward", "aligned"])
+    assert settings_from_args(DAPGConfig, args) == replace(DAPGConfig(), lam0=0.2, time_scale=50, reward="aligned")
+    with pytest.raises(SystemExit):
+        parse(["train", "--help"])
+    listed = capsys.readouterr().out.splitlines()
+    for command in ("bc", "dagger", "dapg", "recipe"):  # each with its one-line help
+        assert any(line.split()[:1] == [command] and len(line.split()) > 1 for line in listed), listed
 
 
 def test_cli_reports_missing_files_and_bad_objects(tmp_path, capsys):

@@ -1,9 +1,9 @@
 """The `dexdrake` command line: one sub-command per workflow.
 
 The command line is the top layer: only this package (in `dexdrake/`) imports `systems/`
-and `hardware/`. Each module here contributes its sub-commands through an
-`add_parser(subparsers)` function; heavy imports (pydrake, torch) happen inside the
-commands, so `--help` is quick.
+and `hardware/`. Each command's module is named for it and adds it through an
+`add_parser(subparsers)` function (`flags` holds what several share); `systems/`,
+`hardware/` and pydrake are imported inside the commands, so `--help` builds no Drake.
 """
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ from dexdrake.outputs import check_not_an_input, check_writable
 
 # Modules that contribute sub-commands with `add_parser(subparsers)`.
 COMMAND_MODULES = [
-    "dexdrake.cli.sim",
+    "dexdrake.cli.sim", "dexdrake.cli.models",
     "dexdrake.cli.objects",
-    "dexdrake.cli.demos",
-    "dexdrake.cli.dexrep",
-    "dexdrake.cli.station",
-    "dexdrake.cli.learn", "dexdrake.cli.demo",
+    "dexdrake.cli.demos", "dexdrake.cli.retarget",
+    "dexdrake.cli.features", "dexdrake.cli.encoder",
+    "dexdrake.cli.hil", "dexdrake.cli.real",
+    "dexdrake.cli.train", "dexdrake.cli.eval", "dexdrake.cli.demo",
     "dexdrake.cli.ablations",
 ]
 

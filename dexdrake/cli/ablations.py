@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from dexdrake import argtypes
+from dexdrake.cli.flags import command_line, option_names
 from dexdrake.eval.ablations import AblationSettings
 
 
@@ -26,14 +27,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--workers", type=argtypes.count, default=2, help="worker processes")
     p.add_argument("--seed", type=argtypes.seed, default=d.seed, help="BC seed")
     p.add_argument("--eval-seed", type=argtypes.seed, default=d.eval_seed, help="first closed-loop episode seed")
-    p.set_defaults(func=cmd_ablations)
+    p.set_defaults(func=cmd_ablations, recorded_options=option_names(p))
     return p
 
 
 def cmd_ablations(args: argparse.Namespace) -> int:
     import torch
 
-    from dexdrake.cli.learn import command_line
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
     from dexdrake.eval.ablations import AblationRuntime, run_ablations
     from dexdrake.systems.env_factory import GraspEnvFactory, env_factory_for_policy
@@ -44,8 +44,7 @@ def cmd_ablations(args: argparse.Namespace) -> int:
     settings = AblationSettings(str(args.dagger), args.stride, args.epochs, args.lr, args.episodes, args.objects,
                                 args.seed, args.eval_seed)
     sets = list(FEATURE_SETS) if args.feature_sets == "all" else args.feature_sets.split(",")
-    command = command_line(["ablations"], args, ["dagger", "out", "feature-sets", "stride", "epochs", "lr",
-                                                         "episodes", "objects", "workers", "seed", "eval-seed"])
+    command = command_line(["ablations"], args, args.recorded_options)
     runtime = AblationRuntime(featurise_labelled, GraspEnvFactory, env_factory_for_policy, ReactiveGrasp,
                               args.workers, command)
     print(run_ablations(settings, sets, args.out, runtime), end="")

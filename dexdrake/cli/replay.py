@@ -10,7 +10,6 @@ Heavy imports (pydrake) happen inside the functions so `--help` stays quick.
 from __future__ import annotations
 
 import argparse
-import shlex
 import signal
 import warnings
 import zipfile
@@ -22,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from dexdrake import argtypes
+from dexdrake.cli import flags
 from dexdrake.errors import DexdrakeError, DexdrakeWarning
 
 DATASET_FORMAT = "dexdrake.replay/1"
@@ -42,7 +42,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--horizon", type=argtypes.steps, default=200,
                    help=f"control steps per episode (at most {argtypes.MAX_STEPS})")
     p.add_argument("--workers", type=argtypes.count, default=1, help="worker processes (each builds its own envs)")
-    p.set_defaults(func=cmd_replay)
+    p.set_defaults(func=cmd_replay, recorded_options=flags.option_names(p))
 
 
 # -- inputs ------------------------------------------------------------------------------
@@ -204,14 +204,7 @@ def build_dataset(results: list, paths: list[str]) -> tuple[np.ndarray, np.ndarr
 
 def command_line(args: argparse.Namespace) -> str:
     """The exact `dexdrake demos replay` command for `args`."""
-    parts = ["dexdrake", "demos", "replay", "--hand", args.hand, "--demos", str(args.demos), "--out", str(args.out),
-             "--attempts", str(args.attempts), "--seed", str(args.seed), "--horizon", str(args.horizon),
-             "--workers", str(args.workers)]
-    if args.feature_set:
-        parts += ["--feature-set", args.feature_set]
-    if args.objects:
-        parts += ["--objects", args.objects]
-    return shlex.join(parts)
+    return flags.command_line(["demos", "replay"], args, args.recorded_options)
 
 
 def run_replay(demos_dir: Path, out: Path, hand: str, config, feature_set: str | None = None,

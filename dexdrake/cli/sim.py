@@ -1,5 +1,4 @@
-"""Sub-commands `sim` (one episode: a scenario's sim station, or GraspEnv) and `models check`
-(parse every robot model)."""
+"""Sub-command `sim`: one episode, of a scenario's sim station or of GraspEnv."""
 
 from __future__ import annotations
 
@@ -9,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from dexdrake import argtypes
+from dexdrake.cli.flags import MISMATCH_HELP
 from dexdrake.errors import DexdrakeError
 
 CONTROLLERS = ("scripted", "expert")
@@ -29,8 +29,7 @@ def add_parser(subparsers) -> None:
                       "the scenario's policy, else the scripted grasp)")
     slot.add_argument("--controller", help=f"one of {', '.join(CONTROLLERS)} (default: scripted, or the "
                       "scenario's policy with --config)")
-    sim.add_argument("--allow-scenario-mismatch", action="store_true",
-                     help="run a policy trained under another plant step or control period (with a warning)")
+    sim.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     sim.add_argument("--seed", type=argtypes.seed, help="episode seed (default: the scenario's; without --config: 0)")
     sim.add_argument("--steps", type=argtypes.steps, default=150,
                      help=f"control steps (50 Hz; at most {argtypes.MAX_STEPS})")
@@ -40,11 +39,6 @@ def add_parser(subparsers) -> None:
     sim.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                      help="write a rerun recording to this .rrd file")
     sim.set_defaults(func=run_sim)
-
-    models = subparsers.add_parser("models", help="robot model utilities")
-    models_sub = models.add_subparsers(dest="models_command", required=True)
-    check = models_sub.add_parser("check", help="parse every model and print its DoF counts")
-    check.set_defaults(func=run_models_check)
 
 
 def _scenario(args: argparse.Namespace):
@@ -133,19 +127,3 @@ def _run_station(scenario, args: argparse.Namespace, logger) -> str:
     print(f"sim: {scenario.object} seed={scenario.seed} controller={description}")
     return (f"success={result.success} max_lift={result.max_lift:.3f} m steps={result.steps} "
             f"wall={result.wall_s:.1f} s" + (f" fault={result.fault}" if result.fault else ""))
-
-
-def run_models_check(args: argparse.Namespace) -> int:
-    from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import MultibodyPlant
-
-    from dexdrake.hands.description import hand_names, load_hand
-
-    print(f"{'hand':<14}{'model':<34}{'positions':>10}{'actuators':>10}{'bodies':>8}")
-    for name in hand_names():
-        hand = load_hand(name)
-        plant = MultibodyPlant(0.0)
-        Parser(plant).AddModels(hand.model_path)
-        plant.Finalize()
-        print(f"{name:<14}{hand.model:<34}{plant.num_positions():>10}{plant.num_actuators():>10}{plant.num_bodies():>8}")
-    return 0

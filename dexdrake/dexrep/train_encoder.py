@@ -15,7 +15,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from dexdrake import argtypes
 from dexdrake.dexrep.pointnet import (
     NUM_POINTS,
     PointNetAutoEncoder,
@@ -39,13 +40,15 @@ MESH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb")
 
 @dataclass(frozen=True)
 class TrainConfig:
-    meshes: str = "train"
-    epochs: int = 40
-    steps_per_epoch: int = 8
-    batch_size: int = 8
-    lr: float = 1e-3
-    seed: int = 0
-    threads: int = 1
+    """The auto-encoder's training settings, `dexdrake encoder train`'s flags."""
+
+    meshes: str = field(default="train", metadata={"help": "'train' (object library), 'primitives' or a folder"})
+    epochs: int = field(default=10, metadata={"help": "training epochs", "type": argtypes.count})
+    steps_per_epoch: int = field(default=8, metadata={"help": "minibatches per epoch", "type": argtypes.count})
+    batch_size: int = field(default=8, metadata={"help": "point clouds per minibatch", "type": argtypes.count})
+    lr: float = field(default=1e-3, metadata={"help": "Adam learning rate", "type": argtypes.positive})
+    seed: int = field(default=0, metadata={"help": "sampling and initialisation", "type": argtypes.seed})
+    threads: int = field(default=1, metadata={"help": "torch CPU threads", "type": argtypes.count})
 
 
 def primitive_meshes(seed: int = 0, count: int = 24) -> list[trimesh.Trimesh]:

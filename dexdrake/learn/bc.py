@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.learn.curves import CsvLog, plot_curves
 from dexdrake.learn.demo_dataset import DemoDataset, load_demo_dataset, save_demo_dataset
@@ -27,14 +28,19 @@ __all__ = ["BCConfig", "BCResult", "bc_loss", "train_bc", "split_train_val", "lo
 
 @dataclass(frozen=True)
 class BCConfig:
-    epochs: int = 150
-    batch_size: int = 64
-    lr: float = 1e-5
-    weight_decay: float = 0.0  # decoupled (AdamW); 0: plain Adam
-    obs_noise: float = 0.0  # std of Gaussian noise added to the training inputs, in observation stds
+    """A behaviour-cloning fit's settings; those with a "help" are `dexdrake train bc`'s flags."""
+
+    epochs: int = field(default=150, metadata={"help": "training epochs", "type": argtypes.count})
+    batch_size: int = field(default=64, metadata={"help": "minibatch size", "type": argtypes.count})
+    lr: float = field(default=1e-5, metadata={"help": "Adam(W) learning rate", "type": argtypes.positive})
+    weight_decay: float = field(default=0.0, metadata={"type": argtypes.non_negative,
+                                                       "help": "decoupled weight decay of the BC fits (AdamW; 0: Adam)"})
+    obs_noise: float = field(default=0.0, metadata={
+        "type": argtypes.non_negative,
+        "help": "Gaussian noise on the BC fits' training inputs, in observation stds (0: none)"})
     val_fraction: float = 0.1  # split by episode when the dataset has episode_starts
     checkpoint_every: int = 25  # epochs; 0 disables periodic checkpoints
-    seed: int = 0  # shuffling and initialisation
+    seed: int = field(default=0, metadata={"help": "shuffling and initialisation", "type": argtypes.seed})
     split_seed: int | None = None  # the train/validation split (None: `seed`)
     fit_normalization: bool = True  # set the policy's observation stats from the train split ...
     keep_function: bool = False  # ... re-expressing its encoders so it acts as before (warm starts)

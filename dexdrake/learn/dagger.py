@@ -25,7 +25,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dexdrake import argtypes
 from dexdrake.dexrep.feature_sets import observation_blocks
 from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
@@ -51,28 +52,50 @@ DATA_FORMAT = "dexdrake.dagger/2"  # /1 kept plant positions only
 PROBE_SEEDS = 5000  # probe episode seeds start this far above the iteration's training seeds
 
 
+_BC = {f.name: f for f in fields(BCConfig)}
+
+
 @dataclass(frozen=True)
 class DaggerConfig:
-    hand: str = "adroit"
-    feature_set: str = "DexRep"
-    iterations: int = 5
-    episodes_per_object: int = 2
-    horizon: int = 100
-    expert_noise: float = 0.0  # OU action-noise std on iteration 0 (normalised units; the expert is fragile to it)
-    epochs: int = 20  # BC epochs after each iteration
-    arm_weight: float = 1.0  # loss weight of the arm's action dimensions against the fingers' 1
-    lr: float = 1e-4
-    weight_decay: float = 0.0  # BCConfig.weight_decay of each fit
-    obs_noise: float = 0.0  # BCConfig.obs_noise of each fit
+    """A DAgger run's settings; those with a "help" are `dexdrake train dagger`'s flags."""
+
+    hand: str = field(default="adroit", metadata={"help": "the hand (e.g. adroit, allegro_z1)"})
+    feature_set: str = field(default="DexRep", metadata={"help": "observation feature set (`dexdrake features "
+                                                                 "describe` lists them)"})
+    iterations: int = field(default=6, metadata={"help": "DAgger iterations", "type": argtypes.count})
+    episodes_per_object: int = field(default=2, metadata={
+        "flag": "per-object", "type": argtypes.episodes,
+        "help": f"episodes per object per iteration (at most {argtypes.MAX_EPISODES})"})
+    horizon: int = field(default=100, metadata={"type": argtypes.steps,
+                                                "help": f"control steps per episode (at most {argtypes.MAX_STEPS})"})
+    expert_noise: float = field(default=0.0, metadata={
+        "type": argtypes.float_in(0.0, 1.0, low_open=False),
+        "help": "DART-style correlated (OU) action-noise std on the expert's iteration 0 (normalised action units; "
+                "the labels stay clean)"})
+    epochs: int = field(default=20, metadata={"help": "BC epochs after each iteration", "type": argtypes.count})
+    arm_weight: float = field(default=1.0, metadata={"type": argtypes.positive,
+                                                     "help": "loss weight of the arm's action dimensions (the fingers' is 1)"})
+    lr: float = field(default=1e-4, metadata={"help": "learning rate of the BC fits", "type": argtypes.positive})
+    weight_decay: float = field(default=BCConfig.weight_decay, metadata=_BC["weight_decay"].metadata)
+    obs_noise: float = field(default=BCConfig.obs_noise, metadata=_BC["obs_noise"].metadata)
     batch_size: int = 64
-    workers: int = 2
+    workers: int = field(default=2, metadata={"help": "rollout worker processes", "type": argtypes.count})
     envs_per_worker: int = ENVS_PER_WORKER  # a policy's episodes each worker steps in lockstep
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
-    seed: int = 0  # episode seeds of iteration i: seed * 10**6 + i * 10**4 + k (probes: + PROBE_SEEDS + k)
-    probe_per_object: int = 0  # labelled, never-trained episodes per probe object per iteration
-    init: str = ""  # policy checkpoint that drives iteration 0 and is fine-tuned ("": the expert drives, a new network)
-    prior: tuple[str, ...] = ()  # earlier runs' folders whose states are labelled anew and aggregated first
-    residual_arm: bool = False  # a new network's arm actions lead the current arm position (PolicyConfig)
+    seed: int = field(default=0, metadata={"type": argtypes.seed, "help": "episode seeds of iteration i: "
+                                           f"seed * 10**6 + i * 10**4 + k (probes: + {PROBE_SEEDS} + k)"})
+    probe_per_object: int = field(default=0, metadata={
+        "type": argtypes.int_at_least(0),
+        "help": "episodes per validation object per iteration, labelled but never trained on: the log's "
+                "unseen_success and unseen_loss (0: no probe)"})
+    init: str = field(default="", metadata={
+        "type": Path, "help": "policy checkpoint that drives iteration 0 and is fine-tuned (default: the expert "
+                              "drives, a new network)"})
+    prior: tuple[str, ...] = field(default=(), metadata={
+        "type": Path, "metavar": "DIR",
+        "help": "earlier DAgger runs' folders: their states, labelled anew by this expert, are trained on too"})
+    residual_arm: bool = field(default=False, metadata={
+        "help": "a new network's arm actions are added to the arm's current position (it learns the lead)"})
 
 
 @dataclass

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError, NonFiniteError
 from dexdrake.npz import open_npz
 from dexdrake.learn.baseline import MLPBaseline
@@ -47,7 +48,7 @@ from dexdrake.learn.policy import DEMO_STD_FRACTION, DexRepNetPolicy, policy_pay
 from dexdrake.learn.samplers import Sampler
 from dexdrake.learn.trajectory import Trajectory
 from dexdrake.outputs import RUN_LOGS
-from dexdrake.task import TaskSpec
+from dexdrake.task import TARGET_THRESHOLDS, TaskSpec
 
 STATE_FORMAT = "dexdrake.dapg/2"
 LOG_COLUMNS = [
@@ -60,20 +61,30 @@ OBJECT_COLUMNS = ["iteration", "object", "rollouts", "successes", "mean_return"]
 
 @dataclass(frozen=True)
 class DAPGConfig:
-    iterations: int = 500  # total; a resumed run continues up to this count
+    """A DAPG run's settings; those with a "help" are `dexdrake train dapg`'s flags."""
+
+    iterations: int = field(default=500, metadata={"type": argtypes.count,
+                                                   "help": "iterations in all; a resumed run goes on up to this count"})
     rollouts_per_iteration: int = 10
     gamma: float = 0.995
     gae_lambda: float = 0.97
     step_size: float = 0.05  # normalised NPG step delta (mjrl); the target KL is delta / 2
     max_kl_ratio: float = 1.5  # backtrack while the measured KL exceeds this times the target
     max_backtracks: int = 10  # halvings of the step before it is undone
-    demo_std_fraction: float | None = DEMO_STD_FRACTION  # fresh start: std = this x demo action std (None: keep)
+    demo_std_fraction: float | None = field(default=DEMO_STD_FRACTION, metadata={  # None: keep the policy's std
+        "type": argtypes.positive, "help": "fresh start: exploration std = this x the demo actions' std, per dimension"})
     seed_groups: int = 1  # rollout i's seed is i mod seed_groups (one group per object: a balanced batch)
     cg_iters: int = 10
     damping: float = 1e-4
-    lam0: float = 0.1
+    lam0: float = field(default=0.1, metadata={
+        "flag": "demo-weight", "type": argtypes.positive,
+        "help": "the demonstration term's weight lambda0 at iteration 0 (the paper's), decaying by lambda1 per "
+                "iteration; a run started from a DAPG policy may go on from its run's decayed weight"})
     lam1: float = 0.95
-    reward: str = TaskSpec.reward  # the rollout env's TaskSpec.reward (recorded here; the env is built outside)
+    reward: str = field(default=TaskSpec.reward, metadata={  # the rollout env's (recorded here; built outside)
+        "choices": sorted(TARGET_THRESHOLDS),
+        "help": "paper: r_t as the paper writes it (full pay up to 0.22 m from the target); aligned: Adroit "
+                "relocate's 0.05/0.10 m radii, paying r_t only inside the success radius (see dexdrake.task)"})
     max_adv: float = 1.0
     demo_samples: int | None = None  # demo pairs per iteration (None: all)
     fisher_samples: int | None = None  # rollout samples for Fisher products (None: all)
@@ -81,10 +92,13 @@ class DAPGConfig:
     baseline_batch: int = 64
     baseline_lr: float = 1e-3
     baseline_hidden: tuple[int, ...] = (128, 128)
-    time_scale: int = 200  # steps per trajectory; normalises the baseline's time feature
+    time_scale: int = field(default=200, metadata={  # also normalises the baseline's time feature
+        "flag": "horizon", "type": argtypes.steps,
+        "help": f"control steps per trajectory (at most {argtypes.MAX_STEPS})"})
     freeze_encoders: bool = True  # paper: encoders frozen after behaviour cloning
     checkpoint_every: int = 10
-    seed: int = 0
+    seed: int = field(default=0, metadata={"type": argtypes.seed, "help": "rollout seeds, initialisation and the "
+                                                                        "demonstration pairs kept"})
     progress: bool = True
     rerun: bool = False  # also log curves to out_dir/dapg.rrd (needs rerun-sdk)
 

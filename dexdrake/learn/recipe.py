@@ -19,17 +19,22 @@ import hashlib
 import json
 import types
 import typing
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from dexdrake import argtypes
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.evaluate import EVAL_HORIZON
 from dexdrake.learn.dagger import DaggerConfig
 from dexdrake.learn.dapg import DAPGConfig
 from dexdrake.perceived_pose import PerceptionModel
+
+
+TRAINING_OBJECTS_HELP = ("'train', 'train+augmented' (with the scaled copies and shapes of `dexdrake objects "
+                         "augment`) or comma-separated object names")
 
 
 @dataclass(frozen=True)
@@ -52,7 +57,7 @@ class ExpertStage:
 class DaggerStage:
     """DAgger from the expert on `objects` (a training spec: 'train', 'train+augmented' or names)."""
 
-    objects: str = "train"
+    objects: str = field(default="train", metadata={"help": TRAINING_OBJECTS_HELP})
     config: DaggerConfig = DaggerConfig()
 
 
@@ -61,10 +66,13 @@ class DapgStage:
     """DAPG from the previous stage's policy (DAgger's chosen one, or the previous DAPG stage's
     best), with the DAgger data as its demonstration term (`demo_pairs` of them, seeded)."""
 
-    objects: str = "train"
-    per_object: int = 10  # trajectories per object per iteration
+    objects: str = field(default="train", metadata={"help": TRAINING_OBJECTS_HELP})
+    per_object: int = field(default=10, metadata={
+        "type": argtypes.episodes, "help": f"trajectories per object per iteration (at most {argtypes.MAX_EPISODES})"})
     horizon: int = 100  # control steps per trajectory
-    demo_pairs: int = 50000
+    demo_pairs: int = field(default=50000, metadata={
+        "flag": "demo-samples", "type": argtypes.count,
+        "help": "demonstration pairs kept (uniform, seeded), all used every iteration"})
     config: DAPGConfig = DAPGConfig()
 
 

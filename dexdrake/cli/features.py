@@ -1,4 +1,4 @@
-"""CLI: `dexdrake features describe`, `dexdrake features show` and `dexdrake encoder train`."""
+"""CLI: `dexdrake features describe` and `dexdrake features show`."""
 
 from __future__ import annotations
 
@@ -41,21 +41,8 @@ def _show(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train(args: argparse.Namespace) -> int:
-    from dexdrake.dexrep.train_encoder import TrainConfig, train
-    from dexdrake.cli.learn import command_line
-
-    config = TrainConfig(meshes=args.meshes, epochs=args.epochs, steps_per_epoch=args.steps_per_epoch,
-                         batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
-    command = command_line(["encoder", "train"], args, ["meshes", "epochs", "steps-per-epoch", "batch-size", "lr",
-                                                        "seed", "threads", "out"])
-    m = train(config, Path(args.out), command=command)
-    print(f"wrote {args.out}: Chamfer train {m['chamfer_train']:.4f}, unseen {m['chamfer_unseen']:.4f}")
-    return 0
-
-
 def add_parser(subparsers) -> None:
-    """Adds the `features` and `encoder` command groups."""
+    """Adds the `features` command group."""
     feat = subparsers.add_parser("features", help="DexRep feature sets").add_subparsers(dest="action", required=True)
     d = feat.add_parser("describe", help="print each observation block's size")
     d.add_argument("--hand", default="adroit")
@@ -71,15 +58,3 @@ def add_parser(subparsers) -> None:
                    help=f"control steps (20 ms each; at most {argtypes.MAX_STEPS})")
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
     s.set_defaults(func=_show)
-
-    enc = subparsers.add_parser("encoder", help="the PointNet encoder").add_subparsers(dest="action", required=True)
-    t = enc.add_parser("train", help="train the PointNet auto-encoder, write the encoder")
-    t.add_argument("--meshes", default="train", help="'train' (object library), 'primitives' or a folder")
-    t.add_argument("--epochs", type=argtypes.count, default=10)
-    t.add_argument("--steps-per-epoch", type=argtypes.count, default=8)
-    t.add_argument("--batch-size", type=argtypes.count, default=8)
-    t.add_argument("--lr", type=argtypes.positive, default=1e-3)
-    t.add_argument("--seed", type=argtypes.seed, default=0)
-    t.add_argument("--threads", type=argtypes.count, default=1)
-    t.add_argument("--out", type=argtypes.output_file(".pt"), default="models/weights/pointnet_encoder.pt")
-    t.set_defaults(func=_train)

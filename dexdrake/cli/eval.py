@@ -1,0 +1,69 @@
+"""CLI: `dexdrake eval`, the per-object success of a policy."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from dexdrake import argtypes
+from dexdrake.cli.flags import add_envs_per_worker, command_line, envs_per_worker, option_names
+from dexdrake.errors import DexdrakeError
+from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RANGES, check_evaluation_seeds, describe
+
+
+def add_parser(subparsers) -> None:
+    ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
+    ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
+    ev.add_argument("--objects", default="unseen",
+                    help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")
+    ev.add_argument("--episodes", type=argtypes.episodes, default=10,
+                    help=f"episodes per object (seeds S..S+N-1; at most {argtypes.MAX_EPISODES})")
+    ev.add_argument("--seed", type=argtypes.seed, default=FIRST_VALIDATION_SEED,
+                    help="first episode seed S (default: the first validation seed); the seeds must lie in one of "
+                         + ", ".join(f"{n} {describe(r)}" for n, r in SEED_RANGES.items())
+                         + f": validation for every choice, test (from {FIRST_TEST_SEED}) once per shipped policy")
+    ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
+    add_envs_per_worker(ev, "objects (one environment each)", "; 1 with --rrd")
+    ev.add_argument("--horizon", type=argtypes.steps, default=100,
+                    help=f"control steps per episode (paper: 100; at most {argtypes.MAX_STEPS})")
+    ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
+    ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
+    ev.add_argument("--rrd", type=argtypes.output_file(".rrd"),
+                    help="write a rerun recording of every episode to this .rrd file (one worker)")
+    ev.set_defaults(func=cmd_eval, recorded_options=option_names(ev))
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from dexdrake.eval.evaluate import evaluate_policy
+    from dexdrake.eval.tables import markdown_table, write_report
+    from dexdrake.objects.library import resolve_objects
+    from dexdrake.systems.env_factory import env_factory_for_policy
+
+    label, objects = resolve_objects(args.objects)
+    label = args.label or label
+    part = check_evaluation_seeds(args.seed, args.episodes)
+    print(f"seeds {args.seed}..{args.seed + args.episodes - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
+    logger = None
+    if args.rrd:
+        if args.workers > 1:
+            raise DexdrakeError("--rrd records in one process: use --workers 1")
+        from dexdrake.systems.rerun_logger import RerunLogger
+
+        logger = RerunLogger(args.rrd, "eval")
+    try:
+        report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers,
+                                 args.horizon, label=label, record=None if logger is None else logger.hooks,
+                                 envs_per_worker=envs_per_worker(args),
+                                 command=command_line(["eval"], args, args.recorded_options))
+    finally:
+        if logger is not None:
+            logger.close()
+    print(markdown_table(report))
+    if args.out:
+        paths = write_report(report, args.out)
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
+    low, high = report.average_ci95_pct()
+    print(json.dumps({"average_pct": round(report.average_pct(), 2), "ci95_pct": [round(low, 2), round(high, 2)],
+                      "episodes": len(report.episodes)}))
+    return 0

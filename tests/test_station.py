@@ -29,7 +29,7 @@ def test_shipped_scenarios_load():
 
 @pytest.mark.parametrize("text, message", [
     ("drivers: {hand: {kindd: sim}}", "unknown to the schema"),
-    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, emulated_process, hardware"),
+    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, emulated_process, emulated_world, hardware"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: sim}}", "must match"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: k4a}}",
      "not available in hil mode"),

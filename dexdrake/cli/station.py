@@ -47,6 +47,12 @@ def _fmt_rate(name: str, s: dict) -> str:
             f"p99 {s.get('p99_ms', float('nan')):.2f} ms, max {s.get('max_ms', float('nan')):.2f} ms")
 
 
+def _fmt_world(w: dict) -> str:
+    return (f"world: {w['sim_time_s']:.2f} s simulated in {w['wall_s']:.2f} s wall "
+            f"(real-time factor {w['real_time_factor']:.2f}), step p50 {w['step_p50_ms']:.2f} ms "
+            f"p99 {w['step_p99_ms']:.2f} ms wall, late hand replies {w['late_replies']:.0f}")
+
+
 def run_hil(args: argparse.Namespace) -> int:
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
@@ -82,9 +88,7 @@ def run_hil(args: argparse.Namespace) -> int:
             print("    " + _fmt_rate(name, result.stats[key]))
     world = result.stats.get("world")
     if world:
-        print(f"  world: {world['sim_time_s']:.2f} s simulated in {world['wall_s']:.2f} s wall "
-              f"(real-time factor {world['real_time_factor']:.2f}), step p50 {world['step_p50_ms']:.2f} ms "
-              f"p99 {world['step_p99_ms']:.2f} ms wall, late hand replies {world['late_replies']:.0f}")
+        print("  " + _fmt_world(world))
     print(f"  policy on the wall clock: {result.stats['policy']['wall_rate_hz']:.1f} Hz, "
           f"non-finite commands held {result.stats['policy']['non_finite']}, "
           f"clipped {result.stats['policy']['clipped']}")
@@ -95,7 +99,8 @@ def run_hil(args: argparse.Namespace) -> int:
 
 
 def run_real(args: argparse.Namespace) -> int:
-    from dexdrake.systems.emulated_devices import Emulators, running_emulators
+    from dexdrake.systems.emulated_devices import Emulators, running_devices
+    from dexdrake.systems.scenario import EMULATED_PROCESS_KINDS
     from dexdrake.systems.scenario import ScenarioError, load_scenario
 
     scenario = load_scenario(args.config)
@@ -104,20 +109,21 @@ def run_real(args: argparse.Namespace) -> int:
     if not (args.dry_run or args.yes or (sys.stdin is not None and sys.stdin.isatty())):
         raise DexdrakeError("a real episode moves the robot and waits for the operator's Enter: run it "
                             "from a terminal, or pass --yes for scripted use")
-    emulators = Emulators() if scenario.drivers.hand.kind == "emulated_process" else None
+    emulators = Emulators() if scenario.drivers.hand.kind in EMULATED_PROCESS_KINDS else None
     outcome = None
     try:
         with contextlib.ExitStack() as stack:
             if emulators is not None:
-                scenario = stack.enter_context(running_emulators(scenario, emulators))
-                print(f"emulators started in their own processes (pids {emulators.pids}): Allegro on "
+                scenario = stack.enter_context(running_devices(scenario, emulators))
+                where = "in the world process" if emulators.world is not None else "in their own processes"
+                print(f"emulators started {where} (pids {emulators.pids}): Allegro on "
                       f"{scenario.drivers.hand.interface}:{scenario.drivers.hand.channel} port "
                       f"{scenario.drivers.hand.port}, Z1 on UDP {scenario.drivers.arm.controller_port} -> "
                       f"{scenario.drivers.arm.local_port}")
             code = dry_run(scenario, args.allow_scenario_mismatch)
             if args.dry_run or code != 0:
                 return code
-            outcome = _supervised(scenario, args)
+            outcome = _supervised(scenario, args, emulators.world if emulators is not None else None)
     except KeyboardInterrupt:
         _report_stop(emulators)
         print("dexdrake real: interrupted: the devices were stopped safely", file=sys.stderr)
@@ -152,9 +158,9 @@ def _confirm(yes: bool) -> None:
         raise DexdrakeError("no confirmation (stdin closed); nothing was moved") from None
 
 
-def _supervised(scenario, args: argparse.Namespace):
+def _supervised(scenario, args: argparse.Namespace, world=None):
     """The plan, the confirmation, and the supervised episode in the station's context (its
-    exit is the safe stop, whatever happens inside)."""
+    exit is the safe stop, whatever happens inside); `world`: an emulated world's WorldView."""
     from dexdrake.hands.description import load_hand
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.real_episode import run_supervised
@@ -187,7 +193,7 @@ def _supervised(scenario, args: argparse.Namespace):
 
         logger = RerunLogger(rrd, scenario.mode, scenario=scenario)
     try:
-        with make_station(scenario) as station:
+        with make_station(scenario, world=world) as station:
             if logger is not None:
                 logger.attach(station)
             outcome = run_supervised(station, controller, steps, logger)
@@ -199,6 +205,10 @@ def _supervised(scenario, args: argparse.Namespace):
         for key, name in (("can", "CAN (Allegro PD loop)"), ("z1", "Z1 UDP loop"), ("policy", "policy/control")):
             if key in stats:
                 print("  " + _fmt_rate(name, stats[key]))
+        if "world" in stats:  # an emulated world: the object's true pose scores the episode
+            print("  " + _fmt_world(stats["world"]))
+            print(f"  episode on the emulated world's object: success={outcome.episode.success} "
+                  f"max_lift={outcome.episode.max_lift:.3f} m")
     if rrd:
         print(f"  recording: {rrd}")
     return outcome

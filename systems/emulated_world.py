@@ -49,17 +49,18 @@ from dexdrake.hardware.emulator_process import EmulatorProcess
 from dexdrake.systems.scenario import Scenario
 
 PUBLISH_PERIOD_S = 0.002  # how often the world process publishes the object's pose (s)
-# the shared block: the object's pose [x, y, z, qw, qx, qy, qz], then STATS in this order
+# the shared block: the object's pose [x, y, z, qw, qx, qy, qz], the world's time (s), then STATS
 STATS = ("steps", "sim_time_s", "wall_s", "real_time_factor", "lag_s", "late_replies", "late_arm_commands",
          "step_p50_ms", "step_p99_ms", "step_max_ms")
 STATS_PERIOD_S = 0.5  # how often the world's step statistics are refreshed in the block (s)
-_SIZE = 7 + len(STATS)
+_SIZE = 8 + len(STATS)
 
 
 class WorldView:
     """The running world as the policy's process sees it: `object_pose()` (the object's
-    true pose in the world, at most PUBLISH_PERIOD_S old) and `stats()` (the world's loop
-    statistics, as HilWorld.stats, at most STATS_PERIOD_S old)."""
+    true pose in the world) and `time` (the world's clock, s), both at most
+    PUBLISH_PERIOD_S old, and `stats()` (the world's loop statistics, as HilWorld.stats, at
+    most STATS_PERIOD_S old)."""
 
     def __init__(self, block) -> None:
         self._block = block
@@ -73,8 +74,12 @@ class WorldView:
 
         return pose_from_vector(self._values()[:7])
 
+    @property
+    def time(self) -> float:
+        return float(self._values()[7])
+
     def stats(self) -> dict[str, float]:
-        return dict(zip(STATS, self._values()[7:].tolist()))
+        return dict(zip(STATS, self._values()[8:].tolist()))
 
 
 class _Publisher:
@@ -93,7 +98,7 @@ class _Publisher:
             s = self.world.stats()
             self._stats = np.nan_to_num(np.array([s[name] for name in STATS], float))
             self._stats_due = self.world.time + STATS_PERIOD_S
-        values = np.concatenate([pose_vector(self.world.object_pose()), self._stats])
+        values = np.concatenate([pose_vector(self.world.object_pose()), [self.world.time], self._stats])
         with self.block.get_lock():
             self.block[:] = values.tolist()
 

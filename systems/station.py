@@ -678,6 +678,8 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
         if start:  # its process's spawn, imports and model set-up, before any driver loop runs
             executor.submit(time.monotonic).result()
+    # opened (a rendered camera's first frame sets its renderer up) before any driver loop runs
+    read_frame = camera_reader(scenario, world, stack) if start and executor is not None else _unopened_camera
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
@@ -731,7 +733,6 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     if executor is None:
         pose_sys = builder.AddNamedSystem("world_pose", WorldPoseSystem(world, period))
     else:
-        read_frame = camera_reader(scenario, world, stack) if start else _unopened_camera
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
             read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
@@ -768,10 +769,15 @@ def camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Cal
                                      DepthNoiseModel() if cam.depth_noise else None, scenario.seed)
         static = ObjectPlacement.from_seed(scenario.seed).pose(info)
 
-        def read():
+        def place() -> None:
             source.set_object_pose(info.name, static if world is None else world.object_pose())
+
+        def read():
+            place()
             return source.read()
 
+        place()
+        source.warm_up()  # not in the control loop: the first render holds the interpreter for up to 1 s
         return read
     if cam.kind == "recorded":
         source = RecordedSequence(cam.recording, loop=True)

@@ -148,10 +148,11 @@ class StationEpisode:
     """A built diagram with a controller in its slot as an env of the one episode loop: each
     `step` advances one control period (the slot acts; the loop's action is unused). Scored
     with dexdrake.task on the object's true pose (sim: the plant, hil: the world, real with
-    emulated_world drivers: the world process's; else not known, lift NaN). A StationFault or HardwareError, in a step or in the held start before
-    the first one (`reset`: the world's begin, the wait for the first pose, the diagram's
-    initialization), ends the episode (info["fault"]; a fault in the held start at the first
-    step, which then sends nothing); the station is stopped by its owner's context manager.
+    emulated_world drivers: the world process's; else not known, lift NaN). A StationFault or
+    HardwareError, in a step or in the held start before the first one (`reset`: the
+    world's begin, the wait for the first pose, the diagram's initialization), ends the
+    episode (info["fault"]; a fault in the held start at the first step, which then sends
+    nothing); the station is stopped by its owner's context manager.
     A `logger` (a RerunLogger attached to the station) records every control step and the
     fault that ended the episode."""
 

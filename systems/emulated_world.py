@@ -48,7 +48,7 @@ from pydrake.math import RigidTransform
 from dexdrake.hardware.emulator_process import EmulatorProcess
 from dexdrake.systems.scenario import Scenario
 
-PUBLISH_PERIOD_S = 0.002  # how often the world process publishes the object's pose (s)
+PUBLISH_PERIOD_S = 0.005  # how often the world process publishes the object's pose (s): the plant step
 # the shared block: the object's pose [x, y, z, qw, qx, qy, qz], the world's time (s), then STATS
 STATS = ("steps", "sim_time_s", "wall_s", "real_time_factor", "lag_s", "late_replies", "late_arm_commands",
          "step_p50_ms", "step_p99_ms", "step_max_ms")

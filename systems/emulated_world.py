@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from pydrake.math import RigidTransform
 
-from dexdrake.hardware.emulator_process import EmulatorProcess
+from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_final, z1_final
 from dexdrake.systems.scenario import Scenario
 
 PUBLISH_PERIOD_S = 0.005  # how often the world process publishes the object's pose (s): the plant step
@@ -125,11 +125,7 @@ def world_process(scenario: Scenario, block, stack: contextlib.ExitStack) -> tup
     stack.callback(thread.join, 1.0)
     stack.callback(stop.set)
 
-    def final() -> dict:
-        return {"hand": {"servo_on": hand.servo_on, "max_abs_pwm": float(abs(hand.pwm).max())},
-                "arm": {"fsm": arm.fsm.name}}
-
-    return arm.port, final
+    return arm.port, lambda: {"hand": allegro_final(hand), "arm": z1_final(arm)}
 
 
 @contextlib.contextmanager

@@ -1,6 +1,5 @@
 """The devices of an `emulated_process` scenario: emulators in processes of their own (an
-`emulated_world` scenario's devices run in one world process: systems/emulated_world.py;
-`running_devices` starts either).
+`emulated_world` scenario's run in one world process: systems/emulated_world.py).
 
 `running_emulators(scenario)` starts the Allegro firmware emulator on the scenario's
 python-can bus (one that crosses processes: `udp_multicast`) and the Z1 controller emulator
@@ -92,13 +91,3 @@ def running_emulators(scenario: Scenario, emulators: Emulators | None = None) ->
         yield dc.replace(scenario, drivers=dc.replace(
             scenario.drivers, arm=dc.replace(arm, local_port=client, controller_port=z1.report)))
 
-
-def running_devices(scenario: Scenario, emulators: Emulators) -> contextlib.AbstractContextManager[Scenario]:
-    """The emulated devices of an `emulated_process` (running_emulators) or `emulated_world`
-    (systems/emulated_world.running_world) scenario, as a context that yields the scenario
-    with the ports they use."""
-    if scenario.drivers.hand.kind == "emulated_world":
-        from dexdrake.systems.emulated_world import running_world
-
-        return running_world(scenario, emulators)
-    return running_emulators(scenario, emulators)

@@ -46,6 +46,7 @@ import numpy as np
 from pydrake.math import RigidTransform
 
 from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_final, z1_final
+from dexdrake.systems.emulated_devices import Emulators, resolve_ports, running_emulators
 from dexdrake.systems.scenario import Scenario
 
 PUBLISH_PERIOD_S = 0.005  # how often the world process publishes the object's pose (s): the plant step
@@ -129,12 +130,10 @@ def world_process(scenario: Scenario, block, stack: contextlib.ExitStack) -> tup
 
 
 @contextlib.contextmanager
-def running_world(scenario: Scenario, emulators) -> Iterator[Scenario]:
+def running_world(scenario: Scenario, emulators: Emulators) -> Iterator[Scenario]:
     """Start the world process of an `emulated_world` scenario (module docstring); yields
-    the scenario with the ports it serves. `emulators` (systems/emulated_devices.Emulators)
-    receives the process ("world") and the `WorldView` (`.world`)."""
-    from dexdrake.systems.emulated_devices import resolve_ports
-
+    the scenario with the ports it serves. `emulators` receives the process ("world") and
+    the `WorldView` (`.world`)."""
     scenario = resolve_ports(scenario)
     block = multiprocessing.get_context("spawn").Array("d", _SIZE)
     with EmulatorProcess(functools.partial(world_process, scenario, block),
@@ -144,3 +143,12 @@ def running_world(scenario: Scenario, emulators) -> Iterator[Scenario]:
         arm = scenario.drivers.arm
         yield dc.replace(scenario, drivers=dc.replace(
             scenario.drivers, arm=dc.replace(arm, controller_port=process.report)))
+
+
+def running_devices(scenario: Scenario, emulators: Emulators) -> contextlib.AbstractContextManager[Scenario]:
+    """The emulated devices of an `emulated_process` (emulated_devices.running_emulators) or
+    `emulated_world` scenario (running_world), as a context that yields the scenario with
+    the ports they use."""
+    if scenario.drivers.hand.kind == "emulated_world":
+        return running_world(scenario, emulators)
+    return running_emulators(scenario, emulators)

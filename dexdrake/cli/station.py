@@ -99,7 +99,8 @@ def run_hil(args: argparse.Namespace) -> int:
 
 
 def run_real(args: argparse.Namespace) -> int:
-    from dexdrake.systems.emulated_devices import Emulators, running_devices
+    from dexdrake.systems.emulated_devices import Emulators
+    from dexdrake.systems.emulated_world import running_devices
     from dexdrake.systems.scenario import EMULATED_PROCESS_KINDS
     from dexdrake.systems.scenario import ScenarioError, load_scenario
 

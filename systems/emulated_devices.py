@@ -90,4 +90,3 @@ def running_emulators(scenario: Scenario, emulators: Emulators | None = None) ->
         stack.enter_context(z1)
         yield dc.replace(scenario, drivers=dc.replace(
             scenario.drivers, arm=dc.replace(arm, local_port=client, controller_port=z1.report)))
-

@@ -26,8 +26,9 @@ compensated):
   it (`ObjectPlacement.from_seed`), and the plant is held there ("on a stand") until the
   drivers hold the robot: the hand's servo on and the arm out of PASSIVE. From then on it
   moves freely; after the drivers' safe stop the arm, PASSIVE, sags under its weight.
-- The camera renders the object only, at the world's pose at the moment the frame is taken
-  (the pose is at most `PUBLISH_PERIOD_S` old); the hand does not occlude it.
+- The camera renders the table, a wall and the object at the world's pose when the frame
+  is taken (at most `PUBLISH_PERIOD_S` old); the robot is not drawn, so it never occludes
+  the object (as in the simulated-clock HIL).
 - The world's clock is the emulators' clock; the drivers run on the host's wall clock. When
   the world runs slower than real time, the devices stream slower in wall time, as a device
   whose processor is overloaded would.

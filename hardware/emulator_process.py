@@ -17,6 +17,7 @@ processes, e.g. `udp_multicast`), `z1_emulator` (the controller emulator on a UD
 from __future__ import annotations
 
 import contextlib
+import functools
 import multiprocessing
 import signal
 import threading
@@ -122,7 +123,12 @@ def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[No
     opened = can.Bus(**bus)
     stack.callback(opened.shutdown)
     emulator = stack.enter_context(AllegroEmulator(opened, config=config))
-    return None, lambda: {"servo_on": emulator.servo_on, "max_abs_pwm": float(abs(emulator.pwm).max())}
+    return None, functools.partial(allegro_final, emulator)
+
+
+def allegro_final(emulator) -> dict:
+    """What an Allegro emulator's device was left in: "servo_on", "max_abs_pwm" (the PWM it applies)."""
+    return {"servo_on": emulator.servo_on, "max_abs_pwm": float(abs(emulator.pwm).max())}
 
 
 def z1_emulator(config, stack: contextlib.ExitStack) -> tuple[int, Callable[[], dict]]:
@@ -131,4 +137,9 @@ def z1_emulator(config, stack: contextlib.ExitStack) -> tuple[int, Callable[[], 
     from dexdrake.hardware.z1_emulator import Z1Emulator
 
     emulator = stack.enter_context(Z1Emulator(config))
-    return emulator.port, lambda: {"fsm": emulator.fsm.name}
+    return emulator.port, functools.partial(z1_final, emulator)
+
+
+def z1_final(emulator) -> dict:
+    """What a Z1 emulator's controller was left in: "fsm" (its state's name)."""
+    return {"fsm": emulator.fsm.name}

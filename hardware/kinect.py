@@ -554,6 +554,12 @@ class DrakeRenderedCamera(CameraSource):
         img = self._sensor.depth_image_32F_output_port().Eval(self._sensor_context)
         return np.array(img.data)[:, :, 0]
 
+    def warm_up(self) -> None:
+        """Render colour and depth once at the current object poses, drawing no noise: VTK
+        sets itself up on the first render (0.5-1 s that holds the interpreter)."""
+        self._sensor.color_image_output_port().Eval(self._sensor_context)
+        self.render_depth_m()
+
     def read(self) -> RgbdFrame:
         """Render one frame at the current object poses (timestamps advance by 1/30 s)."""
         rgba = self._sensor.color_image_output_port().Eval(self._sensor_context)

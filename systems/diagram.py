@@ -147,11 +147,12 @@ def scenario_diagram(station: Station, controller: System) -> BuiltDiagram:
 class StationEpisode:
     """A built diagram with a controller in its slot as an env of the one episode loop: each
     `step` advances one control period (the slot acts; the loop's action is unused). Scored
-    with dexdrake.task on the object's true pose (sim: the plant, hil: the world; real: not
-    known, lift NaN). A StationFault or HardwareError, in a step or in the held start before
-    the first one (`reset`: the world's begin, the wait for the first pose, the diagram's
-    initialization), ends the episode (info["fault"]; a fault in the held start at the first
-    step, which then sends nothing); the station is stopped by its owner's context manager.
+    with dexdrake.task on the object's true pose (sim: the plant, hil: the world, real with
+    emulated_world drivers: the world process's; else not known, lift NaN). A StationFault or
+    HardwareError, in a step or in the held start before the first one (`reset`: the
+    world's begin, the wait for the first pose, the diagram's initialization), ends the
+    episode (info["fault"]; a fault in the held start at the first step, which then sends
+    nothing); the station is stopped by its owner's context manager.
     A `logger` (a RerunLogger attached to the station) records every control step and the
     fault that ended the episode."""
 
@@ -176,10 +177,10 @@ class StationEpisode:
         station, period = self.built.station, self.built.station.scenario.control_period
         if station.scene is not None:
             station.scene.reset(station.scene.plant.GetMyMutableContextFromRoot(self.context), seed)
-        elif station.world is None:  # real: the devices run on the wall clock
+        elif station.mode == "real":  # the devices (and an emulated world) run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
         def held_start() -> None:  # a fault here ends the episode as a fault, before its first step
-            if station.world is not None:  # the world starts the episode paused, from its initial
+            if station.mode == "hil":  # the world starts the episode paused, from its initial
                 station.world.begin(period)  # state (lockstep; the drivers run on its clock)
                 self._world_paused = True
             if station.perception is not None:
@@ -189,7 +190,7 @@ class StationEpisode:
 
         self.start_fault = self._fault_of(held_start)
         self.t_start, self.k, self.period = self.context.get_time(), 0, period
-        self.t_world = station.world.time if station.world is not None else 0.0
+        self.t_world = station.world.time if station.mode == "hil" else 0.0
         p = self._object_position()
         self.tracker = None if p is None else SuccessTracker(p)
 
@@ -202,7 +203,7 @@ class StationEpisode:
                 station.scene.advance(self.simulator, self.t_start + k * self.period)
                 return
             self.simulator.AdvanceTo(self.t_start + k * self.period)
-            if station.world is not None:  # then the world runs one control period and pauses
+            if station.mode == "hil":  # then the world runs one control period and pauses
                 station.world.advance_to(self.t_world + k * self.period)
 
         fault = self.start_fault or self._fault_of(advance)

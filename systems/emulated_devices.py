@@ -1,4 +1,5 @@
-"""The devices of an `emulated_process` scenario: emulators in processes of their own.
+"""The devices of an `emulated_process` scenario: emulators in processes of their own (an
+`emulated_world` scenario's run in one world process: systems/emulated_world.py).
 
 `running_emulators(scenario)` starts the Allegro firmware emulator on the scenario's
 python-can bus (one that crosses processes: `udp_multicast`) and the Z1 controller emulator
@@ -30,13 +31,20 @@ from dexdrake.systems.scenario import Scenario
 
 @dataclass
 class Emulators:
-    """The running emulator processes and, once stopped, their devices' last states."""
+    """The running emulator processes (or the world process, "world", and its `WorldView`,
+    `world`) and, once stopped, their devices' last states."""
 
     processes: dict[str, EmulatorProcess] = field(default_factory=dict)
+    world: object = None
 
     @property
     def final(self) -> dict[str, dict | None]:
-        return {name: proc.final for name, proc in self.processes.items()}
+        """{"hand": ..., "arm": ...}: each device's last state (None: not reported)."""
+        out = {name: proc.final for name, proc in self.processes.items() if name != "world"}
+        if "world" in self.processes:  # one process reports both devices
+            final = self.processes["world"].final or {}
+            out.update(hand=final.get("hand"), arm=final.get("arm"))
+        return out
 
     @property
     def pids(self) -> list[int]:

@@ -48,7 +48,9 @@ Timing design (correctness must not depend on how the host schedules threads):
   to the devices' common period: the CAN position period, the Z1 tick, the plant step and
   the control period) and lets the plant move from there: every episode starts from the
   same state at the same time and phase of every device loop, so the same seed gives the
-  same episode (as long as no reply is later than `reply_timeout_s`).
+  same episode (as long as no reply is later than `reply_timeout_s`). A free-running world
+  (the wall-clock world of systems/emulated_world.py) is let go by `hold_until(condition)`
+  instead: the plant moves from the first step at which `condition()` holds.
 The hand's own joints are gravity compensated (as in the simulated scene); the arm joints
 carry the arm's and the hand's weight; the object is not compensated.
 """
@@ -59,6 +61,7 @@ import collections
 import math
 import threading
 import time
+from collections.abc import Callable
 
 import can
 import numpy as np
@@ -158,7 +161,8 @@ class HilWorld:
         self._t = 0.0  # the clock: it moves at a step's start, before the devices' exchange
         self._completed = 0.0  # the time of the last step completed, exchange included
         self._horizon = math.inf  # the world pauses here (advance_to)
-        self._held = True  # the plant does not move until begin()
+        self._held = True  # the plant does not move until begin() or hold_until's condition
+        self._let_go: Callable[[], bool] | None = None  # hold_until's condition
         self.steps = 0
         self.late_replies = 0  # hand cycles whose torques did not come within reply_timeout_s
         self.late_arm_commands = 0  # Z1 ticks whose command did not come within reply_timeout_s
@@ -221,6 +225,11 @@ class HilWorld:
         with self._stepped:
             self._held = False
             self._simulator.Initialize()  # the plant's context time moved on while held
+
+    def hold_until(self, condition: Callable[[], bool]) -> None:
+        """Free-running world: keep the plant held (module doc) until `condition()`, checked
+        by the world thread before every step, is true; the plant moves from that step on."""
+        self._let_go = condition
 
     def advance_to(self, t: float, stall_timeout_s: float = 5.0) -> None:
         """Let the world run up to simulated time `t`, pause there, and return when it has
@@ -294,6 +303,9 @@ class HilWorld:
     def step(self) -> None:
         """One lockstep world step (module doc); the world thread calls it in a loop."""
         t_next = (self.steps + 1) * self._tick  # a multiple of the tick (no drift from summing)
+        if self._held and self._let_go is not None and self._let_go():
+            self._held, self._let_go = False, None
+            self._simulator.Initialize()  # the plant's context time moved on while held
         if self._held:  # the clock runs, the plant stays at rest (module doc)
             self._context.SetTime(t_next)
         else:

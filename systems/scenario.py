@@ -23,7 +23,10 @@ Modes follow from the driver kinds:
         hand and arm "emulated_process": the real mode's code path against emulators that
         `dexdrake real` starts in processes of their own (systems/emulated_devices.py), on
         real transports and the wall clock, with camera "recorded" or "rendered" (a static
-        scene: the object where the seed places it, rendered; nothing moves it)
+        scene: the object where the seed places it, rendered; nothing moves it); or hand and
+        arm "emulated_world": the same against one process running the grasp scene's plant in
+        real time with both emulators in it (systems/emulated_world.py), camera "rendered"
+        (the object where the world has it now)
 """
 
 import dataclasses as dc
@@ -42,7 +45,8 @@ from dexdrake.hands.allegro_units import NUM_JOINTS as NUM_HAND_JOINTS
 from dexdrake.hands.allegro_units import NM_PER_PWM
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 
-HAND_KINDS = ("sim", "emulated", "emulated_process", "hardware")
+HAND_KINDS = ("sim", "emulated", "emulated_process", "emulated_world", "hardware")
+EMULATED_PROCESS_KINDS = ("emulated_process", "emulated_world")  # real mode, devices in processes
 CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
 ARM_MODES = ("LOWCMD", "JOINTCTRL")
 PERCEPTION_FAILURE_POLICIES = ("hold", "stop")
@@ -61,7 +65,7 @@ class HandDriver:
     kind: str = "sim"
     interface: str = "virtual"  # python-can interface: virtual | socketcan | pcan | ...
     channel: str = "dexdrake_allegro"  # socketcan: "can0"; udp_multicast: the group address
-    # udp_multicast: the UDP port (None: python-can's default; 0, emulated_process only: a free one)
+    # udp_multicast: the UDP port (None: python-can's default; 0, emulated_process/world only: a free one)
     port: Optional[int] = None
     bitrate: int = 1_000_000
     device_id: int = 0
@@ -209,7 +213,7 @@ class Scenario:
     @property
     def mode(self) -> str:
         """"sim", "hil" or "real" (see the module docstring); valid after validation."""
-        return {"sim": "sim", "emulated": "hil", "emulated_process": "real",
+        return {"sim": "sim", "emulated": "hil", "emulated_process": "real", "emulated_world": "real",
                 "hardware": "real"}[self.drivers.hand.kind]
 
 
@@ -313,7 +317,7 @@ def is_multiple(period: float, step: float) -> bool:
 def own_process(driver: HandDriver | ArmDriver) -> bool:
     """Whether a hand or arm driver entry runs its driver loop in its own process."""
     if driver.process is None:
-        return driver.kind in ("hardware", "emulated_process")
+        return driver.kind in ("hardware", *EMULATED_PROCESS_KINDS)
     return driver.process
 
 
@@ -380,9 +384,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
              f"drivers.hand.kind ({h.kind}) and drivers.arm.kind ({a.kind}) must match: "
              "the hand's policy joints span the arm and the hand")
     mode = s.mode
-    emulated_process = h.kind == "emulated_process"
+    emulated_process = h.kind in EMULATED_PROCESS_KINDS
     cameras = {"sim": ("sim",), "hil": ("sim", "rendered"),
-               "real": ("recorded", "rendered") if emulated_process else ("k4a", "recorded")}[mode]
+               "real": {"emulated_process": ("recorded", "rendered"), "emulated_world": ("rendered",)}.get(
+                   h.kind, ("k4a", "recorded"))}[mode]
     _require(c.kind in cameras, source,
              f"drivers.camera.kind {c.kind!r} is not available in {mode} mode "
              f"(use one of {', '.join(cameras)})")
@@ -395,9 +400,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(bool(h.interface) and bool(h.channel), source,
                  "drivers.hand.interface and .channel must be set")
         _require(h.port is None or 1 <= h.port <= 65535 or (h.port == 0 and emulated_process), source,
-                 f"drivers.hand.port {h.port} is not a UDP port (0, a free one, only with emulated_process)")
+                 f"drivers.hand.port {h.port} is not a UDP port (0, a free one, only with "
+                 f"{' or '.join(EMULATED_PROCESS_KINDS)})")
         _require(not emulated_process or h.interface != "virtual", source,
-                 "drivers.hand.interface 'virtual' does not cross processes; an emulated_process hand "
+                 f"drivers.hand.interface 'virtual' does not cross processes; an {h.kind} hand "
                  "needs a bus that does (udp_multicast)")
         _require((h.lower is None) == (h.upper is None), source,
                  "drivers.hand.lower and .upper must be given together")

@@ -22,6 +22,8 @@ hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus,
 real: the same driver systems on socketcan / the real z1_controller, each driver in its own
       process by default (`process` of a driver entry; hardware/driver_process.py), and a
       K4A camera (read in a thread that keeps the newest frame) with the same PerceptionSystem.
+      With `emulated_world` drivers they serve a wall-clock HilWorld in a process of its own
+      (systems/emulated_world.py) and the rendered camera draws its object where it is now.
 
 Safety at the station level (the drivers keep their own limits, watchdogs and safe stop):
 - `Station` is a context manager; leaving it (normally, by exception, Ctrl-C or SIGTERM)
@@ -445,7 +447,7 @@ class Station:
     diagram: Diagram
     hand: HandDescription
     scene: object = None  # sim: the GraspScene
-    world: object = None  # hil: the HilWorld
+    world: object = None  # hil: the HilWorld; real with emulated_world drivers: its WorldView
     devices: dict = field(default_factory=dict)
     perception: PerceptionSystem | None = None
     workspace: object = None  # real: the WorkspaceBox every set-point is checked against
@@ -511,22 +513,27 @@ class Station:
         return out
 
 
-def make_station(scenario: Scenario, start: bool = True) -> Station:
+def make_station(scenario: Scenario, start: bool = True, world=None) -> Station:
     """Build (and for hil/real, start the devices of) the station of `scenario`.
 
     For hil/real the devices run from here on: use the result as a context manager (or call
     `stop()`) so that they are stopped safely. `start=False` (real only: `dexdrake real
     --dry-run`) builds the same diagram around drivers that are made but never started:
     the CAN bus is opened, nothing is sent on it or to the Z1, the camera is not opened;
-    such a station's DriverSystems raise StationFault if it is ever simulated."""
+    such a station's DriverSystems raise StationFault if it is ever simulated. `world`: with
+    `emulated_world` drivers, the running world's WorldView (systems/emulated_world.py), whose
+    object the rendered camera draws and the episode scores."""
     if scenario.mode == "sim":
         return sim_station(scenario)
+    if start and scenario.drivers.hand.kind == "emulated_world" and world is None:
+        raise DexdrakeError("an emulated_world station needs its running world: start it with "
+                            "systems/emulated_world.running_world and pass its WorldView")
     if not start and scenario.mode != "real":
         raise DexdrakeError(f"only a real station is built without starting (a {scenario.mode} "
                             "station's devices are its simulated world)")
     stack = contextlib.ExitStack()
     try:
-        return _device_station(scenario, stack, start)
+        return _device_station(scenario, stack, start, world)
     except BaseException:
         stack.close()
         raise
@@ -610,9 +617,10 @@ def hil_drive(scenario: Scenario, hand: HandDescription):
                       damping=np.r_[np.zeros(len(kp)), np.full(n_fingers, inertia * emu.damping)])
 
 
-def _start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
-    """hil: the scenario's grasp scene (with the HIL joint drive) as the world, with the CAN
-    firmware emulator and the loopback Z1 emulator."""
+def start_world(scenario: Scenario, stack: contextlib.ExitStack, hand: HandDescription):
+    """The scenario's grasp scene (with the HIL joint drive) as a started HilWorld, with the
+    CAN firmware emulator on the hand entry's bus and the Z1 emulator on UDP: hil's world, and
+    the wall-clock world's in its own process (systems/emulated_world.py)."""
     from dexdrake.systems.hil_world import HilWorld
     from dexdrake.systems.scene import ObjectPlacement, build_grasp_scene
 
@@ -642,7 +650,7 @@ def _process_config(entry):
     return ProcessConfig(realtime_priority=entry.realtime_priority or 0)
 
 
-def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool) -> Station:
+def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool, world=None) -> Station:
     """hil/real: drivers of the scenario (a started real station runs each driver entry
     with `process` in its own process, hardware/driver_process.py; a dry run's drivers are
     never started and stay in-process), the diagram around them, perception."""
@@ -652,15 +660,14 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
 
     hand = load_hand(scenario.hand)
     devices: dict = {}
-    world = None
     arm_port = arm_local_port = None
     clock = time.monotonic
     if scenario.mode == "hil":  # every device runs on the world's simulated clock
-        world = _start_world(scenario, stack, hand)
+        world = start_world(scenario, stack, hand)
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
         arm_port, arm_local_port, clock = world.arm_emulator.port, world.arm_client_port, world.clock
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
-    if world is not None:  # a sample of the arm's state sees the world's reply of its last step
+    if scenario.mode == "hil":  # a sample of the arm's state sees the world's reply of its last step
         arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
     executor = None
     cam = scenario.drivers.camera
@@ -671,6 +678,8 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         stack.callback(executor.shutdown, wait=False, cancel_futures=True)
         if start:  # its process's spawn, imports and model set-up, before any driver loop runs
             executor.submit(time.monotonic).result()
+    # opened (a rendered camera's first frame sets its renderer up) before any driver loop runs
+    read_frame = camera_reader(scenario, world, stack) if start and executor is not None else _unopened_camera
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
@@ -684,7 +693,7 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     else:
         z1 = Z1Arm(arm_cfg, clock=clock)
     devices["allegro"], devices["z1"] = allegro, z1
-    if world is not None:  # the world steps in lockstep with the Z1 client's ticks once it runs
+    if scenario.mode == "hil":  # the world steps in lockstep with the Z1 client's ticks once it runs
         world.attach_arm_client(z1)
     if start:
         stack.enter_context(allegro)  # starts; its exit is the hand's safe stop
@@ -724,7 +733,6 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     if executor is None:
         pose_sys = builder.AddNamedSystem("world_pose", WorldPoseSystem(world, period))
     else:
-        read_frame = camera_reader(scenario, world, stack) if start else _unopened_camera
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
             read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
     builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
@@ -753,7 +761,7 @@ def camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Cal
 
     cam = scenario.drivers.camera
     X_WC = _camera_pose(cam)
-    if cam.kind == "rendered":  # hil: the world's object; real (emulated_process): a static scene
+    if cam.kind == "rendered":  # hil, emulated_world: the world's object; emulated_process: a static scene
         from dexdrake.systems.scene import ObjectPlacement
 
         info = get_object(scenario.object)
@@ -761,10 +769,15 @@ def camera_reader(scenario: Scenario, world, stack: contextlib.ExitStack) -> Cal
                                      DepthNoiseModel() if cam.depth_noise else None, scenario.seed)
         static = ObjectPlacement.from_seed(scenario.seed).pose(info)
 
-        def read():
+        def place() -> None:
             source.set_object_pose(info.name, static if world is None else world.object_pose())
+
+        def read():
+            place()
             return source.read()
 
+        place()
+        source.warm_up()  # not in the control loop: the first render holds the interpreter for up to 1 s
         return read
     if cam.kind == "recorded":
         source = RecordedSequence(cam.recording, loop=True)

@@ -57,4 +57,4 @@ def test_installed_package_ships_the_scenarios(installed):
     code = ("from dexdrake.systems.scenario import load_scenario, packaged_scenarios\n"
             "print(packaged_scenarios(), [load_scenario(n).mode for n in packaged_scenarios()])\n")
     out = _run(installed, code)
-    assert out.strip() == "['hil', 'real', 'real_emulated', 'sim'] ['hil', 'real', 'real', 'sim']"
+    assert out.strip() == "['hil', 'real', 'real_emulated', 'real_emulated_world', 'sim'] ['hil', 'real', 'real', 'real', 'sim']"

@@ -29,7 +29,7 @@ def test_shipped_scenarios_load():
 
 @pytest.mark.parametrize("text, message", [
     ("drivers: {hand: {kindd: sim}}", "unknown to the schema"),
-    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, emulated_process, hardware"),
+    ("drivers: {hand: {kind: robot}, arm: {kind: robot}}", "not one of sim, emulated, emulated_process, emulated_world, hardware"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: sim}}", "must match"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: k4a}}",
      "not available in hil mode"),
@@ -44,6 +44,9 @@ def test_shipped_scenarios_load():
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, local_port: 0}, camera: {kind: k4a}}",
      "only allowed with an emulated arm"),
     ("drivers: {hand: {kind: emulated, port: 0}, arm: {kind: emulated}}", "drivers.hand.port 0 is not a UDP port"),
+    ("drivers: {hand: {kind: emulated_world, interface: udp_multicast, channel: 239.74.163.3}, "
+     "arm: {kind: emulated_world}, camera: {kind: recorded, recording: x.npz}}",
+     r"drivers.camera.kind 'recorded' is not available in real mode \(use one of rendered\)"),
     ("drivers: {hand: {kind: emulated, process: true}, arm: {kind: emulated}}",
      "drivers.hand.process: the simulated-clock HIL"),
     ("drivers: {hand: {kind: hardware, process: false, realtime_priority: 50}, arm: {kind: hardware}, "

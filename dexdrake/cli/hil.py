@@ -26,6 +26,13 @@ def format_rate(name: str, s: dict) -> str:
             f"p99 {s.get('p99_ms', float('nan')):.2f} ms, max {s.get('max_ms', float('nan')):.2f} ms")
 
 
+def format_world(w: dict) -> str:
+    """A world's clock statistics `w` (HilWorld.stats) as a line."""
+    return (f"world: {w['sim_time_s']:.2f} s simulated in {w['wall_s']:.2f} s wall "
+            f"(real-time factor {w['real_time_factor']:.2f}), step p50 {w['step_p50_ms']:.2f} ms "
+            f"p99 {w['step_p99_ms']:.2f} ms wall, late hand replies {w['late_replies']:.0f}")
+
+
 def run_hil(args: argparse.Namespace) -> int:
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
@@ -61,9 +68,7 @@ def run_hil(args: argparse.Namespace) -> int:
             print("    " + format_rate(name, result.stats[key]))
     world = result.stats.get("world")
     if world:
-        print(f"  world: {world['sim_time_s']:.2f} s simulated in {world['wall_s']:.2f} s wall "
-              f"(real-time factor {world['real_time_factor']:.2f}), step p50 {world['step_p50_ms']:.2f} ms "
-              f"p99 {world['step_p99_ms']:.2f} ms wall, late hand replies {world['late_replies']:.0f}")
+        print("  " + format_world(world))
     print(f"  policy on the wall clock: {result.stats['policy']['wall_rate_hz']:.1f} Hz, "
           f"non-finite commands held {result.stats['policy']['non_finite']}, "
           f"clipped {result.stats['policy']['clipped']}")

@@ -14,7 +14,7 @@ import numpy as np
 
 from dexdrake import argtypes
 from dexdrake.cli.flags import MISMATCH_HELP
-from dexdrake.cli.hil import format_rate
+from dexdrake.cli.hil import format_rate, format_world
 from dexdrake.errors import DexdrakeError
 
 
@@ -32,7 +32,9 @@ def add_parser(subparsers) -> None:
 
 
 def run_real(args: argparse.Namespace) -> int:
-    from dexdrake.systems.emulated_devices import Emulators, running_emulators
+    from dexdrake.systems.emulated_devices import Emulators
+    from dexdrake.systems.emulated_world import running_devices
+    from dexdrake.systems.scenario import EMULATED_PROCESS_KINDS
     from dexdrake.systems.scenario import ScenarioError, load_scenario
 
     scenario = load_scenario(args.config)
@@ -41,20 +43,21 @@ def run_real(args: argparse.Namespace) -> int:
     if not (args.dry_run or args.yes or (sys.stdin is not None and sys.stdin.isatty())):
         raise DexdrakeError("a real episode moves the robot and waits for the operator's Enter: run it "
                             "from a terminal, or pass --yes for scripted use")
-    emulators = Emulators() if scenario.drivers.hand.kind == "emulated_process" else None
+    emulators = Emulators() if scenario.drivers.hand.kind in EMULATED_PROCESS_KINDS else None
     outcome = None
     try:
         with contextlib.ExitStack() as stack:
             if emulators is not None:
-                scenario = stack.enter_context(running_emulators(scenario, emulators))
-                print(f"emulators started in their own processes (pids {emulators.pids}): Allegro on "
+                scenario = stack.enter_context(running_devices(scenario, emulators))
+                where = "in the world process" if emulators.world is not None else "in their own processes"
+                print(f"emulators started {where} (pids {emulators.pids}): Allegro on "
                       f"{scenario.drivers.hand.interface}:{scenario.drivers.hand.channel} port "
                       f"{scenario.drivers.hand.port}, Z1 on UDP {scenario.drivers.arm.controller_port} -> "
                       f"{scenario.drivers.arm.local_port}")
             code = dry_run(scenario, args.allow_scenario_mismatch)
             if args.dry_run or code != 0:
                 return code
-            outcome = _supervised(scenario, args)
+            outcome = _supervised(scenario, args, emulators.world if emulators is not None else None)
     except KeyboardInterrupt:
         _report_stop(emulators)
         print("dexdrake real: interrupted: the devices were stopped safely", file=sys.stderr)
@@ -89,9 +92,9 @@ def _confirm(yes: bool) -> None:
         raise DexdrakeError("no confirmation (stdin closed); nothing was moved") from None
 
 
-def _supervised(scenario, args: argparse.Namespace):
+def _supervised(scenario, args: argparse.Namespace, world=None):
     """The plan, the confirmation, and the supervised episode in the station's context (its
-    exit is the safe stop, whatever happens inside)."""
+    exit is the safe stop, whatever happens inside); `world`: an emulated world's WorldView."""
     from dexdrake.hands.description import load_hand
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.real_episode import run_supervised
@@ -124,7 +127,7 @@ def _supervised(scenario, args: argparse.Namespace):
 
         logger = RerunLogger(rrd, scenario.mode, scenario=scenario)
     try:
-        with make_station(scenario) as station:
+        with make_station(scenario, world=world) as station:
             if logger is not None:
                 logger.attach(station)
             outcome = run_supervised(station, controller, steps, logger)
@@ -136,6 +139,10 @@ def _supervised(scenario, args: argparse.Namespace):
         for key, name in (("can", "CAN (Allegro PD loop)"), ("z1", "Z1 UDP loop"), ("policy", "policy/control")):
             if key in stats:
                 print("  " + format_rate(name, stats[key]))
+        if "world" in stats:  # an emulated world: the object's true pose scores the episode
+            print("  " + format_world(stats["world"]))
+            print(f"  episode on the emulated world's object: success={outcome.episode.success} "
+                  f"max_lift={outcome.episode.max_lift:.3f} m")
     if rrd:
         print(f"  recording: {rrd}")
     return outcome

@@ -102,6 +102,8 @@ class FeatureExtractor:
         self.size = sum(self.observation_blocks.values())
         self._groups = FEATURE_SETS[feature_set]
         self._needs_closest = bool({"surf", "occ_surf", "local_geo"} & set(self._groups))
+        if path == "fast" and self._needs_closest:
+            geometry.prepare_queries()  # built once per geometry, here rather than in the first step
         names = list(dict.fromkeys([p.body for p in hand.dexrep_points] + [hand.wrist_body, hand.occupancy.body]))
         self._bodies = [plant.GetBodyByName(name, hand_instance) for name in names]
         self._point_body = np.array([names.index(p.body) for p in hand.dexrep_points])

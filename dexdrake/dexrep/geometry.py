@@ -151,6 +151,13 @@ class ObjectGeometry:
             self._scene = scene
         return self._scene
 
+    def prepare_queries(self) -> None:
+        """Build the closest-point query structure now (Open3D's import and ray-casting
+        scene: a second or more of the interpreter on first use), not in the first query,
+        which may come in a control loop whose driver processes expect the interpreter's
+        heartbeat."""
+        self._raycasting_scene()
+
     def closest_points(self, p_O: np.ndarray) -> ClosestPoints:
         """Exact closest surface points, signed distances and outward normals (one Open3D
         query for all points)."""

@@ -105,7 +105,8 @@ class ObjectPlacement:
     @classmethod
     def nearest_start(cls, xy: np.ndarray) -> np.ndarray:
         """The start position (x, y) nearest `xy`: no farther from the true start than `xy` is."""
-        return np.array([np.clip(xy[0], *cls.X_RANGE), np.clip(xy[1], *cls.Y_RANGE)])
+        (x_lo, x_hi), (y_lo, y_hi) = cls.X_RANGE, cls.Y_RANGE
+        return np.array([min(max(xy[0], x_lo), x_hi), min(max(xy[1], y_lo), y_hi)])
 
     def pose(self, info: ObjectInfo) -> RigidTransform:
         return RigidTransform(RollPitchYaw(0.0, 0.0, self.yaw), [self.x, self.y, info.rest_height])

@@ -14,7 +14,8 @@ class CommandGuard:
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray):
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
-        self._tolerance = 1e-9 * np.maximum(self.hi - self.lo, 1.0)  # rounding of mid + a * half
+        tolerance = 1e-9 * np.maximum(self.hi - self.lo, 1.0)  # rounding of mid + a * half
+        self._below, self._above = self.lo - tolerance, self.hi + tolerance  # beyond these a command is clipped
         self.reset_counts()
 
     def reset_counts(self) -> None:
@@ -28,9 +29,9 @@ class CommandGuard:
     def __call__(self, command: np.ndarray, last: np.ndarray) -> np.ndarray:
         """The command to use: `command` within the bounds, or `last` when it is not finite."""
         q = np.asarray(command, dtype=float)
-        if q.shape != self.lo.shape or not np.all(np.isfinite(q)):
+        if q.shape != self.lo.shape or not np.isfinite(q).all():
             self.non_finite += 1
             return np.array(last, dtype=float)
-        if np.any(q < self.lo - self._tolerance) or np.any(q > self.hi + self._tolerance):
+        if (q < self._below).any() or (q > self._above).any():
             self.clipped += 1
-        return np.clip(q, self.lo, self.hi)
+        return np.minimum(np.maximum(q, self.lo), self.hi)

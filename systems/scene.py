@@ -32,6 +32,7 @@ Ports of the diagram (policy joint order, see the hand description):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import ClassVar
 
 import numpy as np
@@ -133,7 +134,7 @@ class GraspScene:
     def object_pose(self, plant_context: Context) -> RigidTransform:
         return self.plant.EvalBodyPoseInWorld(plant_context, self.object_body)
 
-    @property
+    @cached_property
     def object_body(self):
         return self.plant.GetBodyByName(self.object_info.name, self.object_instance)
 
@@ -166,7 +167,7 @@ class GraspScene:
             if type(err) is not RuntimeError or not self._step_fails(context):
                 raise
             raise SimulationDiverged(str(err).splitlines()[0]) from err
-        if not np.all(np.isfinite(self.plant.GetPositions(context))):
+        if not np.isfinite(self.plant.GetPositions(context)).all():
             raise SimulationDiverged("non-finite plant positions")
 
     def _step_fails(self, plant_context: Context) -> bool:

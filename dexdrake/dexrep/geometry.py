@@ -157,7 +157,7 @@ class ObjectGeometry:
         import open3d as o3d
 
         p = np.asarray(p_O, dtype=np.float64).reshape(-1, 3)
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             raise DexdrakeError("closest_points: query points contain NaN or Inf")
         res = self._raycasting_scene().compute_closest_points(
             o3d.core.Tensor.from_numpy(p.astype(np.float32)), nthreads=1)

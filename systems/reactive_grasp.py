@@ -138,7 +138,7 @@ class ReactiveGrasp(ScriptedGrasp):
     def closure(self, q: np.ndarray) -> float:
         """How far the fingers are from open (0) toward the closed pose (1), averaged over joints."""
         f = self._fingers
-        return float(np.mean((q[f] - self.q_open[f]) / self._span[f]))
+        return float(((q[f] - self.q_open[f]) / self._span[f]).mean())
 
     def __call__(self, env) -> np.ndarray:
         r = self.rules
@@ -147,22 +147,22 @@ class ReactiveGrasp(ScriptedGrasp):
         q, v = state[:n], state[n:]
         p_obj = env.object_position()
         tips = env.fingertip_distances()
-        lifted = p_obj[2] - self.p_start[2] > r.lifted and float(np.min(tips)) < r.in_hand
+        lifted = p_obj[2] - self.p_start[2] > r.lifted and float(tips.min()) < r.in_hand
         closure = self.closure(q)
         offset = self.ik.palm_pose(q[: self.n_arm])[0] - self.grasp_point
-        above, aside = offset[2], float(np.linalg.norm(offset[:2]))
+        above, aside, reach = offset[2], float(np.linalg.norm(offset[:2])), float(np.linalg.norm(offset))
         touch = tips < r.touch
-        thumb_and_fingers = bool(touch[self.thumb_tip]) and int(np.sum(touch)) - 1 >= r.fingers_touching
-        settled = float(np.max(np.abs(v[self._fingers]))) < r.settled_speed
-        arm_stopped = float(np.max(np.abs(v[: self.n_arm]))) < r.stopped_speed
+        thumb_and_fingers = bool(touch[self.thumb_tip]) and int(touch.sum()) - 1 >= r.fingers_touching
+        settled = float(np.abs(v[self._fingers]).max()) < r.settled_speed
+        arm_stopped = float(np.abs(v[: self.n_arm]).max()) < r.stopped_speed
         holding = (closure > r.started and settled and (thumb_and_fingers or closure > r.closed_hold)
-                   and float(np.linalg.norm(offset)) < r.hold_reach)
+                   and reach < r.hold_reach)
         if not holding and not lifted and closure < r.closed:
             self._follow(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj, lifted), self.q_closed
-        elif np.linalg.norm(offset) < r.at_grasp or above < r.blocked_height and (
+        elif reach < r.at_grasp or above < r.blocked_height and (
             aside < r.above_xy and arm_stopped or aside < r.keep_xy and closure > r.started
         ):
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
@@ -170,7 +170,7 @@ class ReactiveGrasp(ScriptedGrasp):
             self.phase, arm = "open", q[: self.n_arm]
         else:  # a funnel: the farther off horizontally, the closer the target to the approach way-point
             tolerance = r.above_xy + r.descend_cone * max(above, 0.0)
-            s = float(np.clip((aside - tolerance) / r.funnel, 0.0, 1.0))
+            s = min(max((aside - tolerance) / r.funnel, 0.0), 1.0)
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
         out = np.array(fingers, dtype=float)
@@ -196,5 +196,5 @@ class ReactiveGrasp(ScriptedGrasp):
     def _lead(self, q_arm: np.ndarray, target: np.ndarray, lead: float) -> np.ndarray:
         """A set-point from q_arm toward target, at most `lead` (normalised) ahead on any joint."""
         step = (target - q_arm) / self._arm_half
-        scale = min(1.0, lead / max(float(np.max(np.abs(step))), 1e-12))
+        scale = min(1.0, lead / max(float(np.abs(step).max()), 1e-12))
         return q_arm + scale * step * self._arm_half

@@ -32,6 +32,7 @@ Ports of the diagram (policy joint order, see the hand description):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import ClassVar
 
 import numpy as np
@@ -105,7 +106,8 @@ class ObjectPlacement:
     @classmethod
     def nearest_start(cls, xy: np.ndarray) -> np.ndarray:
         """The start position (x, y) nearest `xy`: no farther from the true start than `xy` is."""
-        return np.array([np.clip(xy[0], *cls.X_RANGE), np.clip(xy[1], *cls.Y_RANGE)])
+        (x_lo, x_hi), (y_lo, y_hi) = cls.X_RANGE, cls.Y_RANGE
+        return np.array([min(max(xy[0], x_lo), x_hi), min(max(xy[1], y_lo), y_hi)])
 
     def pose(self, info: ObjectInfo) -> RigidTransform:
         return RigidTransform(RollPitchYaw(0.0, 0.0, self.yaw), [self.x, self.y, info.rest_height])
@@ -132,7 +134,7 @@ class GraspScene:
     def object_pose(self, plant_context: Context) -> RigidTransform:
         return self.plant.EvalBodyPoseInWorld(plant_context, self.object_body)
 
-    @property
+    @cached_property
     def object_body(self):
         return self.plant.GetBodyByName(self.object_info.name, self.object_instance)
 
@@ -165,7 +167,7 @@ class GraspScene:
             if type(err) is not RuntimeError or not self._step_fails(context):
                 raise
             raise SimulationDiverged(str(err).splitlines()[0]) from err
-        if not np.all(np.isfinite(self.plant.GetPositions(context))):
+        if not np.isfinite(self.plant.GetPositions(context)).all():
             raise SimulationDiverged("non-finite plant positions")
 
     def _step_fails(self, plant_context: Context) -> bool:

@@ -68,6 +68,7 @@ class TargetLimiter(LeafSystem):
         self.max_rate, self.period = np.asarray(max_rate, float), period
         n = len(self.lower)
         self.feedforward = np.zeros(n, bool) if velocity_feedforward is None else np.asarray(velocity_feedforward, bool)
+        self._at_rest = np.zeros(n)  # the desired velocity without feed-forward
         self._command = self.DeclareVectorInputPort("command", n)
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         state = self.DeclareDiscreteState(2 * n)  # [target; its velocity]
@@ -82,8 +83,8 @@ class TargetLimiter(LeafSystem):
         state.set_value(0, np.r_[np.clip(q, self.lower, self.upper), np.zeros(len(q))])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
-        n = len(self.lower)
-        target = np.clip(self._command.Eval(context), self.lower, self.upper)
-        previous = context.get_discrete_state(0).value()[:n]
+        target = np.minimum(np.maximum(self._command.Eval(context), self.lower), self.upper)
+        previous = context.get_discrete_state(0).value()[: len(self.lower)]
         q = rate_limited(previous, target, self.max_rate, self.period)
-        state.set_value(0, np.r_[q, np.where(self.feedforward, (q - previous) / self.period, 0.0)])
+        v = np.where(self.feedforward, (q - previous) / self.period, 0.0) if self.feedforward.any() else self._at_rest
+        state.set_value(0, np.concatenate([q, v]))

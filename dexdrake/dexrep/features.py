@@ -34,7 +34,7 @@ SURFACE_CLIP = 0.20  # m
 def as_matrix(X) -> np.ndarray:
     """A 4x4 float array from a 4x4 array-like or anything with GetAsMatrix4()."""
     M = X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else np.asarray(X, dtype=np.float64)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+    if M.shape != (4, 4) or not np.isfinite(M).all():
         raise DexdrakeError(f"expected a finite 4x4 pose, got shape {M.shape}")
     return M
 

@@ -52,22 +52,21 @@ class SdfGrid:
         i0 = np.floor(u)
         np.maximum(i0, 0.0, out=i0)
         np.minimum(i0, self._max_index, out=i0)
-        f = u - i0
-        c = self._flat[self._flat_index(i0)[:, None] + self._corner_offsets].astype(np.float64)
-        fx, fy, fz = f[:, 0], f[:, 1:2], f[:, 2:3]
-        # corners ordered (x, y, z) bits: 000 001 010 011 100 101 110 111
-        dz = c[:, 1::2] - c[:, 0::2]  # (m, 4): 00 01 10 11
-        cz = c[:, 0::2] + dz * fz
-        dy = cz[:, 1::2] - cz[:, 0::2]  # (m, 2): 0 1
-        cy = cz[:, 0::2] + dy * fy
-        gx = cy[:, 1] - cy[:, 0]
-        sd = cy[:, 0] + gx * fx
+        fx, fy, fz = (u - i0).T
+        # (8, m): corner rows ordered by (z, y, x) bits, so each axis halves the rows
+        c = self._flat[self._corner_offsets + self._flat_index(i0)].astype(np.float64)
+        dz = c[4:] - c[:4]  # (4, m): x0y0 x1y0 x0y1 x1y1
+        cz = c[:4] + dz * fz
+        dy = cz[2:] - cz[:2]  # (2, m): x0 x1
+        cy = cz[:2] + dy * fy
+        gx = cy[1] - cy[0]
+        sd = cy[0] + gx * fx
         if not with_gradient:
             return sd
-        gy = dy[:, 0] + (dy[:, 1] - dy[:, 0]) * fx
-        dzy = dz[:, 0::2] + (dz[:, 1::2] - dz[:, 0::2]) * fy
-        gz = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx
-        return sd, np.column_stack([gx, gy, gz])
+        gy = dy[0] + (dy[1] - dy[0]) * fx
+        dzy = dz[:2] + (dz[2:] - dz[:2]) * fy
+        gz = dzy[0] + (dzy[1] - dzy[0]) * fx
+        return sd, np.array([gx, gy, gz]).T.copy()  # (m, 3) C order, cheaper than np.stack
 
     def nearest_node_index_value(self, u: np.ndarray) -> np.ndarray:
         """Signed distance at the grid node nearest to each (m, 3) index-coordinate point.
@@ -101,8 +100,9 @@ class SdfGrid:
 
     @cached_property
     def _corner_offsets(self) -> np.ndarray:
-        bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=np.float64)
-        return (bits @ self._strides).astype(np.intp)
+        """(8, 1) flat-index offsets of a cell's corners, corner k = (z, y, x) bits of k."""
+        bits = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)
+        return (bits @ self._strides).astype(np.intp)[:, None]
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ class ObjectGeometry:
         import open3d as o3d
 
         p = np.asarray(p_O, dtype=np.float64).reshape(-1, 3)
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             raise DexdrakeError("closest_points: query points contain NaN or Inf")
         res = self._raycasting_scene().compute_closest_points(
             o3d.core.Tensor.from_numpy(p.astype(np.float32)), nthreads=1)

@@ -122,7 +122,7 @@ class FastOccupancy:
         R, t = X_OG[:3, :3], X_OG[:3, 3]
         # Cull: the object's bounding sphere misses the grid cube -> all empty.
         centre, radius = geometry.bounding_sphere
-        q = (np.abs((centre - t) @ R) - self.size / 2).clip(0.0)
+        q = np.maximum(np.abs((centre - t) @ R) - self.size / 2, 0.0)
         if np.dot(q, q) > radius * radius:
             return np.zeros(len(self._centres))
         grid = geometry.sdf
@@ -135,7 +135,7 @@ class FastOccupancy:
         slack = grid.spacing * _SQRT3_2 + 1e-6
         edge = self._edge
         occ = sd <= edge / 2 - slack
-        owner = np.flatnonzero((sd > edge / 2 - slack) & (sd <= edge * _SQRT3_2 + slack))
+        owner = np.flatnonzero(~occ & (sd <= edge * _SQRT3_2 + slack))
         # the undecided ones again, with the interpolated distance (no slack)
         pts = U[owner]
         sd = grid.trilinear_index(pts)

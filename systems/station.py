@@ -660,8 +660,9 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
         arm_port, arm_local_port, clock = world.arm_emulator.port, world.arm_client_port, world.clock
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
-    if world is not None:  # a sample of the arm's state sees the world's reply of its last step
-        arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
+    if world is not None:  # a sample of the arm's state sees the world's reply of its last step;
+        arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)  # the hand's speed is
+        hand_cfg = replace(hand_cfg, receive_timestamps=False)  # timed on the simulated clock
     executor = None
     cam = scenario.drivers.camera
     if cam.kind != "sim":

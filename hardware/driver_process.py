@@ -75,6 +75,9 @@ class ProcessConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.realtime_priority <= 99:
             raise HardwareError(f"realtime_priority must be 0..99, got {self.realtime_priority}")
+        if not (math.isfinite(self.heartbeat_timeout_s) and self.heartbeat_timeout_s > self.heartbeat_period_s > 0):
+            raise HardwareError(f"heartbeat_timeout_s must be a finite time longer than the heartbeat's "
+                                f"period ({self.heartbeat_period_s} s), got {self.heartbeat_timeout_s}")
 
 
 def set_realtime_priority(priority: int) -> None:

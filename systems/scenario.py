@@ -83,6 +83,10 @@ class HandDriver:
     # CAP_SYS_NICE or `ulimit -r`, refused at start otherwise), so that the host's load
     # cannot delay them; None: normal scheduling
     realtime_priority: Optional[int] = None
+    # with `process`: that process safe-stops the device when the parent's heartbeat is this
+    # old (s: a hung, starved or dead parent); None: the default of
+    # hardware/driver_process.ProcessConfig
+    heartbeat_timeout_s: Optional[float] = None
 
 
 @dc.dataclass
@@ -104,6 +108,7 @@ class ArmDriver:
     watchdog_timeout_s: Optional[float] = None
     process: Optional[bool] = None  # as HandDriver.process
     realtime_priority: Optional[int] = None  # as HandDriver.realtime_priority
+    heartbeat_timeout_s: Optional[float] = None  # as HandDriver.heartbeat_timeout_s
 
 
 @dc.dataclass
@@ -317,6 +322,15 @@ def own_process(driver: HandDriver | ArmDriver) -> bool:
     return driver.process
 
 
+def process_config(driver: HandDriver | ArmDriver):
+    """The ProcessConfig (hardware/driver_process.py) of a driver entry run in its own
+    process; HardwareError names a value it refuses."""
+    from dexdrake.hardware.driver_process import ProcessConfig
+
+    given = {} if driver.heartbeat_timeout_s is None else {"heartbeat_timeout_s": driver.heartbeat_timeout_s}
+    return ProcessConfig(realtime_priority=driver.realtime_priority or 0, **given)
+
+
 def driver_configs(s: Scenario, arm_controller_port: int | None = None,
                    arm_local_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
@@ -408,6 +422,13 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
             p = entry.realtime_priority
             _require(p is None or (own_process(entry) and 1 <= p <= 99), source,
                      f"drivers.{name}.realtime_priority {p}: 1..99, for a driver in its own process")
+            _require(entry.heartbeat_timeout_s is None or own_process(entry), source,
+                     f"drivers.{name}.heartbeat_timeout_s: only a driver in its own process has a "
+                     "parent's heartbeat to watch")
+            try:
+                process_config(entry)
+            except DexdrakeError as err:
+                raise ScenarioError(f"{source}: drivers.{name}.{err}") from None
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)

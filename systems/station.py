@@ -69,7 +69,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.systems.command_guard import CommandGuard
-from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process
+from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process, process_config
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
 
@@ -636,12 +636,6 @@ def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
         time.sleep(0.005)
 
 
-def _process_config(entry):
-    from dexdrake.hardware.driver_process import ProcessConfig
-
-    return ProcessConfig(realtime_priority=entry.realtime_priority or 0)
-
-
 def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool) -> Station:
     """hil/real: drivers of the scenario (a started real station runs each driver entry
     with `process` in its own process, hardware/driver_process.py; a dry run's drivers are
@@ -675,13 +669,13 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
-                                        hand_cfg), _process_config(hand_entry), "Allegro hand")
+                                        hand_cfg), process_config(hand_entry), "Allegro hand")
     else:
         bus = open_can_bus(scenario)
         stack.callback(bus.shutdown)
         allegro = AllegroHand(bus, hand_entry.device_id, hand_cfg, clock=clock)
     if start and own_process(arm_entry):
-        z1 = DriverProcess(partial(z1_client, arm_cfg), _process_config(arm_entry), "Z1 arm")
+        z1 = DriverProcess(partial(z1_client, arm_cfg), process_config(arm_entry), "Z1 arm")
     else:
         z1 = Z1Arm(arm_cfg, clock=clock)
     devices["allegro"], devices["z1"] = allegro, z1

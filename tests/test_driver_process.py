@@ -232,6 +232,24 @@ def test_a_parent_that_stops_in_the_middle_of_a_command_write_is_still_lost(z1_e
         assert "parent heartbeat lost" in arm.state().fault
 
 
+def test_the_scenarios_heartbeat_timeout_reaches_the_driver_process(z1_emulator):
+    """A scenario's drivers.arm.heartbeat_timeout_s (2 s) is the child's: a parent that stops
+    beating keeps its arm past the default 0.5 s, and loses it after 2 s."""
+    from dexdrake.systems.scenario import parse_scenario, process_config
+
+    scenario = parse_scenario("drivers: {hand: {kind: hardware}, arm: {kind: hardware, heartbeat_timeout_s: 2.0}, "
+                              "camera: {kind: k4a}}")
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator)), process_config(scenario.drivers.arm),
+                        "Z1 arm")
+    with arm:
+        arm._beating.clear()  # the parent's heartbeat stops
+        time.sleep(1.0)
+        assert arm.running and arm.state().fault is None
+        assert wait_for(lambda: not arm._process.is_alive(), 10.0)
+        age_ms = int(arm.state().fault.removeprefix("parent heartbeat lost for ").removesuffix(" ms"))
+        assert age_ms >= 2000
+
+
 class _BrokenDriver:
     """A driver whose command path raises; `stop()` leaves a marker file (its safe stop)."""
 

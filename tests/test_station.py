@@ -50,6 +50,11 @@ def test_shipped_scenarios_load():
      "camera: {kind: k4a}}", "drivers.hand.realtime_priority 50: 1..99, for a driver in its own process"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, realtime_priority: 100}, camera: {kind: k4a}}",
      "drivers.arm.realtime_priority 100"),
+    ("drivers: {hand: {kind: hardware, heartbeat_timeout_s: 0.005}, arm: {kind: hardware}, camera: {kind: k4a}}",
+     r"drivers.hand.heartbeat_timeout_s must be a finite time longer than the heartbeat's period \(0.01 s\), "
+     "got 0.005"),
+    ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, process: false, heartbeat_timeout_s: 1.0}, "
+     "camera: {kind: k4a}}", "drivers.arm.heartbeat_timeout_s: only a driver in its own process"),
     ("drivers: {hand: {kind: emulated, limit_margin_rad: 0.5}, arm: {kind: emulated}}",
      r"Allegro limit_margin_rad 0.5 must be >= 0 and leave every joint a range"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: emulated, limit_margin_rad: -0.1}}",

@@ -132,7 +132,11 @@ class CameraDriver:
     # frames) to the present, by at most this (s): the frame's age; 0: the estimate as is
     predict_s: float = 0.1
     first_pose_timeout_s: float = 30.0  # no pose at all by then -> stop
-    max_pose_age_s: float = 2.0  # the last pose's frame older than this (s) -> stop
+    # the age of the last pose's frame (s), once a pose came: older than hold_pose_age_s the
+    # station holds (hand and arm keep the positions measured then; the controller's commands
+    # resume with a younger pose); older than max_pose_age_s it stops (safe stop)
+    hold_pose_age_s: float = 1.0
+    max_pose_age_s: float = 2.0
     max_consecutive_failures: int = 3  # then `on_failure` applies
     on_failure: str = "hold"  # hold: keep the last pose | stop: safe stop the station
 
@@ -449,9 +453,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  source, "drivers.camera.period_s, .first_pose_timeout_s must be > 0 and "
                  ".max_consecutive_failures >= 1")
         _require(c.predict_s >= 0, source, f"drivers.camera.predict_s must be >= 0 (s), got {c.predict_s}")
-        _require(c.max_pose_age_s >= c.period_s, source,
-                 f"drivers.camera.max_pose_age_s ({c.max_pose_age_s}) must be >= period_s ({c.period_s}): "
-                 "a pose is at least one period old when the next one comes")
+        _require(c.period_s <= c.hold_pose_age_s <= c.max_pose_age_s, source,
+                 f"drivers.camera: need period_s ({c.period_s}) <= hold_pose_age_s ({c.hold_pose_age_s}) "
+                 f"<= max_pose_age_s ({c.max_pose_age_s}): a pose is at least one period old when the "
+                 "next one comes; the station holds before it stops")
         _require(c.on_failure in PERCEPTION_FAILURE_POLICIES, source,
                  f"drivers.camera.on_failure {c.on_failure!r} is not one of "
                  f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")

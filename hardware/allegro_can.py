@@ -529,8 +529,14 @@ class AllegroHand(SafeStopContext):
 
     def _receive(self, timeout: float) -> tuple[Frame | None, float | None]:
         """`_recv`, with the frame's receive timestamp (s, the interface's clock; None when
-        the interface sets none or `receive_timestamps` is off)."""
-        msg = self.bus.recv(timeout)
+        the interface sets none or `receive_timestamps` is off). A message the transport
+        cannot deliver (python-can raises, e.g. a datagram udp_multicast cannot unpack) is
+        counted as a bad frame."""
+        try:
+            msg = self.bus.recv(timeout)
+        except can.CanError as err:
+            self._stats.frame_errors[f"bus:{type(err).__name__}"] += 1
+            return None, None
         if msg is None:
             return None, None
         try:

@@ -145,6 +145,26 @@ def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
         assert "no Z1 state" in arm.state().fault
 
 
+def test_a_reset_fault_clears_the_parents_view_too(z1_emulator):
+    """After reset_fault() the parent reports no fault once the child's driver has cleared
+    it: the fault the child had is not reported again on the way (its driver's loop thread
+    clears the latch on its next pass); one still latched after the grace is."""
+    emu = z1_emulator
+    with DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm") as arm:
+        for _ in range(3):
+            emu.stall(1.5)
+            assert wait_for(lambda: arm.state().fault is not None, 10.0)
+            assert wait_for(lambda: emu.stall_until < time.monotonic(), 10.0)  # replies are back
+            arm.reset_fault()
+            assert wait_for(lambda: arm.state().fault is None and arm.state().fsm == ArmFSMState.LOWCMD, 5.0)
+            time.sleep(0.5)  # past the grace: no late report of the old fault
+            assert arm.state().fault is None
+        emu.stall(3.0)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        arm.reset_fault()  # the replies are still stalled: the watchdog trips again
+        assert wait_for(lambda: arm.state().fault is not None, 5.0)
+
+
 def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():
     quiet = _multicast_bus_args()  # nobody answers on this bus
     hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, HAND), PROC, "Allegro hand")

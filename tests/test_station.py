@@ -744,7 +744,7 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
                  "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
                  "diagram (built, not run): station (real: command_to_devices, workspace_guard, z1_driver, allegro_driver, "
-                 "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
+                 "devices_to_hand_state, perception, pose_age_hold) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
@@ -929,7 +929,7 @@ def _stand_in_station(robot_type, make_pose=None):
     builder.ExportInput(driver.get_input_port(), "command")
     builder.ExportOutput(driver.get_output_port(), "hand_state")
     pose = builder.AddSystem(make_pose(period) if make_pose else WorldPoseSystem(robot, period))
-    builder.ExportOutput(pose.get_output_port(), "object_pose")
+    builder.ExportOutput(pose.GetOutputPort("object_pose"), "object_pose")
     perception = pose if isinstance(pose, PerceptionSystem) else None
     return Station(scenario, builder.Build(), hand, world=robot, devices={"allegro": robot},
                    perception=perception)

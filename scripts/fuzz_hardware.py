@@ -81,7 +81,7 @@ from dexdrake.hardware.z1_udp import (
     Z1Config,
     free_udp_port,
 )
-from dexdrake.hardware.safety import MIN_PLAUSIBLE_TEMPERATURE_C, OVERSPEED_TOLERANCE
+from dexdrake.hardware.safety import MIN_PLAUSIBLE_TEMPERATURE_C, OVERSPEED_TOLERANCE, HardwareError
 
 
 def _wait(cond, timeout: float) -> bool:
@@ -362,6 +362,10 @@ def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
 
 
 # ----------------------------------------------------------------------------- processes
+START_TIMEOUT_S = 120.0  # a process's spawn and imports, on a loaded host
+PROCESS = ProcessConfig(heartbeat_timeout_s=2.0, start_timeout_s=START_TIMEOUT_S)  # the parent fuzzes, its beat may lag
+
+
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("", 0))
@@ -426,9 +430,9 @@ def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:
     fuzz = can.Bus(**bus)
     raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
-    emulator = EmulatorProcess(functools.partial(allegro_emulator, bus, EmulatorConfig()), name="allegro-emulator")
-    hand = DriverProcess(functools.partial(allegro_on_bus, bus, 0, cfg), ProcessConfig(heartbeat_timeout_s=2.0),
-                         "Allegro hand")
+    emulator = EmulatorProcess(functools.partial(allegro_emulator, bus, EmulatorConfig()),
+                               start_timeout_s=START_TIMEOUT_S, name="allegro-emulator")
+    hand = DriverProcess(functools.partial(allegro_on_bus, bus, 0, cfg), PROCESS, "Allegro hand")
     out: collections.Counter = collections.Counter()
     faults: collections.Counter = collections.Counter()
     stops = SafeStops()
@@ -496,7 +500,7 @@ def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
     rng = np.random.default_rng(seed)
     client = free_udp_port()
     emulator = EmulatorProcess(functools.partial(z1_emulator, Z1EmulatorConfig(port=0, client_port=client)),
-                               name="z1-emulator")
+                               start_timeout_s=START_TIMEOUT_S, name="z1-emulator")
     fuzz = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     fuzz.bind(("127.0.0.1", 0))
     fuzz.setblocking(False)
@@ -508,7 +512,7 @@ def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
         with emulator:
             cfg = Z1Config(local_port=client, controller_port=emulator.report, watchdog_timeout_s=0.5,
                            mode_timeout_s=5.0)
-            arm = DriverProcess(functools.partial(z1_client, cfg), ProcessConfig(heartbeat_timeout_s=2.0), "Z1 arm")
+            arm = DriverProcess(functools.partial(z1_client, cfg), PROCESS, "Z1 arm")
 
             def counter() -> int:
                 return sum(arm.stats()["packet_errors"].values())
@@ -592,7 +596,11 @@ def main() -> int:
     for name, n, run in (("CAN", n_can, runs[0]), ("UDP", n_udp, runs[1])):
         if n <= 0:
             continue
-        result = run(n, args.seed)
+        try:
+            result = run(n, args.seed)
+        except HardwareError as err:  # a driver or emulator that could not start
+            print(f"{name}: FAIL: {err}")
+            return 1
         ok &= passed(result)
         crashes += result.get("crashes", int(not result.get("alive", True)))
         print(f"{name} ({'in-process' if args.in_process else 'processes'}): {'PASS' if passed(result) else 'FAIL'}")

@@ -405,11 +405,18 @@ class SafeStops:
         return {"timed": len(ms), **{k: round(v, 1) for k, v in stats.items()}}
 
 
-def _recover(driver: DriverProcess, timeout: float = 3.0) -> bool:
-    """Reset the driver's latched fault and wait for a fault-free state newer than the reset."""
-    t0 = driver.state().t
-    driver.reset_fault()
-    return _wait(lambda: (st := driver.state()).fault is None and st.t > t0, timeout)
+def _recover(driver: DriverProcess, nudge=None, attempts: int = 5, timeout: float = 3.0) -> bool:
+    """Reset the driver's latched fault until a fault-free state newer than the reset comes
+    (fuzzed frames still queued for a loaded driver can fail a reset: its start sequence
+    believes them); `nudge()` between attempts. False after `attempts`."""
+    for _ in range(attempts):
+        t0 = driver.state().t
+        driver.reset_fault()
+        if _wait(lambda: (st := driver.state()).fault is None and st.t > t0, timeout):
+            return True
+        if nudge is not None:
+            nudge()
+    return False
 
 
 def _crashes(driver: DriverProcess, emulator: EmulatorProcess, alive: bool) -> int:
@@ -477,9 +484,9 @@ def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:
                 fault = hand.state().fault
                 if fault is not None:
                     faults[_kind(fault)] += 1
-                    if not _recover(hand):  # fuzz left the emulator mute: set its stream, as a host would
-                        fuzz.send(encode(SetPeriod(cfg.position_period_ms, 0, cfg.temperature_period_ms)))
-                        out["unrecovered"] += not _recover(hand)
+                    # fuzz may have left the emulator mute: set its stream between tries, as a host would
+                    out["unrecovered"] += not _recover(hand, lambda: fuzz.send(encode(SetPeriod(
+                        cfg.position_period_ms, 0, cfg.temperature_period_ms))))
             alive = hand.running and emulator.exitcode is None
             stats = hand.stats()
     finally:

@@ -419,11 +419,16 @@ def _recover(driver: DriverProcess, nudge=None, attempts: int = 5, timeout: floa
     return False
 
 
-def _crashes(driver: DriverProcess, emulator: EmulatorProcess, alive: bool) -> int:
-    """A driver or emulator process that died while fuzzed (`alive` false), an emulator whose
-    thread died (its final report), a process that exited with an error once stopped."""
-    died = not (emulator.final or {}).get("running", False)
-    return int(not alive) + int(died) + sum(code not in (0, None) for code in (driver.exitcode, emulator.exitcode))
+def _ends(driver: DriverProcess, emulator: EmulatorProcess, alive: bool) -> dict:
+    """How the processes ended: "crashes" (a driver or emulator process that died while
+    fuzzed, an emulator whose thread died, a driver that exited with an error), each exit
+    code, and whether the emulator's final report came (an emulator that does not answer its
+    stop within 5 s is killed: -9)."""
+    final = emulator.final
+    died = final is not None and not final["running"]
+    return {"crashes": int(not alive) + int(died) + int(driver.exitcode not in (0, None)),
+            "driver_exitcode": driver.exitcode, "emulator_exitcode": emulator.exitcode,
+            "emulator_final_report": final is not None}
 
 
 def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:
@@ -498,7 +503,7 @@ def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:
             "overcounted": out["overcounted"], "missed_faults": stops.missed, "unrecovered": out["unrecovered"],
             "faults_latched": dict(faults), "time_to_safe_stop": stops.report(),
             "frame_errors": stats["frame_errors"], "emulator_frame_errors": final.get("frame_errors"),
-            "crashes": _crashes(hand, emulator, alive), "wall_s": time.perf_counter() - t0}
+            **_ends(hand, emulator, alive), "wall_s": time.perf_counter() - t0}
 
 
 def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
@@ -574,14 +579,14 @@ def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
             "emulator_uncounted": out["emulator_bad"] - sum(emulator_errors.values()),
             "missed_faults": stops.missed, "unrecovered": out["unrecovered"], "faults_latched": dict(faults),
             "time_to_safe_stop": stops.report(), "client_packet_errors": client_errors,
-            "emulator_packet_errors": emulator_errors, "crashes": _crashes(arm, emulator, alive),
+            "emulator_packet_errors": emulator_errors, **_ends(arm, emulator, alive),
             "wall_s": time.perf_counter() - t0}
 
 
 def passed(result: dict) -> bool:
     """Nothing crashed, every bad frame or datagram was counted once, every due fault came."""
     crashed = result["crashes"] if "crashes" in result else not result["alive"]
-    return (not crashed and result["uncounted"] == 0 and result["overcounted"] == 0
+    return (not crashed and result.get("emulator_final_report", True) and result["uncounted"] == 0 and result["overcounted"] == 0
             and result.get("emulator_uncounted", 0) == 0 and result["missed_faults"] == 0
             and result.get("unrecovered", 0) == 0)
 

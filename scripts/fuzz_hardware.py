@@ -34,6 +34,7 @@ import argparse
 import collections
 import functools
 import re
+import signal
 import socket
 import struct
 import sys
@@ -421,14 +422,16 @@ def _recover(driver: DriverProcess, nudge=None, attempts: int = 5, timeout: floa
 
 def _ends(driver: DriverProcess, emulator: EmulatorProcess, alive: bool) -> dict:
     """How the processes ended: "crashes" (a driver or emulator process that died while
-    fuzzed, an emulator whose thread died, a driver that exited with an error), each exit
-    code, and whether the emulator's final report came (an emulator that does not answer its
-    stop within 5 s is killed: -9)."""
+    fuzzed, an emulator whose thread died, a process that exited with an error or a signal
+    its stop did not send), each exit code (-15, -9: the stop escalated, a child that did
+    not exit in time after its safe stop, e.g. on a loaded host) and whether the emulator's
+    final report came."""
     final = emulator.final
     died = final is not None and not final["running"]
-    return {"crashes": int(not alive) + int(died) + int(driver.exitcode not in (0, None)),
-            "driver_exitcode": driver.exitcode, "emulator_exitcode": emulator.exitcode,
-            "emulator_final_report": final is not None}
+    by_stop = (0, None, -signal.SIGTERM, -signal.SIGKILL)
+    bad_exit = sum(code not in by_stop for code in (driver.exitcode, emulator.exitcode))
+    return {"crashes": int(not alive) + int(died) + bad_exit, "driver_exitcode": driver.exitcode,
+            "emulator_exitcode": emulator.exitcode, "emulator_final_report": final is not None}
 
 
 def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:

@@ -434,7 +434,7 @@ def _ends(driver: DriverProcess, emulator: EmulatorProcess, alive: bool) -> dict
             "emulator_exitcode": emulator.exitcode, "emulator_final_report": final is not None}
 
 
-def fuzz_can_processes(frames: int, seed: int, batch: int = 100) -> dict:
+def fuzz_can_processes(frames: int, seed: int, batch: int = 50) -> dict:
     """Push `frames` frames (5 % raw datagrams) onto the udp_multicast group of an Allegro
     driver process and its firmware emulator process; counters of what happened."""
     rng = np.random.default_rng(seed)

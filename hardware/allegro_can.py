@@ -10,7 +10,8 @@ clamps them to the per-joint PWM limits and sends 4 torque frames. Targets are c
 Nothing says the firmware stops when the host goes quiet (specs/allegro_v4.md), so every
 fault path ends on the host's side: zero torque and servo off (`_trip`). Faults: a finger
 without a valid position frame for `watchdog_timeout_s` (each finger watched on its own),
-a joint measured faster than its velocity limit, a hot joint or palm (any reading above
+a joint measured faster than its velocity limit (timed by the frames' receive
+timestamps where the interface sets them), a hot joint or palm (any reading above
 `max_temperature_c`, or below -40 C), a status fault bit, temperatures of a finger or the
 status not heard for their timeouts (polled by RTR), a failing loop. `stop()` sends zero
 torque before anything else. `reset_fault()` re-runs the whole start sequence (after a
@@ -369,6 +370,10 @@ class AllegroConfig:
     limit_margin_rad: float = 0.02  # targets stay this far inside the joint limits
     max_measured_velocity: float | None = None  # rad/s (x 1.5) a joint may reach; None: the model's
     velocity_window_s: float = 0.1  # the measured speed is the mean over at least this long
+    # time the measured speed by the frames' receive timestamps (python-can's
+    # Message.timestamp, set by the interface when the frame came; frames without one use the
+    # driver's clock); off where the driver's clock is a simulated one (HIL)
+    receive_timestamps: bool = True
     max_temperature_c: float = 70.0  # joint or palm temperature that stops the hand
     position_margin_rad: float = 0.3  # measured positions beyond limits +- margin are rejected
     kp: Sequence[float] | None = None  # PWM per rad
@@ -496,6 +501,7 @@ class AllegroHand(SafeStopContext):
         self._t_speed = np.zeros(NUM_FINGERS)  # start of each finger's speed window, its q
         self._q_speed = np.zeros(n)
         self._n_speed = np.zeros(NUM_FINGERS)  # and the frames since
+        self._speed_stamped = [False] * NUM_FINGERS  # each window timed by receive timestamps
         self._t_status = clock()  # the last status reply
         self._q = np.zeros(n)
         self._dq = np.zeros(n)
@@ -519,14 +525,27 @@ class AllegroHand(SafeStopContext):
 
     def _recv(self, timeout: float) -> Frame | None:
         """The next valid frame for this device, or None on timeout; bad frames are counted."""
-        msg = self.bus.recv(timeout)
-        if msg is None:
-            return None
+        return self._receive(timeout)[0]
+
+    def _receive(self, timeout: float) -> tuple[Frame | None, float | None]:
+        """`_recv`, with the frame's receive timestamp (s, the interface's clock; None when
+        the interface sets none or `receive_timestamps` is off). A message the transport
+        cannot deliver (python-can raises, e.g. a datagram udp_multicast cannot unpack) is
+        counted as a bad frame."""
         try:
-            return decode(msg, self.device_id)
+            msg = self.bus.recv(timeout)
+        except can.CanError as err:
+            self._stats.frame_errors[f"bus:{type(err).__name__}"] += 1
+            return None, None
+        if msg is None:
+            return None, None
+        try:
+            frame = decode(msg, self.device_id)
         except FrameError as err:
             self._stats.frame_errors[err.kind] += 1
-            return None
+            return None, None
+        stamped = self.config.receive_timestamps and msg.timestamp > 0
+        return frame, (msg.timestamp if stamped else None)
 
     def _await(self, kind: type, timeout: float) -> Frame:
         """The next frame of `kind`; meanwhile status and temperature frames are still
@@ -717,9 +736,9 @@ class AllegroHand(SafeStopContext):
             self._do_reset()
         if not self.fault.tripped:
             self._check_staleness(now)
-        frame = self._recv(0.005)
+        frame, stamp = self._receive(0.005)
         if frame is not None:
-            self._handle(frame)
+            self._handle(frame, stamp)
 
     def _check_staleness(self, now: float) -> None:
         """Trip on the first stream older than its limit: each finger's valid position
@@ -747,10 +766,11 @@ class AllegroHand(SafeStopContext):
         except HardwareError as err:
             self._trip(f"reset failed: {err}")
 
-    def _handle(self, frame: Frame) -> None:
+    def _handle(self, frame: Frame, stamp: float | None = None) -> None:
+        """Act on one frame; `stamp`: its receive timestamp (`_receive`), if any."""
         match frame:
             case Position(finger, counts):
-                self._on_position(finger, counts)
+                self._on_position(finger, counts, stamp)
             case Temperature(finger, celsius):
                 with self._lock:
                     self._temps[4 * finger: 4 * finger + 4] = celsius
@@ -777,16 +797,17 @@ class AllegroHand(SafeStopContext):
             return False
         return True
 
-    def _on_position(self, finger: int, counts: tuple[int, ...]) -> None:
-        """A finger's position frame: range-checked, then its speed checked (`_check_speed`);
-        the batch's PD cycle runs once all 4 fingers are in (or a finger repeats), never
-        before every finger was heard since the start."""
+    def _on_position(self, finger: int, counts: tuple[int, ...], stamp: float | None = None) -> None:
+        """A finger's position frame: range-checked, then its speed checked (`_check_speed`,
+        at its receive timestamp `stamp` when it has one); the batch's PD cycle runs once all
+        4 fingers are in (or a finger repeats), never before every finger was heard since the
+        start."""
         q = units.counts_to_rad(np.asarray(counts, dtype=float))
         sl = slice(4 * finger, 4 * finger + 4)
         if not self._position_in_range(finger, q):
             return
         now = self._clock()
-        self._check_speed(finger, q, now)
+        self._check_speed(finger, q, now, stamp)
         self._t_position[finger] = now
         if self._fresh[finger]:  # a new batch began before the last one completed (drop)
             self._stats.duplicates += 1
@@ -799,25 +820,31 @@ class AllegroHand(SafeStopContext):
             self._fresh = [False] * NUM_FINGERS
             self._cycle(self._clock())
 
-    def _check_speed(self, finger: int, q: np.ndarray, now: float) -> None:
+    def _check_speed(self, finger: int, q: np.ndarray, now: float, stamp: float | None = None) -> None:
         """Trip when a joint's mean speed over a window of at least `velocity_window_s`
         exceeds max_measured_velocity * (1 + OVERSPEED_TOLERANCE): the speed is |q - q0| / T,
-        T = max(t - t0, n * period), n frames since q0 at t0. The frames' count bounds frames read late in a burst (their host
-        times crowd together), the host's clock frames the hand dropped."""
+        T = max(t - t0, n * period), n frames since q0 at t0. t is the frame's receive
+        timestamp `stamp` (when the frame came, however late the loop reads it), else the
+        host's time `now`; a window is timed on one of the two clocks (a change starts a new
+        one). The frames' count bounds frames read late in a burst (their host times crowd
+        together), the clock frames the hand dropped."""
         sl = slice(4 * finger, 4 * finger + 4)
+        t, stamped = (now, False) if stamp is None else (stamp, True)
+        same_clock = self._speed_stamped[finger] == stamped
         self._n_speed[finger] += 1
-        span = max(now - self._t_speed[finger],
+        span = max(t - self._t_speed[finger],
                    self._n_speed[finger] * self.config.position_period_ms / 1e3)
-        if self._heard[finger] and span < self.config.velocity_window_s:
+        if self._heard[finger] and same_clock and span < self.config.velocity_window_s:
             return
-        if self._heard[finger] and not self.fault.tripped:
+        if self._heard[finger] and same_clock and not self.fault.tripped:
             speed = np.abs(q - self._q_speed[sl]) / span
             over = speed > self.settings.max_measured_velocity[sl] * (1 + OVERSPEED_TOLERANCE)
             if np.any(over):
                 j = int(np.argmax(over))
                 self._trip(f"joint {4 * finger + j} measured at {speed[j]:.1f} rad/s "
                            f"(limit {self.settings.max_measured_velocity[4 * finger + j]:g} rad/s)")
-        self._t_speed[finger], self._q_speed[sl], self._n_speed[finger] = now, q, 0
+        self._t_speed[finger], self._q_speed[sl], self._n_speed[finger] = t, q, 0
+        self._speed_stamped[finger] = stamped
 
     def _cycle(self, now: float) -> None:
         """One PD step after a complete set of 4 position frames. The first cycle after

@@ -177,6 +177,11 @@ class AllegroEmulator:
         self._thread = threading.Thread(target=self._run, name="allegro-emulator", daemon=True)
         self._thread.start()
 
+    @property
+    def running(self) -> bool:
+        """True while the emulator's thread runs (started and not ended by an error)."""
+        return self._thread is not None and self._thread.is_alive()
+
     def stop(self) -> None:
         self._running.clear()
         if self._thread is not None:
@@ -373,10 +378,19 @@ class AllegroEmulator:
         self._stream(now)
         due = [d for d in self._due.values() if d > now]
         wait = min([timeout] + [d - now for d in due])
-        msg = self.bus.recv(max(wait, 0.0))
+        msg = self._receive(max(wait, 0.0))
         while msg is not None:
             self._handle(msg, self._clock())
-            msg = self.bus.recv(0.0)
+            msg = self._receive(0.0)
+
+    def _receive(self, timeout: float) -> can.Message | None:
+        """The next message, or None; one the transport cannot deliver (python-can raises,
+        e.g. a datagram udp_multicast cannot unpack) is counted in `frame_errors`."""
+        try:
+            return self.bus.recv(timeout)
+        except can.CanError as err:
+            self.frame_errors[f"bus:{type(err).__name__}"] += 1
+            return None
 
     # --------------------------------------------------------------- thread
     def _run(self) -> None:

@@ -67,6 +67,9 @@ class ProcessConfig:
     heartbeat_timeout_s: float = 0.5  # child: a heartbeat this old stops the device
     start_timeout_s: float = 30.0  # spawn, imports and the driver's start sequence
     stop_timeout_s: float = 3.0  # then SIGTERM, then SIGKILL
+    # child: after a reset request the fault it had is not reported again unless still
+    # latched this long after (the driver's loop thread clears it on its next pass)
+    reset_grace_s: float = 0.2
     # 1..99: the child's threads run SCHED_FIFO at this priority (needs CAP_SYS_NICE or an
     # rtprio limit, `ulimit -r`; refused otherwise), so that no normal process delays them;
     # 0: normal scheduling
@@ -75,6 +78,9 @@ class ProcessConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.realtime_priority <= 99:
             raise HardwareError(f"realtime_priority must be 0..99, got {self.realtime_priority}")
+        if not (math.isfinite(self.heartbeat_timeout_s) and self.heartbeat_timeout_s > self.heartbeat_period_s > 0):
+            raise HardwareError(f"heartbeat_timeout_s must be a finite time longer than the heartbeat's "
+                                f"period ({self.heartbeat_period_s} s), got {self.heartbeat_timeout_s}")
 
 
 def set_realtime_priority(priority: int) -> None:
@@ -194,6 +200,7 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
     """Exchange targets and states until asked to stop (None) or the parent is lost (why)."""
     n = codec.sizes[codec.fields.index("q")]
     seq_done, fault_sent = 0.0, None
+    resetting, reset_until = None, 0.0  # the fault a reset is to clear, and until when it may
     while not terminated.is_set() and buf[_CONTROL + _STOP] == 0:
         try:
             if conn.poll(config.poll_period_s):
@@ -201,6 +208,7 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
                 if request == "stop":
                     return None
                 if request == "reset_fault":
+                    resetting, reset_until = driver.state().fault, time.monotonic() + config.reset_grace_s
                     driver.reset_fault()
                     fault_sent = None
                 elif request == "stats":
@@ -213,7 +221,9 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
             driver.command_positions(command[1])
         state = driver.state()
         _write(buf[_STATE:], codec.encode(state))
-        if state.fault is not None and state.fault != fault_sent:
+        if resetting is not None and (state.fault != resetting or time.monotonic() > reset_until):
+            resetting = None  # cleared (or another fault), or still latched after the grace
+        if state.fault is not None and state.fault not in (fault_sent, resetting):
             fault_sent = state.fault
             with contextlib.suppress(OSError):
                 conn.send(("fault", state.fault))
@@ -248,6 +258,11 @@ class DriverProcess(SafeStopContext):
     def pid(self) -> int | None:
         """The driver process's id (None before start)."""
         return None if self._process is None else self._process.pid
+
+    @property
+    def exitcode(self) -> int | None:
+        """The driver process's exit code (None before start and while it runs)."""
+        return None if self._process is None else self._process.exitcode
 
     # --------------------------------------------------------------- session
     def start(self) -> None:
@@ -355,12 +370,6 @@ class DriverProcess(SafeStopContext):
         with self._lock:
             return self._pump(timeout, kind)
 
-    def _request(self, request: str) -> None:
-        with self._lock:
-            if not self.running:
-                raise HardwareError(f"{self.name}: the driver process is not running")
-            self._conn.send(request)
-
     # --------------------------------------------------------------- driver API
     def command_positions(self, q: np.ndarray) -> None:
         """Set the joint targets (the driver's order and units); the child's driver clamps,
@@ -404,9 +413,14 @@ class DriverProcess(SafeStopContext):
         return {} if reply is None or reply[0] != "stats" else reply[1]
 
     def reset_fault(self) -> None:
-        """Ask the child's driver to clear its latched fault (its own rules apply)."""
-        self._request("reset_fault")
-        self._fault = None
+        """Ask the child's driver to clear its latched fault (its own rules apply); the
+        child reports that fault again only if it is still latched `reset_grace_s` later."""
+        with self._lock:
+            self._pump(0.0)  # fault reports already on their way belong to before the reset
+            if not self.running:
+                raise HardwareError(f"{self.name}: the driver process is not running")
+            self._fault = None
+            self._conn.send("reset_fault")
 
 
 # ----------------------------------------------------------------------------- factories

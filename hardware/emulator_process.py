@@ -73,6 +73,11 @@ class EmulatorProcess:
         """The emulator process's id (None before start)."""
         return None if self._process is None else self._process.pid
 
+    @property
+    def exitcode(self) -> int | None:
+        """The emulator process's exit code (None before start and while it runs)."""
+        return None if self._process is None else self._process.exitcode
+
     def start(self) -> Any:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
@@ -115,7 +120,8 @@ class EmulatorProcess:
 def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[None, Callable[[], dict]]:
     """The Allegro firmware emulator (EmulatorConfig `config`) on the python-can bus of
     `bus` (can.Bus keyword arguments), started; reports nothing; at the end: "servo_on",
-    "max_abs_pwm" (the PWM it applies)."""
+    "max_abs_pwm" (the PWM it applies), "frame_errors" (the frames it dropped, by kind),
+    "running" (its thread had not died)."""
     import can
 
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
@@ -127,13 +133,16 @@ def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[No
 
 
 def allegro_final(emulator) -> dict:
-    """What an Allegro emulator's device was left in: "servo_on", "max_abs_pwm" (the PWM it applies)."""
-    return {"servo_on": emulator.servo_on, "max_abs_pwm": float(abs(emulator.pwm).max())}
+    """What an Allegro emulator's device was left in: "servo_on", "max_abs_pwm" (the PWM it
+    applies), "frame_errors" (bad frames by kind), "running" (its thread still alive)."""
+    return {"servo_on": emulator.servo_on, "max_abs_pwm": float(abs(emulator.pwm).max()),
+            "frame_errors": dict(emulator.frame_errors), "running": emulator.running}
 
 
 def z1_emulator(config, stack: contextlib.ExitStack) -> tuple[int, Callable[[], dict]]:
     """The Z1 controller emulator (Z1EmulatorConfig `config`), started; reports its port; at
-    the end: "fsm" (the controller's state name)."""
+    the end: "fsm" (the controller's state name), "packet_errors" (the commands it dropped,
+    by kind), "running" (its thread had not died)."""
     from dexdrake.hardware.z1_emulator import Z1Emulator
 
     emulator = stack.enter_context(Z1Emulator(config))
@@ -141,5 +150,6 @@ def z1_emulator(config, stack: contextlib.ExitStack) -> tuple[int, Callable[[], 
 
 
 def z1_final(emulator) -> dict:
-    """What a Z1 emulator's controller was left in: "fsm" (its state's name)."""
-    return {"fsm": emulator.fsm.name}
+    """What a Z1 emulator's controller was left in: "fsm" (its state's name), "packet_errors"
+    (bad datagrams by kind), "running" (its thread still alive)."""
+    return {"fsm": emulator.fsm.name, "packet_errors": dict(emulator.packet_errors), "running": emulator.running}

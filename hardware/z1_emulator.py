@@ -238,6 +238,11 @@ class Z1Emulator:
         self._sock = sock
         self._last_tick = None
 
+    @property
+    def running(self) -> bool:
+        """True while the emulator's thread runs (started and not ended by an error)."""
+        return self._thread is not None and self._thread.is_alive()
+
     def stop(self) -> None:
         self._running.clear()
         if self._thread is not None:

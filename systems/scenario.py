@@ -87,6 +87,10 @@ class HandDriver:
     # CAP_SYS_NICE or `ulimit -r`, refused at start otherwise), so that the host's load
     # cannot delay them; None: normal scheduling
     realtime_priority: Optional[int] = None
+    # with `process`: that process safe-stops the device when the parent's heartbeat is this
+    # old (s: a hung, starved or dead parent); None: the default of
+    # hardware/driver_process.ProcessConfig
+    heartbeat_timeout_s: Optional[float] = None
 
 
 @dc.dataclass
@@ -108,6 +112,7 @@ class ArmDriver:
     watchdog_timeout_s: Optional[float] = None
     process: Optional[bool] = None  # as HandDriver.process
     realtime_priority: Optional[int] = None  # as HandDriver.realtime_priority
+    heartbeat_timeout_s: Optional[float] = None  # as HandDriver.heartbeat_timeout_s
 
 
 @dc.dataclass
@@ -131,7 +136,11 @@ class CameraDriver:
     # frames) to the present, by at most this (s): the frame's age; 0: the estimate as is
     predict_s: float = 0.1
     first_pose_timeout_s: float = 30.0  # no pose at all by then -> stop
-    max_pose_age_s: float = 2.0  # the last pose's frame older than this (s) -> stop
+    # the age of the last pose's frame (s), once a pose came: older than hold_pose_age_s the
+    # station holds (hand and arm keep the positions measured then; the controller's commands
+    # resume with a younger pose); older than max_pose_age_s it stops (safe stop)
+    hold_pose_age_s: float = 1.0
+    max_pose_age_s: float = 2.0
     max_consecutive_failures: int = 3  # then `on_failure` applies
     on_failure: str = "hold"  # hold: keep the last pose | stop: safe stop the station
 
@@ -321,6 +330,15 @@ def own_process(driver: HandDriver | ArmDriver) -> bool:
     return driver.process
 
 
+def process_config(driver: HandDriver | ArmDriver):
+    """The ProcessConfig (hardware/driver_process.py) of a driver entry run in its own
+    process; HardwareError names a value it refuses."""
+    from dexdrake.hardware.driver_process import ProcessConfig
+
+    given = {} if driver.heartbeat_timeout_s is None else {"heartbeat_timeout_s": driver.heartbeat_timeout_s}
+    return ProcessConfig(realtime_priority=driver.realtime_priority or 0, **given)
+
+
 def driver_configs(s: Scenario, arm_controller_port: int | None = None,
                    arm_local_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
@@ -414,6 +432,13 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
             p = entry.realtime_priority
             _require(p is None or (own_process(entry) and 1 <= p <= 99), source,
                      f"drivers.{name}.realtime_priority {p}: 1..99, for a driver in its own process")
+            _require(entry.heartbeat_timeout_s is None or own_process(entry), source,
+                     f"drivers.{name}.heartbeat_timeout_s: only a driver in its own process has a "
+                     "parent's heartbeat to watch")
+            try:
+                process_config(entry)
+            except DexdrakeError as err:
+                raise ScenarioError(f"{source}: drivers.{name}.{err}") from None
         _require(a.mode in ARM_MODES, source, f"drivers.arm.mode {a.mode!r} is not one of {', '.join(ARM_MODES)}")
         for name in ("local_port", "controller_port"):
             port = getattr(a, name)
@@ -434,9 +459,10 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
                  source, "drivers.camera.period_s, .first_pose_timeout_s must be > 0 and "
                  ".max_consecutive_failures >= 1")
         _require(c.predict_s >= 0, source, f"drivers.camera.predict_s must be >= 0 (s), got {c.predict_s}")
-        _require(c.max_pose_age_s >= c.period_s, source,
-                 f"drivers.camera.max_pose_age_s ({c.max_pose_age_s}) must be >= period_s ({c.period_s}): "
-                 "a pose is at least one period old when the next one comes")
+        _require(c.period_s <= c.hold_pose_age_s <= c.max_pose_age_s, source,
+                 f"drivers.camera: need period_s ({c.period_s}) <= hold_pose_age_s ({c.hold_pose_age_s}) "
+                 f"<= max_pose_age_s ({c.max_pose_age_s}): a pose is at least one period old when the "
+                 "next one comes; the station holds before it stops")
         _require(c.on_failure in PERCEPTION_FAILURE_POLICIES, source,
                  f"drivers.camera.on_failure {c.on_failure!r} is not one of "
                  f"{', '.join(PERCEPTION_FAILURE_POLICIES)}")

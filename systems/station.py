@@ -39,9 +39,13 @@ Safety at the station level (the drivers keep their own limits, watchdogs and sa
   recover, a crashed worker) hold the last pose; after `max_consecutive_failures` failures in a
   row the camera's `on_failure` applies (hold: keep holding; stop: StationFault). No pose
   at most `max_pose_age_s` old within `first_pose_timeout_s` (the first, by global
-  registration, may be older: the episode waits for the tracking after it), or once one
-  came, a pose whose frame is older than `max_pose_age_s` (a registration or a worker that
-  does not finish), raises StationFault.
+  registration, may be older: the episode waits for the tracking after it) raises
+  StationFault. Once one came, the age of the last pose's frame (failures, a registration
+  or a worker that does not finish) is limited in two stages: older than the camera's
+  `hold_pose_age_s`, the station holds (`PoseAgeHold`: the drivers get the joint positions
+  measured when the hold began instead of the controller's command, and the "object_pose"
+  port keeps its last value: the stale pose, moved on further, is not fed to the features)
+  until a younger pose comes; older than `max_pose_age_s`, StationFault.
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.command_guard import CommandGuard
-from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process
+from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process, process_config
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
 
@@ -260,6 +264,7 @@ class PerceptionSystem(LeafSystem):
         # a pose at most max_pose_age_s old has come: from then on an older one is a fault (the
         # first, by global registration, may take longer; the tracking after it catches up)
         self.fresh = False
+        self.stale = False  # the last pose's frame is older than hold_pose_age_s: the station holds
         self.pose = np.array([0, 0, 0, 1.0, 0, 0, 0])  # the last estimate
         self._now = 0.0  # the clock's time at the last poll (simulated or wall)
         self._frame_time = 0.0  # the clock's time of the pending frame
@@ -267,6 +272,7 @@ class PerceptionSystem(LeafSystem):
         self._motion: list[tuple[float, RigidTransform]] = []  # the last 2 estimates of one track
         state = self.DeclareDiscreteState(self.pose)
         self.DeclareStateOutputPort("object_pose", state)
+        self.DeclareStateOutputPort("pose_stale", self.DeclareDiscreteState(1))  # 1.0 while stale
         self.DeclareInitializationDiscreteUpdateEvent(self._init)
         # sampled before the controller runs (an unrestricted update), like DriverSystem's state
         self.DeclarePeriodicUnrestrictedUpdateEvent(period or min(camera.period_s, 0.05), 0.0, self._update)
@@ -310,6 +316,12 @@ class PerceptionSystem(LeafSystem):
                                f"{cam.first_pose_timeout_s} s")
         if self.fresh and age > cam.max_pose_age_s:
             raise StationFault(f"object pose {age:.2f} s old (limit {cam.max_pose_age_s} s)")
+        stale = self.fresh and age > cam.hold_pose_age_s
+        if stale != self.stale:
+            self.stale = stale
+            self.log.events.append(f"t={sim_time or 0.0:.2f}s: " + (
+                f"object pose {age:.2f} s old (hold limit {cam.hold_pose_age_s} s): holding" if stale
+                else "object pose fresh again: the controller's commands resume"))
         if self._future is None and now >= self._next_request - 1e-9:
             self._next_request = self._due = now + cam.period_s
             try:
@@ -365,6 +377,7 @@ class PerceptionSystem(LeafSystem):
             self._frame_time = self._pose_time = self._now
             self._motion = [(self._now, X) for _, X in self._motion[-1:]]
         state.set_value(0, self.pose)
+        state.set_value(1, [0.0])
 
     def predicted_pose(self) -> np.ndarray:
         """The last estimate moved on at the velocity between the last two frames of its track
@@ -383,7 +396,52 @@ class PerceptionSystem(LeafSystem):
 
     def _update(self, context: Context, state) -> None:
         self.poll(context.get_time())
-        state.get_mutable_discrete_state().set_value(0, self.predicted_pose())
+        discrete = state.get_mutable_discrete_state()
+        if not self.stale:  # while stale the port keeps the last pose it had
+            discrete.set_value(0, self.predicted_pose())
+        discrete.set_value(1, [float(self.stale)])
+
+
+class PoseAgeHold(LeafSystem):
+    """Inputs "command" (n), "hand_state" (2n, measured) and "pose_stale" (1, from
+    PerceptionSystem); output "command" (n): the input command while the object pose is
+    fresh; while it is stale, the joint positions measured when it went stale, so that the
+    hand and the arm hold still rather than follow a controller that sees an old pose. The
+    latch ([holding, q]) is discrete state updated every `period`, after the drivers' and
+    the perception's samples of the same instant (unrestricted updates come first)."""
+
+    def __init__(self, num_joints: int, period: float):
+        super().__init__()
+        self.n = num_joints
+        self._cmd = self.DeclareVectorInputPort("command", num_joints)
+        self._hand = self.DeclareVectorInputPort("hand_state", 2 * num_joints)
+        self._stale = self.DeclareVectorInputPort("pose_stale", 1)
+        self.DeclareDiscreteState(num_joints + 1)
+        self.DeclareVectorOutputPort("command", num_joints, self._calc)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        latch = context.get_discrete_state_vector().get_value()
+        if self._stale.Eval(context)[0] <= 0.5:
+            state.set_value(np.zeros(self.n + 1))
+        elif latch[0] <= 0.5:  # the hold begins: keep what is measured now
+            state.set_value(np.r_[1.0, self._hand.Eval(context)[: self.n]])
+
+    def _calc(self, context: Context, out) -> None:
+        latch = context.get_discrete_state_vector().get_value()
+        out.SetFromVector(latch[1:] if latch[0] > 0.5 else self._cmd.Eval(context))
+
+
+def add_pose_age_hold(builder: DiagramBuilder, to_devices, hand_state, perception: PerceptionSystem,
+                      period: float):
+    """Put a PoseAgeHold in front of `to_devices` (the input port the devices' command
+    enters), fed the measured `hand_state` (an output port, policy order) and `perception`'s
+    "pose_stale"; returns the hold's "command" input, the command's new way in."""
+    hold = builder.AddNamedSystem("pose_age_hold", PoseAgeHold(to_devices.size(), period))
+    builder.Connect(hold.GetOutputPort("command"), to_devices)
+    builder.Connect(hand_state, hold.GetInputPort("hand_state"))
+    builder.Connect(perception.GetOutputPort("pose_stale"), hold.GetInputPort("pose_stale"))
+    return hold.GetInputPort("command")
 
 
 class WorldPoseSystem(LeafSystem):
@@ -644,12 +702,6 @@ def _await_first_cycle(allegro, timeout: float = 1.0) -> None:
         time.sleep(0.005)
 
 
-def _process_config(entry):
-    from dexdrake.hardware.driver_process import ProcessConfig
-
-    return ProcessConfig(realtime_priority=entry.realtime_priority or 0)
-
-
 def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool, world=None) -> Station:
     """hil/real: drivers of the scenario (a started real station runs each driver entry
     with `process` in its own process, hardware/driver_process.py; a dry run's drivers are
@@ -667,8 +719,9 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
         devices["allegro_emulator"], devices["z1_emulator"] = world.hand_emulator, world.arm_emulator
         arm_port, arm_local_port, clock = world.arm_emulator.port, world.arm_client_port, world.clock
     hand_cfg, arm_cfg = driver_configs(scenario, arm_port, arm_local_port)
-    if scenario.mode == "hil":  # a sample of the arm's state sees the world's reply of its last step
-        arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)
+    if scenario.mode == "hil":  # a sample of the arm's state sees the world's reply of its last step;
+        arm_cfg = replace(arm_cfg, reply_wait_s=scenario.hil.reply_timeout_s)  # the hand's speed is
+        hand_cfg = replace(hand_cfg, receive_timestamps=False)  # timed on the simulated clock
     executor = None
     cam = scenario.drivers.camera
     if cam.kind != "sim":
@@ -683,13 +736,13 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     hand_entry, arm_entry = scenario.drivers.hand, scenario.drivers.arm
     if start and own_process(hand_entry):
         allegro = DriverProcess(partial(allegro_on_bus, can_bus_args(scenario), hand_entry.device_id,
-                                        hand_cfg), _process_config(hand_entry), "Allegro hand")
+                                        hand_cfg), process_config(hand_entry), "Allegro hand")
     else:
         bus = open_can_bus(scenario)
         stack.callback(bus.shutdown)
         allegro = AllegroHand(bus, hand_entry.device_id, hand_cfg, clock=clock)
     if start and own_process(arm_entry):
-        z1 = DriverProcess(partial(z1_client, arm_cfg), _process_config(arm_entry), "Z1 arm")
+        z1 = DriverProcess(partial(z1_client, arm_cfg), process_config(arm_entry), "Z1 arm")
     else:
         z1 = Z1Arm(arm_cfg, clock=clock)
     devices["allegro"], devices["z1"] = allegro, z1
@@ -705,16 +758,15 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     S, A = _bus_maps(hand)
     builder = DiagramBuilder()
     select = builder.AddNamedSystem("command_to_devices", MatrixGain(S))
+    to_devices = select.get_input_port()  # the command's way in, built backwards
     workspace = None
     if scenario.mode == "real":  # every set-point the controller sends keeps the hand in the box
         from dexdrake.systems.workspace import WorkspaceBox, WorkspaceGuard
 
         workspace = WorkspaceBox(hand, scenario.real.workspace_lower, scenario.real.workspace_upper)
         guard = builder.AddNamedSystem("workspace_guard", WorkspaceGuard(workspace, n, StationFault))
-        builder.Connect(guard.get_output_port(), select.get_input_port())
-        builder.ExportInput(guard.get_input_port(), "command")
-    else:
-        builder.ExportInput(select.get_input_port(), "command")
+        builder.Connect(guard.get_output_port(), to_devices)
+        to_devices = guard.get_input_port()
     arm_sys = builder.AddNamedSystem("z1_driver", DriverSystem(z1, n_arm, period, "Z1 arm"))
     hand_sys = builder.AddNamedSystem("allegro_driver",
                                       DriverSystem(allegro, len(hand.hardware_joints), period, "Allegro hand"))
@@ -735,7 +787,9 @@ def _device_station(scenario: Scenario, stack: contextlib.ExitStack, start: bool
     else:
         perception = pose_sys = builder.AddNamedSystem("perception", PerceptionSystem(
             read_frame, executor, cam, simulated_clock=scenario.mode == "hil", period=period))
-    builder.ExportOutput(pose_sys.get_output_port(), "object_pose")
+        to_devices = add_pose_age_hold(builder, to_devices, assemble.get_output_port(), perception, period)
+    builder.ExportInput(to_devices, "command")
+    builder.ExportOutput(pose_sys.GetOutputPort("object_pose"), "object_pose")
     station = Station(scenario, builder.Build(), hand, world=world, devices=devices, perception=perception,
                       workspace=workspace)
     station._stop = stack.pop_all()

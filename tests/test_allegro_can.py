@@ -671,3 +671,31 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(rig, sigint_storm):
     zero = next(i for i, f in enumerate(after) if isinstance(f, Torque) and not any(f.pwm))
     assert all(not any(f.pwm) for f in after[zero:] if isinstance(f, Torque))
     assert after[zero:].index(SetPeriod(0, 0, 0)) < after[zero:].index(ServoOff())
+
+
+def test_a_message_the_transport_cannot_deliver_is_counted_by_driver_and_emulator():
+    """udp_multicast checks every message it receives: a frame whose DLC does not match its
+    data (or a datagram that is no message at all) raises in recv. The driver and the emulator count it
+    as a bad frame and read on; a valid frame after it still arrives."""
+    import socket
+
+    from can.interfaces.udp_multicast import UdpMulticastBus
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as free:
+        free.bind(("", 0))
+        port = free.getsockname()[1]
+    args = dict(interface="udp_multicast", channel=UdpMulticastBus.DEFAULT_GROUP_IPv4, port=port,
+                receive_own_messages=False)
+    host, dev, sender = can.Bus(**args), can.Bus(**args), can.Bus(**args)
+    try:
+        hand, emu = AllegroHand(host), AllegroEmulator(dev)
+        sender.send(msg(Msg.STATUS << 2, b"\x01", dlc=8))
+        sender.send(encode(Status(0x01)))
+        assert hand._recv(2.0) is None and hand._recv(2.0) == Status(0x01)
+        assert hand.stats()["frame_errors"] == {"bus:CanOperationError": 1}
+        emu.poll(time.monotonic(), 0.5)
+        assert wait_for(lambda: (emu.poll(time.monotonic(), 0.05), emu.frame_errors)[1] == {
+            "bus:CanOperationError": 1} and Status(0x01) in emu.log, 5.0)
+    finally:
+        for bus in (host, dev, sender):
+            bus.shutdown()

@@ -341,3 +341,33 @@ def test_a_joint_measured_beyond_its_velocity_limit_trips(bench):
         positions(hand, on_counts(q1 - np.r_[np.zeros(5), 11.0 * k * PERIOD, np.zeros(10)]))
     assert hand.state().fault is not None
     assert hand.state().fault.startswith("joint 5 measured at 11.0 rad/s (limit 7 rad/s)")
+
+
+@pytest.mark.parametrize("stamped", [True, False])
+def test_a_late_read_frame_is_timed_by_its_receive_timestamp(stamped):
+    """Joint 5 at 10 rad/s, the window's first frame read 30 ms late (the frames after it in
+    a burst), then every other frame lost on the bus. Timed by the frames' receive
+    timestamps that is 10 rad/s and no fault; a frame without one falls back to the host's
+    time, by which the window is 30 ms short: 12.9 rad/s, beyond 7 rad/s + 50 %."""
+    channel = f"allegro-stamps-{uuid.uuid4().hex}"
+    host = can.Bus(interface="virtual", channel=channel)
+    device = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    clock = FakeClock()
+    hand = AllegroHand(host, config=AllegroConfig(lower=LOWER, upper=UPPER), clock=clock)
+    q0 = on_counts(LOWER + 0.02 * (UPPER - LOWER))
+    try:
+        for k in range(0, 60, 2):  # the odd samples are lost
+            q = on_counts(q0 + np.r_[np.zeros(5), 10.0 * k * PERIOD, np.zeros(10)])
+            msg = encode(Position(1, tuple(int(c) for c in units.rad_to_counts(q[4:8]))))
+            msg.timestamp = 5000.0 + k * PERIOD if stamped else 0.0  # the interface's clock
+            device.send(msg)
+            clock.t = max(1.0 + k * PERIOD, 1.03)  # samples 0..10 read together at 1.03 s
+            hand._handle(*hand._receive(1.0))
+        fault = hand.state().fault
+        if stamped:
+            assert fault is None
+        else:
+            assert fault is not None and fault.startswith("joint 5 measured at 12.9 rad/s")
+    finally:
+        host.shutdown()
+        device.shutdown()

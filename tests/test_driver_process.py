@@ -145,6 +145,26 @@ def test_a_fault_in_the_child_reaches_the_parent(z1_emulator):
         assert "no Z1 state" in arm.state().fault
 
 
+def test_a_reset_fault_clears_the_parents_view_too(z1_emulator):
+    """After reset_fault() the parent reports no fault once the child's driver has cleared
+    it: the fault the child had is not reported again on the way (its driver's loop thread
+    clears the latch on its next pass); one still latched after the grace is."""
+    emu = z1_emulator
+    with DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm") as arm:
+        for _ in range(3):
+            emu.stall(1.5)
+            assert wait_for(lambda: arm.state().fault is not None, 10.0)
+            assert wait_for(lambda: emu.stall_until < time.monotonic(), 10.0)  # replies are back
+            arm.reset_fault()
+            assert wait_for(lambda: arm.state().fault is None and arm.state().fsm == ArmFSMState.LOWCMD, 5.0)
+            time.sleep(0.5)  # past the grace: no late report of the old fault
+            assert arm.state().fault is None
+        emu.stall(3.0)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        arm.reset_fault()  # the replies are still stalled: the watchdog trips again
+        assert wait_for(lambda: arm.state().fault is not None, 5.0)
+
+
 def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():
     quiet = _multicast_bus_args()  # nobody answers on this bus
     hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, HAND), PROC, "Allegro hand")
@@ -230,6 +250,24 @@ def test_a_parent_that_stops_in_the_middle_of_a_command_write_is_still_lost(z1_e
         arm._buf[dp._COMMAND] += 1.0  # ... halfway through a write
         assert wait_for(lambda: not arm._process.is_alive(), 10.0)
         assert "parent heartbeat lost" in arm.state().fault
+
+
+def test_the_scenarios_heartbeat_timeout_reaches_the_driver_process(z1_emulator):
+    """A scenario's drivers.arm.heartbeat_timeout_s (2 s) is the child's: a parent that stops
+    beating keeps its arm past the default 0.5 s, and loses it after 2 s."""
+    from dexdrake.systems.scenario import parse_scenario, process_config
+
+    scenario = parse_scenario("drivers: {hand: {kind: hardware}, arm: {kind: hardware, heartbeat_timeout_s: 2.0}, "
+                              "camera: {kind: k4a}}")
+    arm = DriverProcess(functools.partial(z1_client, _z1(z1_emulator)), process_config(scenario.drivers.arm),
+                        "Z1 arm")
+    with arm:
+        arm._beating.clear()  # the parent's heartbeat stops
+        time.sleep(1.0)
+        assert arm.running and arm.state().fault is None
+        assert wait_for(lambda: not arm._process.is_alive(), 10.0)
+        age_ms = int(arm.state().fault.removeprefix("parent heartbeat lost for ").removesuffix(" ms"))
+        assert age_ms >= 2000
 
 
 class _BrokenDriver:

@@ -151,6 +151,19 @@ def test_fuzzed_udp_datagrams_are_counted_and_faults_latched(load_script):
     assert {"size", "head", "nonfinite"} <= set(result["emulator_packet_errors"])
 
 
+def test_fuzzing_the_driver_and_emulator_processes_over_real_transports(load_script):
+    """The default placement of scripts/fuzz_hardware.py: every process survives, every bad
+    frame and datagram is counted, every due fault comes and is timed."""
+    fuzz = load_script("fuzz_hardware")
+    can_result = fuzz.fuzz_can_processes(400, seed=3)
+    assert fuzz.passed(can_result), can_result
+    assert can_result["frame_errors"].get("bus:CanOperationError", 0) > 0  # undeliverable on the transport
+    assert can_result["time_to_safe_stop"]["timed"] > 0
+    udp_result = fuzz.fuzz_udp_processes(400, seed=3)
+    assert fuzz.passed(udp_result), udp_result
+    assert udp_result["emulator_bad"] > 50 and udp_result["time_to_safe_stop"]["timed"] > 0
+
+
 # ------------------------------------------------------------------ edges (from surviving mutants)
 def test_vectors_broadcast_scalars_and_name_bad_input():
     rl = RateLimiter(0.5, initial=[0.0, 0.0, 0.0])

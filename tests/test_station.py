@@ -53,6 +53,15 @@ def test_shipped_scenarios_load():
      "camera: {kind: k4a}}", "drivers.hand.realtime_priority 50: 1..99, for a driver in its own process"),
     ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, realtime_priority: 100}, camera: {kind: k4a}}",
      "drivers.arm.realtime_priority 100"),
+    ("drivers: {hand: {kind: hardware, heartbeat_timeout_s: 0.005}, arm: {kind: hardware}, camera: {kind: k4a}}",
+     r"drivers.hand.heartbeat_timeout_s must be a finite time longer than the heartbeat's period \(0.01 s\), "
+     "got 0.005"),
+    ("drivers: {hand: {kind: hardware}, arm: {kind: hardware, process: false, heartbeat_timeout_s: 1.0}, "
+     "camera: {kind: k4a}}", "drivers.arm.heartbeat_timeout_s: only a driver in its own process"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: rendered, "
+     "hold_pose_age_s: 3.0}}", r"need period_s \(0.5\) <= hold_pose_age_s \(3.0\) <= max_pose_age_s \(2.0\)"),
+    ("drivers: {hand: {kind: emulated}, arm: {kind: emulated}, camera: {kind: rendered, "
+     "hold_pose_age_s: 0.1}}", r"hold_pose_age_s \(0.1\)"),
     ("drivers: {hand: {kind: emulated, limit_margin_rad: 0.5}, arm: {kind: emulated}}",
      r"Allegro limit_margin_rad 0.5 must be >= 0 and leave every joint a range"),
     ("drivers: {hand: {kind: emulated}, arm: {kind: emulated, limit_margin_rad: -0.1}}",
@@ -435,6 +444,88 @@ def test_a_pose_older_than_its_limit_stops_the_station():
         hang.set()
 
 
+def test_a_stale_pose_holds_the_devices_then_stops_the_station():
+    """The worker stops answering after two poses (a track: the port's pose moves on at its
+    velocity). Older than the camera's hold_pose_age_s, the devices get the joint positions
+    measured when the hold began instead of the controller's command, and the "object_pose"
+    port stops moving; older than max_pose_age_s, StationFault. On the wall clock, through
+    the station's wiring (add_pose_age_hold) around a DriverSystem."""
+    import threading
+    from types import SimpleNamespace
+
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder, EventStatus
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from dexdrake.systems.scenario import CameraDriver
+    from dexdrake.systems.station import DriverSystem, PerceptionSystem, StationFault, add_pose_age_hold
+
+    class Joints:  # a driver whose joints move a tenth of the way to each target
+        running = True
+
+        def __init__(self):
+            self.q, self.sent = np.zeros(3), []
+
+        def state(self):
+            return SimpleNamespace(q=self.q.copy(), dq=np.zeros(3), fault=None)
+
+        def command_positions(self, q):
+            self.sent.append(np.array(q))
+            self.q = self.q + 0.1 * (np.asarray(q) - self.q)
+
+    hang, calls = threading.Event(), []
+
+    def estimate(color, depth, intrinsics, X_WC, prior=None, track=False):
+        calls.append(track)
+        if len(calls) > 2:  # the third estimate on hangs
+            hang.wait(10.0)
+        X = np.eye(4)
+        X[0, 3] = 0.01 * len(calls)
+        return {"success": True, "reason": "", "X_WO": X, "fitness": 1.0,
+                "method": "track" if track else "global", "cpu_s": 0.0}
+
+    period = 0.02
+    camera = CameraDriver(kind="rendered", period_s=0.05, predict_s=0.5, hold_pose_age_s=0.3, max_pose_age_s=0.6)
+    driver = Joints()
+    builder = DiagramBuilder()
+    perception = builder.AddSystem(PerceptionSystem(_Frame, cf.ThreadPoolExecutor(1), camera, estimate,
+                                                    period=period))
+    joints = builder.AddSystem(DriverSystem(driver, 3, period, "joints"))
+    command = builder.AddSystem(ConstantVectorSource(np.ones(3)))
+    to_devices = add_pose_age_hold(builder, joints.get_input_port(), joints.get_output_port(), perception, period)
+    builder.Connect(command.get_output_port(), to_devices)
+    diagram = builder.Build()
+    seen = []  # (pose_stale, object_pose) at every step
+
+    def monitor(root):
+        ctx = perception.GetMyContextFromRoot(root)
+        seen.append((perception.GetOutputPort("pose_stale").Eval(ctx)[0],
+                     perception.GetOutputPort("object_pose").Eval(ctx).copy()))
+        return EventStatus.Succeeded()
+
+    try:
+        perception.wait_for_first_pose()
+        sim = Simulator(diagram)
+        sim.set_target_realtime_rate(1.0)
+        sim.set_monitor(monitor)
+        with pytest.raises(StationFault, match=r"object pose 0\.6\d s old \(limit 0\.6 s\)"):
+            sim.AdvanceTo(5.0)
+    finally:
+        hang.set()
+    assert calls[:2] == [False, True] and any("holding" in e for e in perception.log.events)
+    sent = np.array(driver.sent)
+    commanded = np.all(sent == 1.0, axis=1)
+    k = int(np.argmin(commanded))  # the first send of the hold
+    assert k >= 5 and np.all(commanded[:k]), "the command was sent while the pose was fresh"
+    held = sent[k]
+    assert np.all(held < 1.0) and len(sent) - k >= 5 and np.all(sent[k:] == held)
+    np.testing.assert_array_equal(driver.q, held)  # the joints stood still from then on
+    fresh = [pose for stale, pose in seen if stale == 0.0]
+    stale = [pose for stale, pose in seen if stale == 1.0]
+    assert fresh[-1][0] > fresh[0][0] + 1e-3, "the tracked pose moves on while fresh"
+    assert len(stale) >= 5 and all(np.array_equal(pose, stale[0]) for pose in stale)
+
+
 def test_perception_moves_the_tracked_pose_on_to_the_present():
     """The pose the controller gets is the last estimate moved on at its track's velocity
     (between the last two frames) by the estimate's age, at most predict_s; the first pose
@@ -656,7 +747,7 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
                  "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
                  "diagram (built, not run): station (real: command_to_devices, workspace_guard, z1_driver, allegro_driver, "
-                 "devices_to_hand_state, perception) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
+                 "devices_to_hand_state, perception, pose_age_hold) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
@@ -841,7 +932,7 @@ def _stand_in_station(robot_type, make_pose=None):
     builder.ExportInput(driver.get_input_port(), "command")
     builder.ExportOutput(driver.get_output_port(), "hand_state")
     pose = builder.AddSystem(make_pose(period) if make_pose else WorldPoseSystem(robot, period))
-    builder.ExportOutput(pose.get_output_port(), "object_pose")
+    builder.ExportOutput(pose.GetOutputPort("object_pose"), "object_pose")
     perception = pose if isinstance(pose, PerceptionSystem) else None
     return Station(scenario, builder.Build(), hand, world=robot, devices={"allegro": robot},
                    perception=perception)

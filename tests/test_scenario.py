@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_packaged_scenarios_resolve_from_any_folder_and_a_path_stays_a_path(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert packaged_scenarios() == ["hil", "real", "real_emulated", "sim"]
+    assert packaged_scenarios() == ["hil", "real", "real_emulated", "real_emulated_world", "sim"]
     assert {name: load_scenario(name).mode for name in packaged_scenarios()} == {
         "hil": "hil", "real": "real", "real_emulated": "real", "sim": "sim"}
     assert scenario_path("configs/hil.yaml") == Path("configs/hil.yaml")

@@ -23,7 +23,7 @@ def test_packaged_scenarios_resolve_from_any_folder_and_a_path_stays_a_path(tmp_
     monkeypatch.chdir(tmp_path)
     assert packaged_scenarios() == ["hil", "real", "real_emulated", "real_emulated_world", "sim"]
     assert {name: load_scenario(name).mode for name in packaged_scenarios()} == {
-        "hil": "hil", "real": "real", "real_emulated": "real", "sim": "sim"}
+        "hil": "hil", "real": "real", "real_emulated": "real", "real_emulated_world": "real", "sim": "sim"}
     assert scenario_path("configs/hil.yaml") == Path("configs/hil.yaml")
     with pytest.raises(ScenarioError, match="configs/hil.yaml does not exist"):
         load_scenario("configs/hil.yaml")

@@ -401,15 +401,16 @@ def test_ctrl_c_is_one_line_and_exit_130(world, capsys, monkeypatch):
 
 @pytest.mark.slow
 def test_ctrl_c_during_a_replay_with_workers(world):
-    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "2"]) == 0
+    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "4"]) == 0
     process = subprocess.Popen([sys.executable, "-m", "dexdrake.cli", "demos", "replay", "--hand", "adroit", "--demos",
                                 "demos", "--out", "r.npz", "--workers", "2"], stderr=subprocess.PIPE, text=True,
                                start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        process.communicate(timeout=12)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
-    err = process.communicate(timeout=60)[1]
+    err = ""
+    while "demo/s" not in err and process.poll() is None:  # the replay has started (its progress bar)
+        err += process.stderr.read(1)
+    time.sleep(1.0)  # into the first demo (each takes seconds)
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+    err += process.communicate(timeout=60)[1]
     lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and not PROGRESS.search(line)]
     assert process.returncode == 130 and lines == [lines[0]] and "interrupted" in lines[0], err
     assert not (world / "r.npz").exists()

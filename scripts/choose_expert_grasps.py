@@ -12,9 +12,10 @@ the best so far (`best_variant`), which chooses exactly as trying every seed wou
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
 and the command), which `ReactiveGrasp` reads; with --objects it re-chooses those objects only,
 keeping the other entries of the existing table (their trials ran on its seeds, which must be
-the same) and noting the command per re-chosen object. Choose on seeds other than those of the
-reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
-measured on the seeds the choice was fitted to. Twelve seeds: with six, most variants could
+the same; variants added since show as untried there) and noting the command per re-chosen
+object. Choose on seeds other than those of the reported expert table
+(scripts/scripted_grasp_table.py uses 0..9), so the table is not measured on the seeds the
+choice was fitted to. Twelve seeds: with six, most variants could
 not be told apart (the choice made 68.9 % on its own seeds and 63.2 % on the table's).
 """
 
@@ -143,11 +144,16 @@ def main() -> None:
         for name, best, tried in tqdm(pool.imap_unordered(_trial_object, jobs), total=len(jobs), desc="objects"):
             objects[name] = {"variant": best, "successes": {v: sum(ok) for v, ok in tried.items()},
                              "tries": {v: len(ok) for v, ok in tried.items()}}
+    variants = {v: VARIANTS[v] for v in hand_variants(load_hand(args.hand))}
     if old is not None:
         for o in objects.values():
             o["command"] = command
         objects = {**old["objects"], **objects}
         names = list(objects)
+        for o in objects.values():  # kept objects: the variants added since are untried
+            for v in variants:
+                o["successes"].setdefault(v, 0)
+                o["tries"].setdefault(v, 0)
     else:
         objects = {name: objects[name] for name in names}
     for name, o in objects.items():
@@ -155,7 +161,6 @@ def main() -> None:
                                                           for v in o["successes"]))
     chosen = sum(o["successes"][o["variant"]] for o in objects.values())
     tries = sum(sum(o["tries"].values()) for o in objects.values())
-    variants = {v: VARIANTS[v] for v in hand_variants(load_hand(args.hand))}
     print(f"chosen per object: {chosen}/{len(names) * len(seeds)}; {tries} of {len(names) * len(seeds) * len(variants)} "
           "trials run (the rest could not change a choice)")
     table = {"hand": args.hand, "command": old["command"] if old else command, "seeds": seeds,

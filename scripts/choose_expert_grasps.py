@@ -1,6 +1,7 @@
 """Choose the grasp expert's (ReactiveGrasp's) grasp variant per training object by simulated trials.
 
     python scripts/choose_expert_grasps.py [--hand adroit] [--seeds 100,...,111] [--workers 2] [--horizon 100]
+        [--objects a,b,...]
 
 Each variant (overrides of the hand's GraspScript: the open and closed poses, how far the
 fingers close, the grasp centre's depth, reach and floor) runs the expert (ReactiveGrasp) on every training
@@ -9,10 +10,13 @@ with the most successes wins (ties: the earlier
 variant, the hand's default first). A variant stops trying seeds once it can no longer beat
 the best so far (`best_variant`), which chooses exactly as trying every seed would.
 Writes models/weights/<hand>_expert_grasps.json (variants, per-object successes, the choice
-and the command), which `ReactiveGrasp` reads. Choose on seeds other than those of the
-reported expert table (scripts/scripted_grasp_table.py uses 0..9), so the table is not
-measured on the seeds the choice was fitted to. The default is twelve seeds, as fewer cannot
-tell most variants apart (the comparison: models/weights/expert_grasp_table.md).
+and the command), which `ReactiveGrasp` reads; with --objects it re-chooses those objects only,
+keeping the other entries of the existing table (their trials ran on its seeds, which must be
+the same; variants added since show as untried there) and noting the command per re-chosen
+object. Choose on seeds other than those of the reported expert table
+(scripts/scripted_grasp_table.py uses 0..9), so the table is not measured on the seeds the
+choice was fitted to. The default is twelve seeds, as fewer cannot tell most variants apart
+(the comparison: models/weights/expert_grasp_table.md).
 """
 
 from __future__ import annotations
@@ -51,6 +55,15 @@ VARIANTS: dict[str, dict] = {  # name -> GraspScript overrides; the first is the
                "reach": 0.06},
     "rim_60_low": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.008, "tall_palm_depth": 0.008,
                    "reach": 0.06},
+    # flat, thin and hollow objects (hands with 'pinch' poses): fingertips pointed down close toward the
+    # thumb at table level (the grasp centre 7 cm above the table, or 4 cm above a taller top, 3.5 cm toward
+    # the little-finger side to centre the tips), holding only once the thumb and a finger touch; across the
+    # footprint's centre, or on the rim 2 cm inside its far edge (plates, bowls, rings)
+    "pinch": {"closed_pose": "pinch", "open_pose": "pinch_open", "min_height": 0.07, "palm_depth": -0.04,
+              "tall_palm_depth": -0.04, "reach": -0.033, "side": -0.035, "hover": 0.12, "closed_hold": 1.1},
+    "pinch_rim": {"closed_pose": "pinch", "open_pose": "pinch_open", "min_height": 0.07, "palm_depth": -0.04,
+                  "tall_palm_depth": -0.04, "reach": -0.02, "reach_edge": 1.0, "side": -0.035, "hover": 0.12,
+                  "closed_hold": 1.1},
 }
 
 
@@ -104,6 +117,7 @@ def main() -> None:
                         help="comma-separated placement seeds of the trials")
     parser.add_argument("--horizon", type=int, default=EVAL_HORIZON, help="control steps (default: the evaluation's)")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--objects", help="comma-separated training objects to re-choose (default: all)")
     args = parser.parse_args()
 
     from dexdrake.hands.description import load_hand
@@ -112,24 +126,45 @@ def main() -> None:
 
     seeds = args.seeds
     names = [o.name for o in list_objects("train")]
+    out = expert_grasps_path(args.hand)
+    command = f"python {' '.join(sys.argv)}"
+    old = json.loads(out.read_text()) if args.objects and out.is_file() else None
+    if args.objects:
+        chosen_names = args.objects.split(",")
+        unknown = sorted(set(chosen_names) - set(names))
+        if unknown:
+            raise SystemExit(f"error: not training objects: {unknown}")
+        if old is not None and old["seeds"] != seeds:
+            raise SystemExit(f"error: {out} was chosen on seeds {old['seeds']}; re-choose with --seeds "
+                             f"{','.join(map(str, old['seeds']))} (or every object)")
+        names = chosen_names
     jobs = [(args.hand, n, seeds, args.horizon) for n in names]
     objects = {}
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for name, best, tried in tqdm(pool.imap_unordered(_trial_object, jobs), total=len(jobs), desc="objects"):
             objects[name] = {"variant": best, "successes": {v: sum(ok) for v, ok in tried.items()},
                              "tries": {v: len(ok) for v, ok in tried.items()}}
-    objects = {name: objects[name] for name in names}
+    variants = {v: VARIANTS[v] for v in hand_variants(load_hand(args.hand))}
+    if old is not None:
+        for o in objects.values():
+            o["command"] = command
+        objects = {**old["objects"], **objects}
+        names = list(objects)
+        for o in objects.values():  # kept objects: the variants added since are untried
+            for v in variants:
+                o["successes"].setdefault(v, 0)
+                o["tries"].setdefault(v, 0)
+    else:
+        objects = {name: objects[name] for name in names}
     for name, o in objects.items():
         print(f"{name:18s} {o['variant']:10s} " + " ".join(f"{v}={o['successes'][v]}/{o['tries'][v]}"
                                                           for v in o["successes"]))
     chosen = sum(o["successes"][o["variant"]] for o in objects.values())
     tries = sum(sum(o["tries"].values()) for o in objects.values())
-    variants = {v: VARIANTS[v] for v in hand_variants(load_hand(args.hand))}
     print(f"chosen per object: {chosen}/{len(names) * len(seeds)}; {tries} of {len(names) * len(seeds) * len(variants)} "
           "trials run (the rest could not change a choice)")
-    table = {"hand": args.hand, "command": f"python {' '.join(sys.argv)}", "seeds": seeds,
+    table = {"hand": args.hand, "command": old["command"] if old else command, "seeds": seeds,
              "horizon": args.horizon, "variants": variants, "objects": objects}
-    out = expert_grasps_path(args.hand)
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(table, indent=1) + "\n")
     tmp.replace(out)

@@ -109,6 +109,7 @@ class ReactiveGrasp(ScriptedGrasp):
         # the lift height: the grasp height on the object at rest, plus the lift
         at_rest = plan_grasp(self.script, info, RigidTransform([0.0, 0.0, info.rest_height]), self.R_pregrasp)
         self.lift_height = at_rest.grasp[2] + self.script.lift
+        self.closed_hold = self.rules.closed_hold if self.script.closed_hold is None else self.script.closed_hold
         self._arm_half = (self.hi - self.lo)[: self.n_arm] / 2
         self._span = self.q_closed - self.q_open
         self._fingers = np.abs(self._span) > 1e-9
@@ -155,7 +156,7 @@ class ReactiveGrasp(ScriptedGrasp):
         thumb_and_fingers = bool(touch[self.thumb_tip]) and int(touch.sum()) - 1 >= r.fingers_touching
         settled = float(np.abs(v[self._fingers]).max()) < r.settled_speed
         arm_stopped = float(np.abs(v[: self.n_arm]).max()) < r.stopped_speed
-        holding = (closure > r.started and settled and (thumb_and_fingers or closure > r.closed_hold)
+        holding = (closure > r.started and settled and (thumb_and_fingers or closure > self.closed_hold)
                    and reach < r.hold_reach)
         if not holding and not lifted and closure < r.closed:
             self._follow(env)

@@ -33,7 +33,11 @@ class GraspScript:
     tall_palm_depth: float = 0.028  # ... on tall objects (top more than palm_depth + tall_margin
     tall_margin: float = 0.01  # above the centre), which are grasped around their upper part
     min_height: float | None = None  # grasp centre at least this above the table (m; None: no floor)
-    reach: float = -0.03  # grasp centre shift along the fingers' direction (m)
+    reach: float = -0.03  # grasp centre shift along the fingers' direction (m) ...
+    reach_edge: float = 0.0  # ... plus this fraction of the footprint's half-width there (1: the shift
+    # counts from the footprint's far edge, e.g. a pinch on a rim; 0: from the object's origin)
+    side: float = 0.0  # grasp centre shift across the fingers, to their left seen from above (m;
+    # centres a pinch whose fingertips lie to one side of the palm's grasp centre)
     lift: float = 0.17  # lift height of the grasp centre (m)
     closure: float = 1.0  # fraction of each finger joint's closing range
     closed_pose: str = ""  # a named hand-description grasp pose for some joints ("": closing rule only)
@@ -41,6 +45,9 @@ class GraspScript:
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
     ik_damping: float = 1e-3  # damping of `ArmIK.step`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
+    closed_hold: float | None = None  # settled fingers closed this far hold the object (closure fraction;
+    # None: the hand's `ReactiveRules.closed_hold`; a pinch whose fingers sweep far before they reach a
+    # thin object holds it only when the thumb and a finger touch it: above 1)
 
 
 def with_overrides(cls, overrides: dict, hand: HandDescription, key: str):
@@ -125,9 +132,20 @@ def plan_grasp(script: GraspScript, info: ObjectInfo, X_obj: RigidTransform, R_s
     height = top - (script.tall_palm_depth if tall else script.palm_depth)
     if script.min_height is not None:
         height = max(height, script.min_height)
-    grasp = np.array([p_obj[0], p_obj[1], height]) + script.reach * fingers_dir
+    reach = script.reach + script.reach_edge * _half_width(info, X_obj.rotation().matrix(), fingers_dir)
     up = np.array([0.0, 0.0, 1.0])
+    across = np.cross(up, fingers_dir)  # horizontal, to the left of the fingers seen from above
+    grasp = np.array([p_obj[0], p_obj[1], height]) + reach * fingers_dir + script.side * across
     return GraspPlan(R, grasp + (top - height + script.hover) * up, grasp, grasp + script.lift * up)
+
+
+def _half_width(info: ObjectInfo, R_obj: np.ndarray, direction: np.ndarray) -> float:
+    """Half the object's footprint width along a horizontal world `direction` (its resting
+    footprint's width across the nearest of `footprint_widths`' directions)."""
+    d = R_obj.T @ direction
+    widths = info.footprint_widths()
+    angle = np.arctan2(d[1], d[0]) % np.pi
+    return float(widths[int(round(angle / np.pi * len(widths))) % len(widths)] / 2)
 
 
 def _grasp_yaw(R_start: np.ndarray, R_obj: np.ndarray, extents) -> float:

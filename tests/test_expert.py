@@ -309,3 +309,45 @@ def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_tr
         assert len(calls) == sum(map(len, tried.values()))
     best, tried = chooser.best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
     assert best == "a" and [len(tried[v]) for v in variants] == [4, 0, 0, 0]
+
+
+def test_reach_from_the_far_edge_and_across_the_fingers_shift_the_grasp_centre(can_env):
+    from dataclasses import replace
+
+    can_env.reset(0)
+    grasp = ScriptedGrasp(can_env)
+    info, R_start = can_env.scene.object_info, grasp.R_pregrasp
+    X_obj = can_env.scene.object_pose(can_env.plant_context)
+    base = plan_grasp(grasp.script, info, X_obj, R_start)
+    fingers = (base.grasp - X_obj.translation())[:2]  # the default reach is along the fingers
+    fingers = np.r_[np.sign(grasp.script.reach) * fingers / np.linalg.norm(fingers), 0.0]
+    across = np.cross([0.0, 0.0, 1.0], fingers)
+    # the can is round (6.6 cm across): from its far edge the shift counts 3.3 cm farther along the fingers
+    edge = plan_grasp(replace(grasp.script, reach_edge=1.0), info, X_obj, R_start)
+    np.testing.assert_allclose(edge.grasp - base.grasp, 0.033 * fingers, atol=1e-3)
+    side = plan_grasp(replace(grasp.script, side=-0.02), info, X_obj, R_start)
+    np.testing.assert_allclose(side.grasp - base.grasp, -0.02 * across, atol=1e-9)
+    np.testing.assert_allclose(side.above - side.grasp, base.above - base.grasp, atol=1e-9)
+
+
+def test_a_grasp_may_hold_only_on_touch_instead_of_the_hands_closure_rule(can_env):
+    from dataclasses import replace
+
+    can_env.reset(0)
+    expert = ReactiveGrasp(can_env)
+    assert expert.closed_hold == expert.rules.closed_hold
+    assert ReactiveGrasp(can_env, replace(expert.script, closed_hold=1.1)).closed_hold == 1.1
+
+
+def test_allegro_pinch_poses_point_the_fingertips_down_and_close_them_toward_the_thumb():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.systems.scripted_grasp import closed_pose, open_pose
+
+    hand = load_hand("allegro_z1")
+    q_open, q_closed = open_pose(hand, "pinch_open"), closed_pose(hand, 1.0, "pinch")
+    j = {name: i for i, name in enumerate(hand.policy_joints)}
+    for finger in ("joint_1.0", "joint_5.0"):  # index and middle MCP: bent down, then further toward the palm
+        assert 0.9 < q_open[j[finger]] < q_closed[j[finger]]
+    for ring in ("joint_9.0", "joint_10.0", "joint_11.0"):  # the ring finger stays stretched out of the way
+        assert q_open[j[ring]] == q_closed[j[ring]] == 0.0
+    assert q_closed[j["joint_14.0"]] > q_open[j["joint_14.0"]]  # the thumb pushes toward the fingertips

@@ -19,9 +19,10 @@ Schema (YAML):
     occupancy: {body: mfproximal, offset: [0, -0.07, 0], size: 0.2, resolution: 10}
     pregrasp: {JOINT: value, ...}    # joints not named are 0 (clamped into their limits)
     closing: {JOINT: 1 | -1, ...}    # direction each finger joint moves to close the hand
-    grasp_poses: {NAME: {JOINT: value}} # optional: named closed-pose set-points replacing the
-                                     # closing-direction rule for those joints (e.g. a thumb
-                                     # posture), chosen by GraspScript.closed_pose
+    grasp_poses: {NAME: {JOINT: value}} # optional: named set-points for some joints, taken by the
+                                     # open hand (GraspScript.open_pose) or replacing the
+                                     # closing-direction rule (GraspScript.closed_pose), e.g. a
+                                     # thumb posture or a fingertip pinch
     grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
     grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
     include: FILE                    # optional: a part shared by several descriptions (beside

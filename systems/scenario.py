@@ -48,6 +48,7 @@ from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 HAND_KINDS = ("sim", "emulated", "emulated_process", "emulated_world", "hardware")
 EMULATED_PROCESS_KINDS = ("emulated_process", "emulated_world")  # real mode, devices in processes
 CAMERA_KINDS = ("sim", "rendered", "recorded", "k4a")
+CONTACT_APPROXIMATIONS = ("sap", "similar", "lagged")  # Drake's discrete contact approximations on the SAP solver
 ARM_MODES = ("LOWCMD", "JOINTCTRL")
 PERCEPTION_FAILURE_POLICIES = ("hold", "stop")
 
@@ -203,6 +204,7 @@ class Scenario:
     object: str = "box_cube"
     seed: int = 0
     time_step: float = 0.005  # plant step (s), every mode
+    contact_approximation: str = "sap"  # the plant's discrete contact approximation (CONTACT_APPROXIMATIONS)
     control_period: float = 0.02  # command / policy period (s)
     drivers: Drivers = dc.field(default_factory=Drivers)
     hil: HilWorldConfig = dc.field(default_factory=HilWorldConfig)
@@ -387,6 +389,8 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
     _require(s.seed >= 0, source, f"seed must be at least 0, got {s.seed}")
     _require(s.time_step > 0 and math.isfinite(s.time_step), source,
              f"time_step must be > 0, got {s.time_step}")
+    _require(s.contact_approximation in CONTACT_APPROXIMATIONS, source,
+             f"contact_approximation {s.contact_approximation!r} is not one of {', '.join(CONTACT_APPROXIMATIONS)}")
     _require(s.control_period >= s.time_step, source,
              f"control_period ({s.control_period}) must be >= time_step ({s.time_step})")
     _require(is_multiple(s.control_period, s.time_step), source,

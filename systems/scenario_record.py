@@ -15,12 +15,14 @@ from dexdrake.systems.target_limits import target_limits
 
 def scenario_record(s: Scenario) -> dict[str, Any]:
     """What a policy trained or run under `s` depends on, as plain data (stored in policy
-    checkpoints): the plant step and control period (s), the drivers' target limits in
-    policy order (systems/target_limits.py: lower, upper, max_rate (inf: none),
-    velocity_feedforward), the perception model the features see the object pose through
-    (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
+    checkpoints): the plant step and control period (s), the plant's contact approximation,
+    the drivers' target limits in policy order (systems/target_limits.py: lower, upper,
+    max_rate (inf: none), velocity_feedforward), the perception model the features see the
+    object pose through (dexdrake/perceived_pose.py) and the camera's depth noise (rendered
+    cameras only)."""
     lower, upper, rate, feedforward = target_limits(s, load_hand(s.hand))
     return {"time_step": s.time_step, "control_period": s.control_period,
+            "contact_approximation": s.contact_approximation,
             "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),
                               "velocity_feedforward": feedforward.tolist()},
             "perception": dataclasses.asdict(s.perception),
@@ -33,8 +35,8 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     `scenario_record`) with `s`, the one it is about to run under. A different plant step or
     control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
     warning lines to print: those overridden mismatches, and a difference in the target
-    limits or the perception model (which the policy may tolerate; a record without one was
-    trained on the exact pose)."""
+    limits, the contact approximation (a record without one: "sap") or the perception model
+    (which the policy may tolerate; a record without one was trained on the exact pose)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
             for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]
@@ -49,6 +51,9 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     elif trained["target_limits"] != run["target_limits"]:
         warnings.append(f"warning: {checkpoint} was trained under other target limits or rates "
                         "than this scenario's drivers apply")
+    if trained.get("contact_approximation", "sap") != run["contact_approximation"]:
+        warnings.append(f"warning: {checkpoint} was trained under the {trained.get('contact_approximation', 'sap')!r} "
+                        f"contact approximation; this scenario's plant uses {run['contact_approximation']!r}")
     if trained.get("perception", dataclasses.asdict(PerceptionModel())) != run["perception"]:
         warnings.append(f"warning: {checkpoint} was trained under another perception model (pose noise, "
                         f"frame period, latency) than this scenario's: {trained.get('perception')}")

@@ -231,7 +231,7 @@ def build_grasp_scene(scenario: Scenario, drive: JointDrive | None = None, desir
     plant, scene_graph = AddMultibodyPlant(
         MultibodyPlantConfig(
             time_step=scenario.time_step,
-            discrete_contact_approximation="sap",
+            discrete_contact_approximation=scenario.contact_approximation,
             contact_model="point",
             use_sampled_output_ports=sampled_outputs,
         ),

@@ -12,7 +12,8 @@ import pytest
 from dexdrake.cli import main
 from dexdrake.learn.policy import UNRECORDED_SCENARIO, DexRepNetPolicy, PolicyConfig, load_policy, save_policy
 from dexdrake.systems.env_factory import GraspEnvFactory, training_scenario
-from dexdrake.systems.scenario import Scenario, ScenarioError, load_scenario, packaged_scenarios, scenario_path
+from dexdrake.systems.scenario import (Scenario, ScenarioError, load_scenario, packaged_scenarios, scenario_path,
+                                       validate_scenario)
 from dexdrake.systems.scenario_record import check_policy_scenario, scenario_record
 from dexdrake.systems.scene import ObjectPlacement
 
@@ -75,6 +76,24 @@ def test_a_policy_trained_under_another_step_or_period_is_refused_unless_allowed
         (warning,) = check_policy_scenario(trained, other, "p.pt", allow_mismatch=True)
         assert warning.startswith("warning: p.pt was trained under") and "running it anyway" in warning
     assert "without the drivers' target limits" in check_policy_scenario(UNRECORDED_SCENARIO, hil, "p.pt")[0]
+
+
+def test_the_plant_uses_the_scenarios_contact_approximation_and_a_policy_records_it():
+    from pydrake.multibody.plant import DiscreteContactApproximation
+
+    from dexdrake.systems.grasp_env import GraspEnv
+
+    lagged = replace(training_scenario("adroit", "sphere_medium"), contact_approximation="lagged")
+    env = GraspEnv(lagged, horizon=2)
+    assert env.scene.plant.get_discrete_contact_approximation() == DiscreteContactApproximation.kLagged
+    with pytest.raises(ScenarioError, match="contact_approximation 'tamsi' is not one of sap, similar, lagged"):
+        validate_scenario(replace(lagged, contact_approximation="tamsi"))
+    hil = load_scenario("hil")
+    assert scenario_record(hil)["contact_approximation"] == "sap"
+    (warning,) = check_policy_scenario(scenario_record(hil), replace(hil, contact_approximation="similar"), "p.pt")
+    assert "trained under the 'sap' contact approximation" in warning and "'similar'" in warning
+    unrecorded = {k: v for k, v in scenario_record(hil).items() if k != "contact_approximation"}
+    assert check_policy_scenario(unrecorded, hil, "p.pt") == []  # a record without one: sap
 
 
 def test_sim_runs_a_scenarios_station_from_any_folder(tmp_path, monkeypatch, capsys):

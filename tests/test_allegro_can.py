@@ -433,7 +433,7 @@ def test_emulator_torque_timeout_only_as_an_option(channel):
 
 
 def _fail_loop(hand, emu):
-    def broken(frame):
+    def broken(*frame_and_stamp):
         raise RuntimeError("boom")
 
     hand._handle = broken

@@ -129,12 +129,23 @@ def _run(argv: list[str] | None, shown: _Warnings) -> int:
         code = int(args.func(args) or 0)
     except DexdrakeError as err:
         shown.held.clear()
+        _close_progress_bars()
         message = "; ".join(line.strip() for line in str(err).splitlines() if line.strip())
         print(f"dexdrake {name}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         shown.held.clear()
+        _close_progress_bars()
         print(f"dexdrake {name}: interrupted after {time.perf_counter() - start:.1f} s", file=sys.stderr)
         return 130
     shown.flush()
     return code
+
+
+def _close_progress_bars() -> None:
+    """Close the progress bars a stopped command left open (each ends its line), so the
+    command's last line stands on a line of its own."""
+    from tqdm import tqdm
+
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()

@@ -458,6 +458,7 @@ def test_start_refusals_name_the_cause(emulator):
     with pytest.raises(HardwareError, match=r"Z1: fault latched \(joint1 motor error 0x01 link 0\); call reset_fault"):
         arm.start()
     arm.reset_fault()  # stopped: only the latch clears
+    time.sleep(0.2)  # a reply built with the error before it cleared (a preempted emulator thread) lands first
     with arm:
         assert arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD
 

@@ -300,6 +300,25 @@ def classify_command(data: bytes) -> str:
     return "ok" if cmd.head == (0xFE, 0xFF) else "bad"
 
 
+def _udp_batch(rng: np.random.Generator, to_client: bool, n: int, client_config) -> tuple[list[bytes], list[str]]:
+    """`n` mutated datagrams and their expected kinds: controller states for the client (judged
+    against `client_config`), else client commands for the controller."""
+    if to_client:
+        data = [datagram(rng, _recv_state(rng).pack()) for _ in range(n)]
+        return data, [classify_state(d, client_config) for d in data]
+    data = [datagram(rng, _send_cmd(rng).pack()) for _ in range(n)]
+    return data, [classify_command(d) for d in data]
+
+
+def _drain(sock: socket.socket) -> None:
+    """Discard whatever was sent back to the fuzzer's socket."""
+    while True:
+        try:
+            sock.recv(4096)
+        except BlockingIOError:
+            return
+
+
 def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
     """Half the datagrams to a live Z1Arm's port, half to the emulator's; counters."""
     rng = np.random.default_rng(seed)
@@ -318,14 +337,11 @@ def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
             while sent < datagrams:
                 to_client = (sent // batch) % 2 == 0
                 n = min(batch, datagrams - sent)
+                data, kinds = _udp_batch(rng, to_client, n, arm.config)
                 if to_client:
-                    data = [datagram(rng, _recv_state(rng).pack()) for _ in range(n)]
-                    kinds = [classify_state(d, arm.config) for d in data]
                     counter = lambda: sum(arm.packet_errors.values())  # noqa: E731
                     dest = ("127.0.0.1", arm.local_port)
                 else:
-                    data = [datagram(rng, _send_cmd(rng).pack()) for _ in range(n)]
-                    kinds = [classify_command(d) for d in data]
                     counter = lambda: sum(emu.packet_errors.values())  # noqa: E731
                     dest = ("127.0.0.1", emu.port)
                 expected_bad = kinds.count("bad")
@@ -340,11 +356,7 @@ def fuzz_udp(datagrams: int, seed: int, batch: int = 50) -> dict:
                 out["overcounted"] += max(0, counter() - before - expected_bad)
                 if to_client and "fault" in kinds and arm.fault.reason is None:
                     out["missed_faults"] += 1
-                while True:  # drain the emulator's replies to the fuzzer
-                    try:
-                        fuzz.recv(4096)
-                    except BlockingIOError:
-                        break
+                _drain(fuzz)  # the emulator's replies to the fuzzer
                 if arm.fault.reason is not None:
                     faults[_kind(arm.fault.reason)] += 1
                     arm.reset_fault()
@@ -537,13 +549,10 @@ def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
                 while sent < datagrams:
                     to_client = (sent // batch) % 2 == 0
                     n = min(batch, datagrams - sent)
+                    data, kinds = _udp_batch(rng, to_client, n, cfg)
                     if to_client:
-                        data = [datagram(rng, _recv_state(rng).pack()) for _ in range(n)]
-                        kinds = [classify_state(d, cfg) for d in data]
                         dest, before = ("127.0.0.1", client), counter()
                     else:
-                        data = [datagram(rng, _send_cmd(rng).pack()) for _ in range(n)]
-                        kinds = [classify_command(d) for d in data]
                         dest = ("127.0.0.1", emulator.report)
                     fault_at = None
                     for d, kind in zip(data, kinds):
@@ -562,11 +571,7 @@ def fuzz_udp_processes(datagrams: int, seed: int, batch: int = 50) -> dict:
                         out["overcounted"] += max(0, counter() - before - expected_bad)
                     else:
                         time.sleep(0.003)
-                    while True:  # drain anything sent back to the fuzzer
-                        try:
-                            fuzz.recv(4096)
-                        except BlockingIOError:
-                            break
+                    _drain(fuzz)
                     fault = arm.state().fault
                     if fault is not None:
                         faults[_kind(fault)] += 1

@@ -25,7 +25,7 @@ def main() -> None:
 
     from scipy.optimize import least_squares
 
-    from dexdrake.systems.arm_ik import ArmIK
+    from dexdrake.hands.arm_ik import ArmIK
     from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scene import build_grasp_scene
 

@@ -11,9 +11,10 @@ from collections.abc import Callable
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import AffineSystem, PassThrough
+from pydrake.systems.primitives import PassThrough
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.action_map import ActionMap
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.reactive_grasp import ReactiveGrasp
@@ -29,8 +30,8 @@ def _stderr(line: str) -> None:
 
 def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_mismatch: bool = False,
                       warn: Callable[[str], None] = _stderr) -> tuple[Diagram, str]:
-    """The scenario's policy in the slot: PolicySystem (features -> normalised action) and
-    the map to joint set-points; refused (a DexdrakeError naming the checkpoint and the
+    """The scenario's policy in the slot: PolicySystem (features -> normalised action -> joint
+    set-points, by the policy's arm action); refused (a DexdrakeError naming the checkpoint and the
     reason) when the checkpoint is missing or unreadable, or was trained for another hand,
     feature set or action size, or under another plant step or control period (its
     recorded scenario, `check_policy_scenario`; `allow_scenario_mismatch` runs it anyway).
@@ -52,18 +53,17 @@ def policy_controller(scenario: Scenario, hand: HandDescription, allow_scenario_
     for line in check_policy_scenario(metadata["scenario"], scenario, entry.checkpoint, allow_scenario_mismatch):
         warn(line)
     n = hand.num_actuators
-    mid, half = hand.action_map()
     builder = DiagramBuilder()
-    system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period))
-    to_command = builder.AddNamedSystem("action_to_command", AffineSystem(
-        np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0), np.zeros((n, 0)), np.diag(half), mid))
-    builder.Connect(system.GetOutputPort("action"), to_command.get_input_port())
+    system = builder.AddNamedSystem("policy_system", PolicySystem(policy, scenario.control_period,
+                                                                  actions=ActionMap(hand, cfg.arm_action)))
+    hand_state = builder.AddNamedSystem("hand_state", PassThrough(2 * n))
+    builder.ExportInput(hand_state.get_input_port(), "hand_state")
+    builder.Connect(hand_state.get_output_port(), system.GetInputPort("hand_state"))
     builder.ExportInput(system.GetInputPort("observation"), "features")
-    for name, size in (("hand_state", 2 * n), ("object_pose", 7)):  # read by loggers only
-        builder.ExportInput(builder.AddNamedSystem(name, PassThrough(size)).get_input_port(), name)
-    builder.ExportOutput(to_command.get_output_port(), "command")
+    builder.ExportInput(builder.AddNamedSystem("object_pose", PassThrough(7)).get_input_port(), "object_pose")
+    builder.ExportOutput(system.GetOutputPort("command"), "command")
     description = (f"policy {entry.checkpoint} (hand {cfg.hand}, feature set {cfg.feature_set}, "
-                   f"{cfg.obs_dim} observations -> {cfg.action_dim} joint targets, "
+                   f"{cfg.obs_dim} observations -> {cfg.action_dim} actions, arm by {cfg.arm_action}, "
                    f"stage {metadata.get('stage', 'unknown')})")
     slot = builder.Build()
     slot.set_name("policy")

@@ -32,7 +32,7 @@ from dexdrake.episode import run_episode
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.objects.library import ObjectInfo, get_object
-from dexdrake.systems.arm_ik import ArmIK
+from dexdrake.hands.arm_ik import ArmIK
 from dexdrake.systems.grasp_env import GraspEnv
 from dexdrake.systems.scenario import Scenario
 from dexdrake.systems.scene import ObjectPlacement
@@ -298,7 +298,7 @@ class DemoReplayer:
         noise = correlated_noise(rng, H, self.hand.num_actuators, c.noise_time / dt)
         amount = rng.uniform(*c.closure)
         ramp = closure_ramp(self.hand, H, plan.grasp_step, int(round(c.closure_ramp_time / dt)), amount)
-        return c.noise_scale * noise * env.half_range[None, :] + ramp
+        return c.noise_scale * noise * env.actions.half[None, :] + ramp
 
     def replay(self, demo: HumanDemo, seed: int, attempts: int | None = None) -> DemoReplayResult:
         """Raw replay, then up to `attempts` (default config.attempts) correlated-sampling

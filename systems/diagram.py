@@ -65,9 +65,7 @@ class BuiltDiagram:
         policy = self.policy_system
         if policy is not None:
             q = self.diagram.GetOutputPort("hand_state").Eval(context)[: self.station.hand.num_actuators]
-            mid, half = self.station.hand.action_map()
-            policy.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).SetFromVector(
-                np.clip((q - mid) / half, -1.0, 1.0))
+            policy.hold(policy.GetMyMutableContextFromRoot(context), q)
 
     @property
     def timer(self) -> LoopTimer:

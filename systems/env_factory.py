@@ -24,6 +24,7 @@ class GraspEnvFactory:
     object_from_seed: bool = False  # reset(seed) runs objects[seed % len(objects)] (balanced training batches)
     task: TaskSpec = TaskSpec()  # reward and success criterion
     perception: PerceptionModel = PerceptionModel()  # how the features see the object pose
+    arm_action: str = "joints"  # how the actions command the arm (dexdrake/hands/action_map.py)
 
     def __post_init__(self) -> None:
         if not self.objects:
@@ -42,7 +43,7 @@ class GraspEnvFactory:
         from dexdrake.systems.grasp_env import GraspEnv
 
         env = GraspEnv(self.scenario, feature_set=self.feature_set, horizon=self.horizon, task=self.task,
-                       objects=list(self.objects))
+                       objects=list(self.objects), arm_action=self.arm_action)
         return ObjectFromSeed(env) if self.object_from_seed else env
 
 
@@ -73,10 +74,11 @@ def env_factory_for_policy(
     policy_config, objects: list[str], horizon: int, object_from_seed: bool = False, task: TaskSpec = TaskSpec(),
     perception: PerceptionModel = PerceptionModel(),
 ) -> GraspEnvFactory:
-    """The factory matching a policy's recorded hand and feature set (`check_policy_fits`),
-    its envs seeing the object through `perception`."""
+    """The factory matching a policy's recorded hand, feature set and arm action
+    (`check_policy_fits`), its envs seeing the object through `perception`."""
     from dexdrake.learn.policy import check_policy_fits
 
     hand, feature_set = policy_config.hand, policy_config.feature_set
     check_policy_fits(policy_config, hand, feature_set, "the policy")
-    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task, perception)
+    return GraspEnvFactory(hand, feature_set, tuple(objects), horizon, object_from_seed, task, perception,
+                           policy_config.arm_action)

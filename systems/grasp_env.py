@@ -1,8 +1,9 @@
 """A step-by-step grasp environment over the Drake scene (the learning `Env` protocol).
 
 Built from a sim Scenario (systems/scenario.py): the sim station of every mode, its plant
-step, control period and the drivers' target limits. Actions are normalised joint
-set-points in [-1, 1] over each joint's range (policy order). Each `step` holds the
+step, control period and the drivers' target limits. Actions are normalised set-points in
+[-1, 1] (policy order) of the joints or, with `arm_action="palm_pose"`, of the palm's pose and
+the fingers (dexdrake/hands/action_map.py). Each `step` holds the
 set-point for one control period of the plant and scores the step with `dexdrake.task`.
 Observations are the selected DexRep feature set (hand state always included), computed at
 the object pose the scenario's perception model delivers (dexdrake/perceived_pose.py: pose
@@ -21,6 +22,7 @@ from pydrake.systems.analysis import Simulator
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.action_map import ActionMap
 from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.command_guard import CommandGuard
@@ -43,6 +45,7 @@ class GraspEnv:
         horizon: int = 200,
         task: TaskSpec = TaskSpec(),
         objects: list[str] | None = None,
+        arm_action: str = "joints",
     ):
         validate_scenario(scenario, f"scenario {scenario.name!r}")
         if scenario.mode != "sim":
@@ -53,7 +56,7 @@ class GraspEnv:
         self._perceived = (None if scenario.perception.is_exact
                            else PerceivedPose(scenario.perception, scenario.control_period))
         self._use(self.objects[0])
-        self._mid, self._half = self.scene.hand.action_map()
+        self.actions = ActionMap(self.scene.hand, arm_action)
         self.command_guard = CommandGuard(*self.scene.hand.joint_limits())  # counts bad commands of the current episode
         self.action_dim = self.scene.hand.num_actuators
         self.observation_blocks = self._features.observation_blocks if self._features else {"hand": 2 * self.action_dim}
@@ -115,16 +118,14 @@ class GraspEnv:
         """One control period at normalised set-points `action` (the bad-command rule of
         `command_guard` applies: non-finite -> the last command held, out of [-1, 1] -> clipped)."""
         a = np.asarray(action, dtype=float)
-        return self.step_positions(self._mid + a * self._half if a.shape == self._half.shape else a)
+        if a.shape == (self.action_dim,):
+            a = self.actions.command(a, self.scene.hand_positions(self.plant_context))
+        return self.step_positions(a)
 
     def normalise(self, q_command: np.ndarray) -> np.ndarray:
-        """The normalised action in [-1, 1] that `step` maps to set-points `q_command`."""
-        return (np.asarray(q_command, dtype=float) - self._mid) / self._half
-
-    @property
-    def half_range(self) -> np.ndarray:
-        """Half of each joint's range (policy order): the set-point change of action 1."""
-        return self._half
+        """The normalised action that `step` maps to set-points `q_command` (from the arm's
+        present position)."""
+        return self.actions.normalise(q_command)
 
     def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
         """Like `step` with joint set-points in physical units (rad, m); `command_guard`

@@ -5,6 +5,9 @@ Ports: input "observation" (the env observation vector, obs_dim) -> output "acti
 event every `control_period` seconds (a zero-order hold between updates; zeros, or
 `initial_action`, before the first update). Actions pass `guard` (dexdrake/command_guard.py:
 a non-finite action holds the last one, one outside [-1, 1] is clipped; `guard.counts`).
+With an `actions` map (dexdrake/hands/action_map.py) it also has input "hand_state" (the
+measured [q; v]) and output "command": the action's joint set-points, computed in the same
+update from the positions measured then (held between updates).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import torch
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
 
 from dexdrake.errors import DexdrakeError
+from dexdrake.hands.action_map import ActionMap
 from dexdrake.learn.policy import DexRepNetPolicy, load_policy
 from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.station import LoopTimer
@@ -30,6 +34,7 @@ class PolicySystem(LeafSystem):
         deterministic: bool = True,
         seed: int = 0,
         initial_action: np.ndarray | None = None,
+        actions: ActionMap | None = None,
     ):
         """`policy` is a loaded policy or a checkpoint path (see dexdrake.learn.policy).
 
@@ -54,6 +59,10 @@ class PolicySystem(LeafSystem):
         self._obs_port = self.DeclareVectorInputPort("observation", BasicVector(obs_dim))
         state = self.DeclareDiscreteState(init)
         self.DeclareStateOutputPort("action", state)
+        self.actions = actions
+        if actions is not None:
+            self._hand_port = self.DeclareVectorInputPort("hand_state", BasicVector(2 * act_dim))
+            self.DeclareStateOutputPort("command", self.DeclareDiscreteState(actions.mid))
         self.DeclarePeriodicDiscreteUpdateEvent(control_period, 0.0, self._update)
 
     def compute_action(self, observation: np.ndarray) -> np.ndarray:
@@ -65,4 +74,13 @@ class PolicySystem(LeafSystem):
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         self.timer.tick(context.get_time())
         action = self.compute_action(self._obs_port.Eval(context))
-        discrete_state.set_value(0, self.guard(action, context.get_discrete_state(0).get_value()))
+        action = self.guard(action, context.get_discrete_state(0).get_value())
+        discrete_state.set_value(0, action)
+        if self.actions is not None:
+            q = self._hand_port.Eval(context)[: len(action)]
+            discrete_state.set_value(1, self.actions.command(action, q))
+
+    def hold(self, context: Context, q: np.ndarray) -> None:
+        """Set the held action (and command) to those of joint positions `q` (this system's context)."""
+        context.get_mutable_discrete_state(0).SetFromVector(np.clip(self.actions.normalise(q), -1.0, 1.0))
+        context.get_mutable_discrete_state(1).SetFromVector(q)

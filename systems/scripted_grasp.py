@@ -1,7 +1,7 @@
 """A scripted grasp controller: approach, descend, close, lift to the target, hold.
 
 It proves the physics can grasp and serves as a baseline. The arm set-points come from the
-arm's inverse kinematics (systems/arm_ik.py), placing the palm's grasp centre (hand description
+arm's inverse kinematics (dexdrake/hands/arm_ik.py), placing the palm's grasp centre (hand description
 `palm.centre`) at a way-point with the palm facing down and the fingers turned across the
 object's shorter horizontal axis; the fingers move between the pre-grasp pose and a closed
 pose.
@@ -17,7 +17,7 @@ from pydrake.math import RigidTransform
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
 from dexdrake.objects.library import ObjectInfo
-from dexdrake.systems.arm_ik import ArmIK
+from dexdrake.hands.arm_ik import ArmIK
 
 
 @dataclass(frozen=True)

@@ -16,12 +16,11 @@ safe stop with the arm held where it was.
 from __future__ import annotations
 
 import numpy as np
-from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import BasicVector, Context, LeafSystem
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hands.description import HandDescription
+from dexdrake.hands.kinematics import hand_kinematics
 
 
 class WorkspaceBox:
@@ -31,11 +30,11 @@ class WorkspaceBox:
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         if self.lower.shape != (3,) or self.upper.shape != (3,) or np.any(self.lower >= self.upper):
             raise DexdrakeError(f"workspace box: lower {lower} must be below upper {upper} (3 values each)")
-        self.plant = plant = MultibodyPlant(0.0)
-        (instance,) = Parser(plant).AddModels(hand.model_path)
-        plant.Finalize()
+        kinematics = hand_kinematics(hand)
+        self.plant = plant = kinematics.plant
+        instance, self.q_index = kinematics.hand_instance, kinematics.q_index
         self.context = plant.CreateDefaultContext()
-        self.q_index = np.array([plant.GetJointByName(j, instance).position_start() for j in hand.policy_joints])
+
         def frame(body: str):
             return plant.GetBodyByName(body, instance).body_frame()
 

@@ -234,6 +234,7 @@ def test_dagger_probe_runs_unseen_objects_without_training_on_them(tmp_path, one
 
 
 def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():
+    from dexdrake.hands.action_map import ActionMap
     from dexdrake.hands.description import load_hand
     from dexdrake.learn.dagger import hold_still_loss
     from dexdrake.learn.demo_dataset import DemoDataset
@@ -246,8 +247,8 @@ def test_hold_still_loss_scores_the_action_that_keeps_the_measured_joints():
     actions = held.copy()
     actions[1, 0] += 0.5  # one sample's first set-point off by 0.5 (normalised)
     data = DemoDataset(obs, actions.astype(np.float32))
-    assert hold_still_loss(data, np.array([0, 2, 3]), hand) == pytest.approx(0.0, abs=1e-9)
-    assert hold_still_loss(data, np.array([0, 1]), hand) == pytest.approx(0.25 / 2, rel=1e-4)
+    assert hold_still_loss(data, np.array([0, 2, 3]), ActionMap(hand)) == pytest.approx(0.0, abs=1e-9)
+    assert hold_still_loss(data, np.array([0, 1]), ActionMap(hand)) == pytest.approx(0.25 / 2, rel=1e-4)
 
 
 def test_best_measured_iteration(tmp_path):

@@ -185,7 +185,7 @@ def test_ik_jacobian_is_the_residual_derivative_and_solves_reach(can_env):
 def test_ik_palm_pose_follows_every_change_of_the_arm_positions(can_env):
     """The IK keeps its context's kinematics while the arm positions are unchanged; a new
     position, or a caller's array changed in place, is evaluated afresh."""
-    from dexdrake.systems.arm_ik import ArmIK
+    from dexdrake.hands.arm_ik import ArmIK
 
     can_env.reset(0)
     ik, fresh = ScriptedGrasp(can_env).ik, lambda q: ArmIK(can_env.scene).palm_pose(q)

@@ -35,6 +35,8 @@ def test_shipped_recipes_load(name):
     ("dagger: {config: {workers: 4}}", "dagger.config.workers is set by the pipeline (--workers)"),
     ("dapg: [{config: {reward: best}}]", "dapg.0.config.reward: 'best' is not one of"),
     ("dagger: {config: {hand: shadow}}", "dagger.config.hand: 'shadow' is not one of"),
+    ("dagger: {config: {arm_action: palm_pose}}", "dagger.config.arm_action: hand 'adroit' has no palm-pose"),
+    ("dagger: {config: {arm_action: ik}}", "dagger.config.arm_action: unknown arm action 'ik'"),
     ("test: {episodes: 0}", "test.episodes: need >= 1"),
     ("choose: [1]", "recipe field choose: expected a mapping"),
     ("dagger: {objects: star}", "dagger.objects: ['star'] are held-out objects"),

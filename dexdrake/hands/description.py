@@ -25,6 +25,11 @@ Schema (YAML):
                                      # thumb posture or a fingertip pinch
     grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
     grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
+    palm_pose_action: {lower: [x, y, z], upper: [x, y, z], rotation: rad}
+                                     # optional (six-joint arms): the box (m, world) of the palm's
+                                     # grasp centre and the rotation (rad) that actions of +-1
+                                     # span when the arm is commanded by palm pose
+                                     # (dexdrake/hands/action_map.py)
     include: FILE                    # optional: a part shared by several descriptions (beside
                                      # this file, not itself a hand); this file's keys are laid
                                      # over it, mappings (pregrasp, ...) merged key by key
@@ -60,6 +65,13 @@ class Palm:
 
 
 @dataclass(frozen=True)
+class PalmPoseAction:
+    lower: tuple[float, float, float]  # grasp-centre box (m, world frame)
+    upper: tuple[float, float, float]
+    rotation: float  # rad: the rotation-vector length of an action of 1
+
+
+@dataclass(frozen=True)
 class OccupancyAnchor:
     body: str  # the grid moves and rotates with this body
     offset: tuple[float, float, float]  # grid centre in the body frame (m)
@@ -84,6 +96,7 @@ class HandDescription:
     grasp_poses: dict[str, dict[str, float]] = field(default_factory=dict)
     grasp_script: dict[str, float] = field(default_factory=dict)
     grasp_expert: dict[str, float] = field(default_factory=dict)
+    palm_pose_action: PalmPoseAction | None = None
 
     @property
     def model_path(self) -> Path:
@@ -96,13 +109,6 @@ class HandDescription:
     def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) position limits in policy order, read from the model file."""
         return _model_limits(str(self.model_path), self.policy_joints)
-
-    def action_map(self) -> tuple[np.ndarray, np.ndarray]:
-        """(mid, half) of each joint's range in policy order: the one map between normalised
-        actions and joint set-points, set-point = mid + action * half (action in [-1, 1]
-        spans the range)."""
-        lo, hi = self.joint_limits()
-        return (hi + lo) / 2, (hi - lo) / 2
 
     def pregrasp_vector(self) -> np.ndarray:
         """The pre-grasp pose in policy order, clamped into the joint limits."""
@@ -128,6 +134,17 @@ def _grasp_poses(d: dict, joints: tuple[str, ...]) -> dict[str, dict[str, float]
         if unknown:
             raise DexdrakeError(f"hand {d['name']!r}: grasp pose {name!r} names unknown joints {unknown}")
     return poses
+
+
+def _palm_pose_action(d: dict) -> PalmPoseAction | None:
+    box = d.get("palm_pose_action")
+    if box is None:
+        return None
+    lower, upper = (tuple(float(x) for x in box[k]) for k in ("lower", "upper"))
+    if len(lower) != 3 or len(upper) != 3 or any(a >= b for a, b in zip(lower, upper)) or not box["rotation"] > 0:
+        raise DexdrakeError(f"hand {d['name']!r}: palm_pose_action needs lower < upper (3 values each) "
+                            f"and a positive rotation, got {box}")
+    return PalmPoseAction(lower, upper, float(box["rotation"]))
 
 
 def _from_dict(d: dict) -> HandDescription:
@@ -156,6 +173,7 @@ def _from_dict(d: dict) -> HandDescription:
         grasp_poses=_grasp_poses(d, policy),
         grasp_script=dict(d.get("grasp_script") or {}),
         grasp_expert=dict(d.get("grasp_expert") or {}),
+        palm_pose_action=_palm_pose_action(d),
     )
 
 

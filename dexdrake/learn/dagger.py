@@ -39,6 +39,7 @@ from dexdrake.episode import run_lockstep
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import check_training_seeds
 from dexdrake.npz import open_npz
+from dexdrake.hands.action_map import ARM_ACTIONS, ActionMap
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.learn.bc import BCConfig, bc_loss, train_bc
 from dexdrake.learn.curves import CsvLog, read_csv
@@ -96,6 +97,9 @@ class DaggerConfig:
         "help": "earlier DAgger runs' folders: their states, labelled anew by this expert, are trained on too"})
     residual_arm: bool = field(default=False, metadata={
         "help": "a new network's arm actions are added to the arm's current position (it learns the lead)"})
+    arm_action: str = field(default="joints", metadata={
+        "choices": ARM_ACTIONS, "help": "how a new network's actions command the arm: its joints, or the palm's "
+                                        "pose (dexdrake/hands/action_map.py)"})
 
 
 @dataclass
@@ -412,6 +416,12 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     if policy is not None and policy.config.residual_arm != config.residual_arm:
         raise DexdrakeError(f"{config.init} has {'a residual' if policy.config.residual_arm else 'an absolute'} arm "
                             f"head; {'drop' if not config.residual_arm else 'add'} --residual-arm to match it")
+    if policy is not None and policy.config.arm_action != config.arm_action:
+        raise DexdrakeError(f"{config.init} commands the arm by {policy.config.arm_action}; this run by "
+                            f"{config.arm_action} (--arm-action)")
+    if config.residual_arm and config.arm_action != "joints":
+        raise DexdrakeError("a residual arm leads the arm's joints: --residual-arm needs --arm-action joints")
+    ActionMap(hand, config.arm_action)  # refuses a hand without that arm action before any work
     out_dir.mkdir(parents=True, exist_ok=True)
     finished = next((it for it in range(config.iterations) if not (out_dir / f"policy_{it:02d}.pt").is_file()),
                     config.iterations)
@@ -422,7 +432,9 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
     meta = {"stage": "dagger", "dagger_config": asdict(config), "objects": objects, **(metadata or {})}
     aggregate = Aggregate(run_capacity(out_dir, config, len(objects)))
     n_arm = len(hand.arm_joints)
-    factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon)
+    factory = make_env(config.hand, config.feature_set, tuple(objects + probes), config.horizon,
+                       arm_action=config.arm_action)
+    actions = ActionMap(hand, config.arm_action)
     with make_sampler(factory, config.backend, config.workers, address, config.envs_per_worker) as sampler:
         print(f"DAgger: {sampler.describe()}", flush=True)
         for k, source in enumerate(prior_files(config)):
@@ -468,7 +480,8 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 blocks = observation_blocks(hand, config.feature_set)
                 policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, data.labels.shape[1],
                                                                   feature_set=config.feature_set, hand=config.hand,
-                                                                  residual_arm=config.residual_arm))
+                                                                  residual_arm=config.residual_arm,
+                                                                  arm_action=config.arm_action))
             dataset = aggregate.dataset()
             weights = (config.arm_weight,) * n_arm + (1.0,) * (data.labels.shape[1] - n_arm)
             bc = BCConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr,
@@ -476,7 +489,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                           split_seed=config.seed, keep_function=warm, checkpoint_every=0, action_weights=weights)
             result = train_bc(policy, dataset, out_dir / f"bc_{it:02d}", bc, {**meta, "iteration": it})
             save_policy(policy_path, policy, {**meta, "iteration": it, "samples": len(dataset)})
-            hold = hold_still_loss(dataset, result.val_indices, hand)
+            hold = hold_still_loss(dataset, result.val_indices, actions)
             unseen = {} if probe is None else {
                 "unseen_success": float(np.mean(probe.success)),
                 "unseen_loss": bc_loss(policy, DemoDataset(probe.observations, probe.labels, probe.episode_starts))}
@@ -516,13 +529,13 @@ def _driver(init: str, it: int) -> str:
     return ("init" if init else "expert") if it == 0 else "policy"
 
 
-def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, hand: HandDescription) -> float:
+def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, actions: ActionMap) -> float:
     """The behaviour-cloning loss on samples `idx` of the action that holds the measured joints
     (set-point = current position, read from the hand block's joint positions): a policy whose
     held-out loss is not well below this has learnt little beyond copying its own state."""
-    mid, half = hand.action_map()
-    q = dataset.observations[idx, : len(mid)]
-    return float(np.mean(np.sum((dataset.actions[idx] - (q - mid) / half) ** 2, axis=1)))
+    q = dataset.observations[idx, : len(actions.mid)]
+    hold = np.array([actions.normalise(row) for row in q])
+    return float(np.mean(np.sum((dataset.actions[idx] - hold) ** 2, axis=1)))
 
 
 SELECTION = ("the policy with the highest executed success on the training objects, as measured by the next "

@@ -36,13 +36,13 @@ class Env(Protocol):
 EnvFactory = Callable[[], Env]
 """Builds an Env; must be picklable (a top-level function or functools.partial)."""
 
-MakeEnvFactory = Callable[[str, str | None, tuple[str, ...], int], EnvFactory]
-"""(hand, feature set, object names, horizon) -> EnvFactory; picklable. The layers above
-pass one in (systems.env_factory.GraspEnvFactory), so the core never imports them."""
+MakeEnvFactory = Callable[..., EnvFactory]
+"""(hand, feature set, object names, horizon, arm_action=...) -> EnvFactory; picklable. The
+layers above pass one in (systems.env_factory.GraspEnvFactory), so the core never imports them."""
 
 PolicyEnvFactory = Callable[[Any, list[str], int], EnvFactory]
-"""(policy config, object names, horizon) -> the EnvFactory for the policy's recorded hand
-and feature set; picklable (systems.env_factory.env_factory_for_policy)."""
+"""(policy config, object names, horizon) -> the EnvFactory for the policy's recorded hand,
+feature set and arm action; picklable (systems.env_factory.env_factory_for_policy)."""
 
 
 def observation_dim(blocks: Mapping[str, int]) -> int:

@@ -9,7 +9,9 @@ output is the action mean (no tanh; the env clips actions to [-1, 1]). With `res
 the arm's actions are the MLP's output added to the arm joints' current positions (the hand
 block's first entries), normalised like the actions: the network learns how far its
 set-point leads the arm instead of rebuilding the arm's position from its input (a departure
-from the paper's absolute set-points, which `residual_arm=False` keeps). For RL the
+from the paper's absolute set-points, which `residual_arm=False` keeps). `arm_action` says
+how the actions command the arm: its joints, or the palm's pose (dexdrake/hands/action_map.py).
+For RL the
 policy is a diagonal Gaussian around that mean with a learned, state-independent log-std,
 kept in [min_log_std, max_log_std] by clamping the parameter itself after each update
 (`clamp_log_std_`), so its gradient never vanishes. Before RL the log-std is set from the
@@ -59,6 +61,7 @@ class PolicyConfig:
     min_log_std: float = -3.0
     max_log_std: float = 0.0  # std 1: the half-width of the normalised action range
     residual_arm: bool = False  # arm actions = current arm position (normalised) + MLP output
+    arm_action: str = "joints"  # how the actions command the arm (dexdrake/hands/action_map.py)
 
     @classmethod
     def from_blocks(cls, blocks: Mapping[str, int], action_dim: int, **kwargs: Any) -> PolicyConfig:
@@ -291,16 +294,19 @@ def arm_action_map(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
     """(mid, half) of the action map (HandDescription.action_map) on the arm joints of
     `config.hand` (a prefix of its actions), for a residual arm head, whose observation must
     begin with the hand block's joint positions."""
+    from dexdrake.hands.action_map import ActionMap
     from dexdrake.hands.description import load_hand
 
     if not config.blocks or config.blocks[0][0] != "hand":
         raise DexdrakeError(f"a residual arm needs the hand block first; the blocks are {config.blocks}")
+    if config.arm_action != "joints":
+        raise DexdrakeError(f"a residual arm leads the arm's joints; the policy's arm action is {config.arm_action!r}")
     hand = load_hand(config.hand)
     if len(hand.policy_joints) != config.action_dim:
         raise DexdrakeError(f"hand {config.hand} has {len(hand.policy_joints)} joints, the policy {config.action_dim} actions")
-    mid, half = hand.action_map()
+    actions = ActionMap(hand)
     n = len(hand.arm_joints)
-    return mid[:n], half[:n]
+    return actions.mid[:n], actions.half[:n]
 
 
 def non_finite_tensors(state: Mapping[str, Any]) -> list[str]:

@@ -196,7 +196,8 @@ def load_recipe(path: str | Path) -> Recipe:
 def check_recipe(recipe: Recipe) -> None:
     """Refuse names and counts no stage could run with (before any work)."""
     from dexdrake.dexrep.feature_sets import FEATURE_SETS
-    from dexdrake.hands.description import hand_names
+    from dexdrake.hands.action_map import ActionMap
+    from dexdrake.hands.description import hand_names, load_hand
     from dexdrake.task import TARGET_THRESHOLDS
 
     config = recipe.dagger.config
@@ -205,6 +206,10 @@ def check_recipe(recipe: Recipe) -> None:
     if config.feature_set not in FEATURE_SETS:
         raise DexdrakeError(f"recipe field dagger.config.feature_set: {config.feature_set!r} is not one of "
                             f"{list(FEATURE_SETS)}")
+    try:
+        ActionMap(load_hand(config.hand), config.arm_action)
+    except DexdrakeError as err:
+        raise DexdrakeError(f"recipe field dagger.config.arm_action: {err}") from None
     counts = {"expert.episodes_per_object": recipe.expert.episodes_per_object, "expert.horizon": recipe.expert.horizon,
               "dagger.config.iterations": config.iterations, "choose.episodes": recipe.choose.episodes,
               "choose.horizon": recipe.choose.horizon, "test.episodes": recipe.test.episodes,

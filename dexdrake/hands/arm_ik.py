@@ -10,7 +10,7 @@ from pydrake.multibody.tree import JacobianWrtVariable
 
 
 class ArmIK:
-    """IK over the arm joints of `scene` (a GraspScene). Rotation errors are weighted by
+    """IK over the arm joints of `scene` (a GraspScene or a HandKinematics). Rotation errors are weighted by
     `orientation_weight` (m per unit: position wins); `damping` (m) damps `step`."""
 
     def __init__(self, scene, orientation_weight: float = 0.01, damping: float = 1e-3):
@@ -121,16 +121,20 @@ class ArmIK:
             self.ctx, JacobianWrtVariable.kQDot, self.palm_frame, self.centre, self.world, self.world
         )[:, self.index]
 
-    def step(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int) -> np.ndarray:
-        """`solve` near q_arm, cheaply: a fixed number of damped least-squares steps on the
-        grasp centre's spatial Jacobian from q_arm (the same weighting); joints a step would
-        push past a limit stay on it and the others take the step."""
+    def step(self, target: np.ndarray, R_target: np.ndarray, q_arm: np.ndarray, steps: int,
+             tol: float = 0.0) -> np.ndarray:
+        """`solve` near q_arm, cheaply: up to `steps` damped least-squares steps on the grasp
+        centre's spatial Jacobian from q_arm (the same weighting), stopping once the weighted
+        pose error is below `tol`; joints a step would push past a limit stay on it and the
+        others take the step."""
         w, lo, hi = self._w, self.lo, self.hi
         q = np.minimum(np.maximum(q_arm, lo), hi)
         for _ in range(steps):
             X = self._set_arm(q)
             rotation = RotationMatrix(R_target @ X.rotation().matrix().T).ToAngleAxis()
             error = w * np.concatenate([rotation.angle() * rotation.axis(), target - X.multiply(self.centre)])
+            if error @ error < tol * tol:
+                break
             J = w[:, None] * self._spatial_jacobian()
             dq = np.linalg.solve(J.T @ J + self._damped_eye, J.T @ error)
             if ((q + dq < lo) | (q + dq > hi)).any():

@@ -1,0 +1,91 @@
+"""The one map between a policy's normalised actions (each in [-1, 1], policy order) and
+joint set-points, for each way of commanding the arm (ARM_ACTIONS):
+
+- "joints": set-point = mid + action * half over each joint's range (the model's limits).
+- "palm_pose" (hands whose description has a `palm_pose_action`): the arm's six actions are
+  the palm's grasp-centre position, mid + action * half over the description's box, and its
+  rotation R = R_ref exp(action * rotation) (a rotation vector, R_ref the palm's rotation at
+  the pre-grasp pose). Their set-points are the arm's inverse kinematics of that pose
+  (ArmIK.solve) from the measured arm positions, so the map is the same wherever the arm is
+  measured (simulation, hardware). The fingers' actions map as in "joints".
+
+Actions outside [-1, 1] are clipped; a non-finite action maps to non-finite set-points, which
+the command guard holds (dexdrake/command_guard.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.eigen_geometry import AngleAxis
+from pydrake.math import RotationMatrix
+
+from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.hands.description import HandDescription
+
+ARM_ACTIONS = ("joints", "palm_pose")
+IK_STEPS, IK_TOLERANCE = 30, 1e-6  # the palm pose's IK: at most this many steps, to this weighted error (m)
+
+
+class ActionMap:
+    """Normalised actions <-> joint set-points of `hand` with its arm commanded as `arm_action`
+    (module docstring)."""
+
+    def __init__(self, hand: HandDescription, arm_action: str = "joints"):
+        if arm_action not in ARM_ACTIONS:
+            raise UnknownNameError("arm action", arm_action, ARM_ACTIONS)
+        lo, hi = hand.joint_limits()
+        self.hand, self.arm_action = hand, arm_action
+        self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
+        self.n_arm = len(hand.arm_joints) if arm_action == "palm_pose" else 0
+        if self.n_arm:
+            from dexdrake.hands.arm_ik import ArmIK
+            from dexdrake.hands.kinematics import hand_kinematics
+
+            box = hand.palm_pose_action
+            if box is None or self.n_arm != 6:
+                raise DexdrakeError(f"hand {hand.name!r} has no palm-pose arm action (a six-joint arm and "
+                                    "`palm_pose_action` in its description)")
+            self.ik = ArmIK(hand_kinematics(hand))
+            lower, upper = np.array(box.lower), np.array(box.upper)
+            self._centre_mid, self._centre_half = (upper + lower) / 2, (upper - lower) / 2
+            self._rotation = box.rotation
+            self._R_ref = self.ik.palm_pose(hand.pregrasp_vector()[: self.n_arm])[1]
+
+    def command(self, action: np.ndarray, q_measured: np.ndarray) -> np.ndarray:
+        """The joint set-points of `action`, the arm's solved from the measured positions
+        `q_measured` (policy order; read by "palm_pose" only)."""
+        a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
+        q = self.mid + a * self.half
+        if self.n_arm:
+            n = self.n_arm
+            if not np.isfinite(a[:n]).all():
+                q[:n] = np.nan
+                return q
+            centre = self._centre_mid + a[:3] * self._centre_half
+            R = self._R_ref @ _exp(a[3:n] * self._rotation)
+            q[:n] = self.ik.step(centre, R, np.asarray(q_measured, dtype=float)[:n], IK_STEPS, IK_TOLERANCE)
+        return q
+
+    def normalise(self, q_command: np.ndarray) -> np.ndarray:
+        """The action (unclipped) whose set-points are `q_command`: the inverse of `command`
+        (for "palm_pose", up to the inverse kinematics' branch, the one nearest the arm)."""
+        q = np.asarray(q_command, dtype=float)
+        a = (q - self.mid) / self.half
+        if self.n_arm:
+            centre, R = self.ik.palm_pose(q[: self.n_arm])
+            a[:3] = (centre - self._centre_mid) / self._centre_half
+            a[3: self.n_arm] = _log(self._R_ref.T @ R) / self._rotation
+        return a
+
+
+def _exp(w: np.ndarray) -> np.ndarray:
+    """The rotation matrix of rotation vector w."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    return RotationMatrix(AngleAxis(angle, w / angle)).matrix()
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    """The rotation vector of rotation matrix R (angle in [0, pi])."""
+    aa = RotationMatrix(R).ToAngleAxis()
+    return aa.angle() * aa.axis()

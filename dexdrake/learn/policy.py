@@ -291,7 +291,7 @@ def check_policy_fits(config: PolicyConfig, hand: str, feature_set: str, source:
 
 
 def arm_action_map(config: PolicyConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(mid, half) of the action map (HandDescription.action_map) on the arm joints of
+    """(mid, half) of the joint action map (dexdrake/hands/action_map.py) on the arm joints of
     `config.hand` (a prefix of its actions), for a residual arm head, whose observation must
     begin with the hand block's joint positions."""
     from dexdrake.hands.action_map import ActionMap

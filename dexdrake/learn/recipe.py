@@ -137,8 +137,8 @@ class Recipe:
 # (from the expert, no prior runs), and DAPG's batch shape from the stage's objects and horizon.
 DERIVED = {
     DaggerConfig: {"workers": "--workers", "backend": "--backend", "init": "the expert", "prior": "the expert"},
-    DAPGConfig: {"rollouts_per_iteration": "episodes_per_object x objects", "seed_groups": "objects", "time_scale": "horizon",
-                 "progress": "the command"},
+    DAPGConfig: {"rollouts_per_iteration": "episodes_per_object x objects", "seed_groups": "objects",
+                 "time_scale": "horizon", "progress": "the command"},
 }
 
 
@@ -214,9 +214,9 @@ def check_recipe(recipe: Recipe) -> None:
         raise DexdrakeError(f"recipe field dagger.config.feature_set: {config.feature_set!r} is not one of "
                             f"{list(FEATURE_SETS)}")
     counts = {"expert.episodes_per_object": recipe.expert.episodes_per_object, "expert.horizon": recipe.expert.horizon,
-              "dagger.config.iterations": config.iterations, "choose.episodes_per_object": recipe.choose.episodes_per_object,
-              "choose.horizon": recipe.choose.horizon, "test.episodes_per_object": recipe.test.episodes_per_object,
-              "test.horizon": recipe.test.horizon}
+              "dagger.config.iterations": config.iterations,
+              "choose.episodes_per_object": recipe.choose.episodes_per_object, "choose.horizon": recipe.choose.horizon,
+              "test.episodes_per_object": recipe.test.episodes_per_object, "test.horizon": recipe.test.horizon}
     for k, stage in enumerate(recipe.dapg):
         counts |= {f"dapg.{k}.episodes_per_object": stage.episodes_per_object, f"dapg.{k}.horizon": stage.horizon,
                    f"dapg.{k}.demo_pairs": stage.demo_pairs, f"dapg.{k}.config.iterations": stage.config.iterations}

@@ -61,6 +61,16 @@ steps = int_at_least(1, MAX_STEPS)
 episodes = int_at_least(1, MAX_EPISODES)
 
 
+def horizon_help(note: str = "") -> str:
+    """The help of every `--horizon` flag (type `steps`), with a command's `note` on its value."""
+    return f"control steps per episode ({note + '; ' if note else ''}at most {MAX_STEPS})"
+
+
+def episodes_per_object_help(note: str = "") -> str:
+    """The help of every `--episodes-per-object` flag (type `episodes`), with a command's `note`."""
+    return f"episodes per object ({note + '; ' if note else ''}at most {MAX_EPISODES})"
+
+
 def seed_list(text: str) -> list[int]:
     """Comma-separated seeds (integers >= 0), at least one: '100,101,102'."""
     return [seed(item) for item in text.split(",")]

@@ -19,7 +19,7 @@ import numpy as np
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--object", default="mug")
-    parser.add_argument("--episodes", type=int, default=4)
+    parser.add_argument("--episodes", type=int, default=4, help="episodes of the one object (seeds 0..N-1)")
     parser.add_argument("--horizon", type=int, default=100)
     args = parser.parse_args()
 

@@ -3,7 +3,7 @@ recorded (`systems/rerun_logger.RerunLogger`, mode sim, to an .rrd in a temporar
 and not recorded, measured in the same run; prints both and their ratio. Times are this
 process's CPU time per control step (time.process_time; the recorder's own threads count).
 
-    python scripts/bench_recording.py [--hand adroit] [--object sphere_medium] [--steps 150] [--episodes 2]
+    python scripts/bench_recording.py [--hand adroit] [--object sphere_medium] [--horizon 150] [--episodes 2]
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from dexdrake import argtypes
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
@@ -21,8 +23,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--object", default="sphere_medium")
-    parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--horizon", type=argtypes.steps, default=150, help=argtypes.horizon_help())
+    parser.add_argument("--episodes", type=int, default=2, help="episodes of the one object (seeds 0..N-1)")
     args = parser.parse_args()
 
     from dexdrake.systems.grasp_env import GraspEnv
@@ -30,7 +32,7 @@ def main() -> None:
     from dexdrake.systems.env_factory import training_scenario
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.steps)
+    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.horizon)
     env.rollout(ScriptedGrasp, 0)  # warm-up: scene built, caches filled
     plain = recorded = 0.0
     with tempfile.TemporaryDirectory() as folder:
@@ -44,8 +46,8 @@ def main() -> None:
             logger.close()
             recorded += time.process_time() - start
         size = sum(p.stat().st_size for p in Path(folder).glob("*.rrd")) / args.episodes
-    steps = args.episodes * args.steps
-    print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps; "
+    steps = args.episodes * args.horizon
+    print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.horizon} control steps; "
           f"load average {os.getloadavg()[0]:.1f}")
     print(f"not recorded: {1e3 * plain / steps:.2f} ms CPU per control step")
     print(f"recorded:     {1e3 * recorded / steps:.2f} ms CPU per control step "

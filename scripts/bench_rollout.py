@@ -1,6 +1,6 @@
 """Throughput of labelled grasp experience: rates, a per-step breakdown and MuJoCo's in the same run.
 
-    python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes 2]
+    python scripts/bench_rollout.py [--objects mug,can_soda,box_cube,bottle_wine] [--episodes-per-object 2]
         [--horizon 100] [--envs 1,8] [--repeats 2] [--bc-samples 8000] [--workers 1,2]
 
 Everything runs the real code path of DAgger collection (`dexdrake.learn.dagger.labelled_lockstep`:
@@ -10,7 +10,7 @@ in lockstep with one policy call per step for the K observations):
   and the rest) and building the env for one object, in a fresh process;
 - expert-driven collection (the expert acts and labels) and policy-driven collection (the
   shipped Adroit DexRep policy acts, the expert labels) at each K of `--envs`, on the same
-  episodes (`--episodes` seeds per object): labelled steps and simulated seconds per
+  episodes (`--episodes-per-object` seeds per object): labelled steps and simulated seconds per
   CPU-second of this process, and MuJoCo's multiple;
 - the breakdown of one labelled step, each part against its budget: plant advance (split, on sampled steps, into contact
   work = the advance minus the same advance with the object out of reach, and the rest;
@@ -47,6 +47,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
+from dexdrake import argtypes  # noqa: E402
 
 STARTUP_SNIPPET = """
 import time, importlib
@@ -303,8 +305,9 @@ def shipped_policy_env(objects: list[str], horizon: int):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="mug,can_soda,box_cube,bottle_wine")
-    parser.add_argument("--episodes", type=int, default=2, help="episodes (seeds) per object")
-    parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--episodes-per-object", type=argtypes.episodes, default=2,
+                        help=argtypes.episodes_per_object_help("seeds 1000..1000+N-1"))
+    parser.add_argument("--horizon", type=argtypes.steps, default=100, help=argtypes.horizon_help())
     parser.add_argument("--envs", default="1,8", help="envs in lockstep (K) to measure")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each configuration (the fastest is kept)")
     parser.add_argument("--bc-samples", type=int, default=8000)
@@ -318,7 +321,7 @@ def main() -> None:
     torch.set_num_threads(1)
     policy, factory = shipped_policy_env(objects, args.horizon)
     dt, period = factory.scenario.time_step, factory.scenario.control_period
-    jobs = [(name, 1000 + k) for k in range(args.episodes) for name in objects]
+    jobs = [(name, 1000 + k) for k in range(args.episodes_per_object) for name in objects]
     print(f"plant step {1e3 * dt:g} ms, control period {1e3 * period:g} ms; objects {objects}; horizon {args.horizon}; "
           f"{len(jobs)} episodes per measurement")
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
@@ -367,7 +370,7 @@ def main() -> None:
         from bench_scaling import measure_scaling, print_scaling
 
         counts = tuple(int(w) for w in args.workers.split(","))
-        episodes = max(args.episodes, 1) * len(objects) * max(counts)
+        episodes = max(args.episodes_per_object, 1) * len(objects) * max(counts)
         print(f"\nDAgger collection (expert-driven) with {args.workers} workers, local processes and Ray:")
         print_scaling(measure_scaling(objects, episodes, args.horizon, ("process", "ray"), counts),
                       f"python scripts/bench_scaling.py --objects {','.join(objects)} --episodes {episodes} "

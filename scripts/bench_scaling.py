@@ -70,7 +70,7 @@ def print_scaling(rows: list[dict], command: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="sphere_medium,mug")
-    parser.add_argument("--episodes", type=int, default=8)
+    parser.add_argument("--episodes", type=int, default=8, help="episodes in all, the objects in turn")
     parser.add_argument("--horizon", type=int, default=50)
     parser.add_argument("--backends", default="process,ray")
     parser.add_argument("--workers", default="1,2", help="comma-separated worker counts; the first is the baseline")

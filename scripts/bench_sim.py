@@ -6,7 +6,7 @@ Adroit relocate scene measured in the same run (optional `bench` extra; see
 `mujoco_peer.py`). Rates are per second of this process's CPU time (wall time is printed
 too: on a shared machine it is inflated by other processes; the load average is printed).
 
-    python scripts/bench_sim.py [--object sphere_medium] [--episodes 2] [--steps 150]
+    python scripts/bench_sim.py [--object sphere_medium] [--episodes 2] [--horizon 150]
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ import argparse
 import os
 import time
 from dataclasses import replace
+
+from dexdrake import argtypes
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -25,8 +27,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--object", default="sphere_medium")
-    parser.add_argument("--episodes", type=int, default=2)
-    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--episodes", type=int, default=2, help="episodes of the one object (seeds 0..N-1)")
+    parser.add_argument("--horizon", type=argtypes.steps, default=150, help=argtypes.horizon_help())
     args = parser.parse_args()
 
     import mujoco_peer
@@ -37,7 +39,7 @@ def main() -> None:
     from dexdrake.systems.grasp_env import GraspEnv
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.steps} control steps (50 Hz)")
+    print(f"hand={args.hand} object={args.object} episodes={args.episodes} x {args.horizon} control steps (50 Hz)")
     print(f"load average {os.getloadavg()[0]:.1f}")
     peer = mujoco_peer.measure_relocate()
     if peer is None:
@@ -47,13 +49,13 @@ def main() -> None:
     print(f"{'plant dt (ms)':>14}{'control steps/s':>17}{'plant steps/s':>15}{'sim s/s':>9}{'vs MuJoCo':>11}"
           f"{'wall s':>8}{'success':>9}")
     for dt in TIME_STEPS:
-        env = GraspEnv(replace(training_scenario(args.hand, args.object), time_step=dt), horizon=args.steps)
+        env = GraspEnv(replace(training_scenario(args.hand, args.object), time_step=dt), horizon=args.horizon)
         env.rollout(ScriptedGrasp, seed=0)  # warm-up (first-use allocations)
         start, cpu_start, successes = time.perf_counter(), time.process_time(), 0
         for seed in range(args.episodes):
             successes += env.rollout(ScriptedGrasp, seed=seed).success
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-        control = args.episodes * args.steps / cpu
+        control = args.episodes * args.horizon / cpu
         plant = control * env.scenario.control_period / dt
         sim_rate = control * env.scenario.control_period
         ratio = f"{sim_rate / peer.sim_s_per_cpu_s:>10.3f}x" if peer else f"{'-':>11}"

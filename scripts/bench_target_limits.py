@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--object", default="sphere_medium")
     parser.add_argument("--feature-set", default="DexRep", help="'none': hand state only")
-    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--episodes", type=int, default=3, help="episodes of the one object (seeds 0..N-1)")
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
 

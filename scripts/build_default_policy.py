@@ -3,7 +3,7 @@
 The whole pipeline from a recipe (expert, DAgger, DAPG stages, choice on validation seeds,
 test tables, shipping) is `dexdrake train recipe`; this script ships runs made by hand.
 
-    python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--per-object 2]
+    python scripts/build_default_policy.py [--work runs/default_policy] [--iterations 6] [--episodes-per-object 2]
         [--epochs 20] [--lr 1e-4] [--seen-episodes 2] [--unseen-episodes 5] [--workers 2]
         [--hand adroit] [--objects train] [--dagger DIR | --dapg DIR | --shipped] [--seeds validation|test]
 
@@ -73,11 +73,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=Path("runs/default_policy"))
     parser.add_argument("--iterations", type=int, default=6)
-    parser.add_argument("--per-object", type=int, default=2, help="episodes per training object per DAgger iteration")
+    parser.add_argument("--episodes-per-object", type=int, default=2,
+                        help="episodes per training object per DAgger iteration")
     parser.add_argument("--epochs", type=int, default=20, help="BC epochs after each DAgger iteration")
     parser.add_argument("--lr", type=float, default=1e-4)
-    parser.add_argument("--seen-episodes", type=int, default=2)
-    parser.add_argument("--unseen-episodes", type=int, default=5)
+    parser.add_argument("--seen-episodes", type=int, default=2, help="evaluation episodes per seen object")
+    parser.add_argument("--unseen-episodes", type=int, default=5, help="evaluation episodes per held-out object")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--hand", default="adroit")
     parser.add_argument("--objects", default="train", help="'train' or comma-separated training object names")
@@ -114,15 +115,15 @@ def main() -> None:
         check_dapg_started_from(args.dapg, candidate, target)
     if not (args.dagger or args.dapg or args.shipped):
         run([dexdrake, "train", "dagger", "--out", str(dagger), "--hand", args.hand, "--objects", args.objects,
-             "--iterations", str(args.iterations), "--per-object",
-             str(args.per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
+             "--iterations", str(args.iterations), "--episodes-per-object",
+             str(args.episodes_per_object), "--epochs", str(args.epochs), "--lr", str(args.lr), "--workers", str(args.workers),
              "--seed", "0"], dagger / "dagger_policy.pt", log)
     policy = target.relative_to(ROOT) if args.shipped else candidate if args.dapg else dagger / "dagger_policy.pt"
     seen = "seen" if args.objects == "train" else args.objects
     evals = work / "eval" / sha256(ROOT / policy)[:12]  # per policy content: a stale evaluation is never reused for another
     evals = evals / args.seeds
     for label, objects, episodes in (("unseen", HELD_OUT[args.seeds], args.unseen_episodes), ("seen", seen, args.seen_episodes)):
-        run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes", str(episodes),
+        run([dexdrake, "eval", "--policy", str(policy), "--objects", objects, "--label", label, "--episodes-per-object", str(episodes),
              "--seed", str(EVAL_SEED[args.seeds]), "--workers", str(args.workers), "--out", str(evals)],
             evals / f"eval_{label}.json", log)
     if args.seeds == "validation":

@@ -15,7 +15,7 @@ rewritten after every episode, so a run stopped early leaves a consistent table 
 "sim, same episodes" column compares each row with simulation on exactly its episodes.
 
     .venv/bin/python scripts/parity_hil.py --objects can_soda lightbulb --seeds 0 1 \
-        --steps 150 --scales 1 0.5 2 [--out models/weights/parity_hil.md]
+        --horizon 150 --scales 1 0.5 2 [--out models/weights/parity_hil.md]
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ import sys
 import time
 
 import numpy as np
+
+from dexdrake import argtypes
 
 
 class PoseError:
@@ -146,13 +148,13 @@ def main() -> int:
     parser.add_argument("--config", default="hil")
     parser.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--horizon", type=argtypes.steps, default=150, help=argtypes.horizon_help())
     parser.add_argument("--scales", nargs="+", type=float, default=[1.0, 0.5, 2.0])
     parser.add_argument("--camera", choices=["rendered", "sim"], default="rendered")
     parser.add_argument("--out", help="write the table (markdown) here as well, after every episode")
     args = parser.parse_args()
     command = ("python scripts/parity_hil.py --config " + args.config + " --objects " + " ".join(args.objects)
-               + " --seeds " + " ".join(map(str, args.seeds)) + f" --steps {args.steps} --scales "
+               + " --seeds " + " ".join(map(str, args.seeds)) + f" --horizon {args.horizon} --scales "
                + " ".join(f"{s:g}" for s in args.scales) + f" --camera {args.camera}")
     modes = [("sim", 1.0)] + [("hil", s) for s in args.scales]
     episodes = [(obj, seed) for seed in args.seeds for obj in args.objects]
@@ -160,7 +162,7 @@ def main() -> int:
     order += [(mode, scale, obj, seed) for obj, seed in episodes for mode, scale in modes[2:]]
     rows: list[dict] = []
     for mode, scale, obj, seed in order:
-        row = run(args.config, obj, seed, args.steps, mode, scale, args.camera)
+        row = run(args.config, obj, seed, args.horizon, mode, scale, args.camera)
         rows.append(row)
         print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
               f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "

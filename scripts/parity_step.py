@@ -4,7 +4,7 @@ pre-grasp pose, clear of the object) in the simulated station and in HIL (camera
 Prints, per joint group, the fastest measured joint speed and the largest and final
 difference between the two trajectories; both follow the set-point limits of `--config`.
 
-    .venv/bin/python scripts/parity_step.py [--config hil] [--steps 100]
+    .venv/bin/python scripts/parity_step.py [--config hil] [--horizon 100]
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ import argparse
 import sys
 
 import numpy as np
+
+from dexdrake import argtypes
 
 
 def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
@@ -47,14 +49,14 @@ def trajectory(config: str, mode: str, steps: int) -> np.ndarray:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="hil")
-    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--horizon", type=argtypes.steps, default=100, help=argtypes.horizon_help())
     args = parser.parse_args()
     from dexdrake.hands.description import load_hand
     from dexdrake.systems.scenario import load_scenario
 
     scenario = load_scenario(args.config)
     n_arm = len(load_hand(scenario.hand).arm_joints)
-    sim, hil = trajectory(args.config, "sim", args.steps), trajectory(args.config, "hil", args.steps)
+    sim, hil = trajectory(args.config, "sim", args.horizon), trajectory(args.config, "hil", args.horizon)
     k = min(len(sim), len(hil))
     sim, hil = sim[:k], hil[:k]
     print(f"set-point steps, {k} control steps of {scenario.control_period * 1e3:.0f} ms ({args.config})")
@@ -63,7 +65,7 @@ def main() -> int:
         diff = np.abs(hil[:, cols] - sim[:, cols])
         print(f"  {name:8s} max speed sim {speed[0]:.2f} rad/s, hil {speed[1]:.2f} rad/s; |hil - sim| "
               f"max {diff.max():.3f} rad (step {int(diff.max(axis=1).argmax())}), final {diff[-1].max():.3f} rad")
-    print(f"command: .venv/bin/python scripts/parity_step.py --config {args.config} --steps {args.steps}")
+    print(f"command: .venv/bin/python scripts/parity_step.py --config {args.config} --horizon {args.horizon}")
     return 0
 
 

@@ -172,14 +172,14 @@ class HilWorldConfig:
 @dc.dataclass
 class RealEpisode:
     """A supervised real episode (`dexdrake real`): the move to the start pose (the hand's
-    pre-grasp pose), `steps` control periods of the controller, the retreat (the hand opens,
+    pre-grasp pose), `horizon` control periods of the controller, the retreat (the hand opens,
     then the arm goes back to the start pose), each move at `move_speed` on its fastest
     joint (and never faster than the drivers' own target rates). Every set-point, the
     moves' and the controller's, keeps the palm centre and the fingertips inside the
     workspace box (world frame, m), else the episode ends in a fault stop
     (systems/workspace.py)."""
 
-    steps: int = 150
+    horizon: int = 150  # control steps (`dexdrake real --horizon` overrides it)
     workspace_lower: list[float] = dc.field(default_factory=lambda: [-0.45, -0.35, 0.0])
     workspace_upper: list[float] = dc.field(default_factory=lambda: [0.45, 0.35, 0.6])
     move_speed: float = 0.3  # rad/s, the fastest joint of a move
@@ -281,6 +281,17 @@ def _check_types(data: object, schema: type, source: str, prefix: str = "") -> N
             raise ScenarioError(f"{source}: field {prefix}{key} must be {_KINDS[hint][0]}, got {value!r}")
 
 
+RENAMED = {("real", "steps"): "real.horizon"}  # (section, old field) -> the field's name now
+
+
+def _check_renamed(data: object, source: str) -> None:
+    """ScenarioError naming the new name of the first renamed field that `data` (parsed YAML) uses."""
+    for (section, old), new in RENAMED.items():
+        entry = data.get(section) if isinstance(data, dict) else None
+        if isinstance(entry, dict) and old in entry:
+            raise ScenarioError(f"{source}: field {section}.{old} is now {new}")
+
+
 def _reads_as(value: object, kind: type) -> bool:
     """Whether Drake's YAML reader takes `value` (as PyYAML parsed it) for a `kind` field; it
     also reads numbers PyYAML leaves as strings, such as 1.0e9."""
@@ -296,9 +307,11 @@ def _reads_as(value: object, kind: type) -> bool:
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Load and validate a scenario from YAML text."""
     try:
-        _check_types(yaml.safe_load(text), Scenario, source)
+        data = yaml.safe_load(text)
     except yaml.YAMLError as err:
         raise ScenarioError(f"{source}: not valid YAML ({' '.join(str(err).split())})") from None
+    _check_renamed(data, source)
+    _check_types(data, Scenario, source)
     try:
         scenario = yaml_load_typed(schema=Scenario, data=text)
     except Exception as err:  # yaml_load_typed raises RuntimeError/TypeError/yaml errors
@@ -473,8 +486,8 @@ def validate_scenario(s: Scenario, source: str = "<scenario>") -> None:
         _require(c.kind != "recorded" or bool(c.recording), source,
                  "drivers.camera.recording must name a folder or .npz for kind 'recorded'")
     r = s.real
-    _require(r.steps >= 1 and r.move_speed > 0 and r.move_tolerance > 0 and r.move_timeout_s > 0, source,
-             "real.steps must be >= 1 and real.move_speed, .move_tolerance, .move_timeout_s > 0")
+    _require(r.horizon >= 1 and r.move_speed > 0 and r.move_tolerance > 0 and r.move_timeout_s > 0, source,
+             "real.horizon must be >= 1 and real.move_speed, .move_tolerance, .move_timeout_s > 0")
     _check_vector(r.workspace_lower, 3, "real.workspace_lower", source)
     _check_vector(r.workspace_upper, 3, "real.workspace_upper", source)
     _require(all(lo < hi for lo, hi in zip(r.workspace_lower, r.workspace_upper)), source,

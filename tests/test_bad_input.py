@@ -214,7 +214,7 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
 # -- numbers: non-finite losses and weights, bounds --------------------------------------
 @pytest.mark.parametrize("argv, message", [
     (["train", "bc", "--data", "data.npz", "--out", "run/bc", "--lr", "1e30", "--epochs", "3"], "loss is nan"),
-    (["eval", "--policy", "nan.pt", "--objects", "apple", "--episodes", "1"], "non-finite weights"),
+    (["eval", "--policy", "nan.pt", "--objects", "apple", "--episodes-per-object", "1"], "non-finite weights"),
     (["train", "dagger", "--out", "run", "--objects", "sphere_small", "--feature-set", "Hand2obj", "--init", "nan.pt",
       "--backend", "sequential"], "non-finite weights"),
     (["train", "dapg", "--init", "nan.pt", "--demos", "data.npz", "--out", "run"], "non-finite weights"),
@@ -223,41 +223,42 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
     (["objects", "augment", "--copies", "100000"], "at most 50"),
     (["objects", "augment", "--shapes", "5000"], "at most 999"),
     (["sim", "--time-step", "1e-9"], "--time-step"),
-    (["features", "show", "--object", "apple", "--steps", "0"], "--steps"),
-    (["sim", "--steps", "10001"], "argument --steps: must be at most 10000"),
-    (["features", "show", "--object", "apple", "--steps", "1000000"], "argument --steps: must be at most 10000"),
-    (["demo", "--steps", "10001"], "argument --steps: must be at most 10000"),
-    (["eval", "--policy", "policy.pt", "--episodes", "100000000"], "argument --episodes: must be at most 10000"),
+    (["features", "show", "--object", "apple", "--horizon", "0"], "--horizon"),
+    (["sim", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
+    (["features", "show", "--object", "apple", "--horizon", "1000000"], "argument --horizon: must be at most 10000"),
+    (["demo", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
+    (["eval", "--policy", "policy.pt", "--episodes-per-object", "100000000"], "argument --episodes-per-object: must be at most 10000"),
     (["eval", "--policy", "policy.pt", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
     (["train", "dagger", "--out", "run", "--horizon", "99999"], "argument --horizon: must be at most 10000"),
-    (["train", "dagger", "--out", "run", "--per-object", "99999"], "argument --per-object: must be at most 10000"),
+    (["train", "dagger", "--out", "run", "--episodes-per-object", "99999"], "argument --episodes-per-object: must be at most 10000"),
     (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--horizon", "99999"],
      "argument --horizon: must be at most 10000"),
     (["demos", "replay", "--hand", "adroit", "--demos", "demos", "--out", "r.npz", "--horizon", "99999"],
      "argument --horizon: must be at most 10000"),
-    (["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "99999"],
-     "argument --per-object: must be at most 10000"),
+    (["demos", "synth", "--objects", "apple", "--out", "demos", "--demos-per-object", "99999"],
+     "argument --demos-per-object: must be at most 10000"),
 ], ids=["bc-nan", "eval-nan", "dagger-init-nan", "dapg-init-nan", "encoder-nan", "augment-copies",
-        "augment-shapes", "sim-time-step", "features-steps", "sim-steps", "features-steps-bound", "demo-steps",
-        "eval-episodes", "eval-horizon", "dagger-horizon", "dagger-per-object", "dapg-horizon", "replay-horizon",
-        "synth-per-object"])
+        "augment-shapes", "sim-time-step", "features-horizon", "sim-horizon", "features-horizon-bound", "demo-horizon",
+        "eval-episodes-per-object", "eval-horizon", "dagger-horizon", "dagger-episodes-per-object", "dapg-horizon",
+        "replay-horizon", "synth-demos-per-object"])
 def test_numbers_that_would_lose_work_or_never_finish(world, capsys, argv, message, one_torch_thread):
     err = _fails(argv, capsys, world, log="run/bc/bc_log.csv")  # BC's log keeps the epochs it ran
     assert message in err, err
 
 
-@pytest.mark.parametrize("words, flag", [(["sim"], "--steps"), (["features", "show"], "--steps"), (["demo"], "--steps"),
-                                         (["eval"], "--episodes"), (["eval"], "--horizon"),
-                                         (["train", "dagger"], "--horizon"), (["train", "dagger"], "--per-object"),
-                                         (["train", "dapg"], "--horizon"), (["train", "dapg"], "--per-object"),
-                                         (["demos", "replay"], "--horizon"), (["demos", "synth"], "--per-object")])
+@pytest.mark.parametrize("words, flag", [(["sim"], "--horizon"), (["features", "show"], "--horizon"), (["demo"], "--horizon"),
+                                         (["hil"], "--horizon"), (["real"], "--horizon"),
+                                         (["ablations"], "--episodes-per-object"), (["eval"], "--episodes-per-object"), (["eval"], "--horizon"),
+                                         (["train", "dagger"], "--horizon"), (["train", "dagger"], "--episodes-per-object"),
+                                         (["train", "dapg"], "--horizon"), (["train", "dapg"], "--episodes-per-object"),
+                                         (["demos", "replay"], "--horizon"), (["demos", "synth"], "--demos-per-object")])
 def test_help_states_the_bound(capsys, words, flag):
     from dexdrake import argtypes
 
     with pytest.raises(SystemExit):
         main([*words, "--help"])
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps the help
-    bound = argtypes.MAX_EPISODES if flag == "--per-object" or flag == "--episodes" else argtypes.MAX_STEPS
+    bound = argtypes.MAX_EPISODES if flag.endswith("-per-object") else argtypes.MAX_STEPS
     options = text[text.index("options:"):]
     after = options[options.index(flag + " "):]
     end = after.find(" --", len(flag))
@@ -282,7 +283,7 @@ def test_a_non_finite_dapg_objective_stops_with_nothing_written(world, capsys, o
             weights.fill_(1e30)
     torch.save(state, world / "big.pt")
     err = _fails(["train", "dapg", "--init", init, "--demos", demos, "--out", "run", "--objects", "sphere_small",
-                  "--per-object", "1", "--horizon", "3", "--iterations", "1", "--backend", "sequential",
+                  "--episodes-per-object", "1", "--horizon", "3", "--iterations", "1", "--backend", "sequential",
                   "--workers", "1"], capsys, world)
     assert f"DAPG iteration 0: the objective or its gradient is not finite (objective {objective})" in err, err
 
@@ -351,7 +352,7 @@ def test_a_damaged_file_in_a_dagger_run_is_named(world, capsys):
 
 
 def test_an_unusable_demo_in_a_replay_folder_is_named(world, capsys):
-    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "1"]) == 0
+    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--demos-per-object", "1"]) == 0
     (good,) = (world / "demos").glob("*.npz")
     with np.load(good) as d:
         arrays = dict(d)
@@ -401,7 +402,7 @@ def test_ctrl_c_is_one_line_and_exit_130(world, capsys, monkeypatch):
 
 @pytest.mark.slow
 def test_ctrl_c_during_a_replay_with_workers(world):
-    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--per-object", "4"]) == 0
+    assert main(["demos", "synth", "--objects", "apple", "--out", "demos", "--demos-per-object", "4"]) == 0
     process = subprocess.Popen([sys.executable, "-m", "dexdrake.cli", "demos", "replay", "--hand", "adroit", "--demos",
                                 "demos", "--out", "r.npz", "--workers", "2"], stderr=subprocess.PIPE, text=True,
                                start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
@@ -448,7 +449,7 @@ def _interrupt(argv: list[str], cwd: Path, ready) -> tuple[int, list[str]]:
 
 
 DAGGER_RUN = ["train", "dagger", "--out", "run", "--objects", "sphere_small", "--feature-set", "Hand2obj",
-              "--iterations", "3", "--per-object", "1", "--horizon", "5", "--epochs", "1"]
+              "--iterations", "3", "--episodes-per-object", "1", "--horizon", "5", "--epochs", "1"]
 
 
 @pytest.mark.slow
@@ -468,7 +469,7 @@ def test_ctrl_c_during_dagger_then_it_resumes(world, backend):
 @pytest.mark.slow
 def test_ctrl_c_during_dapg_with_workers(world):
     code, lines = _interrupt(["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--objects",
-                              "sphere_small", "--per-object", "2", "--horizon", "20", "--iterations", "500",
+                              "sphere_small", "--episodes-per-object", "2", "--horizon", "20", "--iterations", "500",
                               "--workers", "2"], world, lambda: (world / "run" / "dapg_log.csv").exists())
     assert code == 130 and len(lines) == 1 and "dexdrake train dapg: interrupted" in lines[0], lines
 
@@ -476,7 +477,7 @@ def test_ctrl_c_during_dapg_with_workers(world):
 @pytest.mark.slow
 def test_ctrl_c_during_eval_with_workers(world):
     start = time.monotonic()
-    code, lines = _interrupt(["eval", "--policy", "policy.pt", "--objects", "apple,sphere_small", "--episodes", "200",
+    code, lines = _interrupt(["eval", "--policy", "policy.pt", "--objects", "apple,sphere_small", "--episodes-per-object", "200",
                               "--workers", "2"], world, lambda: time.monotonic() > start + 15)
     assert code == 130 and len(lines) == 1 and "dexdrake eval: interrupted" in lines[0], lines
 
@@ -490,7 +491,7 @@ def test_a_broken_user_object_is_named_with_the_fix(world, capsys):
     trimesh.creation.box((0.05, 0.05, 0.05)).export(world / "mesh.stl")
     mesh = import_mesh(world / "mesh.stl", "boxy").mesh_path
     mesh.write_text("")
-    err = _fails(["sim", "--object", "boxy", "--steps", "1"], capsys, world)
+    err = _fails(["sim", "--object", "boxy", "--horizon", "1"], capsys, world)
     assert f"{mesh} holds no triangle mesh" in err and "objects import FILE --name NAME --overwrite" in err
     mesh.unlink()  # removed while a simulation uses it
     with pytest.raises(BrokenMeshFileError, match="is gone"):

@@ -87,7 +87,7 @@ def files(tmp_path, monkeypatch):
 
 
 BAD = [
-    (["sim", "--steps", "0"], "--steps"),
+    (["sim", "--horizon", "0"], "--horizon"),
     (["sim", "--time-step", "0.5"], "--time-step"),
     (["sim", "--time-step", "0.003"], "--time-step"),
     (["sim", "--seed", "-1"], "--seed"),
@@ -110,8 +110,8 @@ BAD = [
     (["demos", "import", "zero.npy", "--out", "x.npz"], "every frame is empty"),
     (["demos", "import", "zero.npy", "--out", "x.npz", "--object-pose", "1,2,3"], "--object"),
     (["demos", "import", "zero.npy", "--out", "x.txt"], "--out"),
-    (["demos", "synth", "--objects", "noobject", "--out", "o", "--per-object", "0"],
-     "--per-object"),
+    (["demos", "synth", "--objects", "noobject", "--out", "o", "--demos-per-object", "0"],
+     "--demos-per-object"),
     (["objects", "import", "missing.stl", "--name", "x"], "no such file"),
     (["objects", "import", "notes.txt", "--name", "Bad Name"], "invalid object name"),
     (["objects", "import", "notes.txt", "--name", "x", "--up-axis", "w"], "--up-axis"),
@@ -122,7 +122,7 @@ BAD = [
     (["eval", "--policy", "missing.pt", "--rrd", "folder"], "--rrd"),
     (["eval", "--policy", "missing.pt", "--workers", "2", "--rrd", "e.rrd"], "--workers 1"),
     (["features", "show", "--object", "apple", "--rrd", "folder"], "--rrd"),
-    (["hil", "--steps", "0"], "--steps"),
+    (["hil", "--horizon", "0"], "--horizon"),
     (["hil", "--rrd", "folder"], "--rrd"),
     (["demo", "--seed", "-2"], "--seed"),
     (["demo", "--rrd", "folder"], "--rrd"),
@@ -151,6 +151,16 @@ def test_scenario_control_period_must_be_a_multiple_of_time_step():
     with pytest.raises(ScenarioError, match="whole multiple of time_step"):
         parse_scenario("time_step: 0.003\ncontrol_period: 0.02", source="bad.yaml")
     parse_scenario("time_step: 0.001\ncontrol_period: 0.02", source="good.yaml")
+
+
+def test_a_renamed_scenario_field_is_refused_naming_its_name_now(tmp_path, capsys):
+    from dexdrake.systems.scenario import parse_scenario
+
+    assert parse_scenario("real: {horizon: 7}").real.horizon == 7
+    path = tmp_path / "old.yaml"
+    path.write_text("real: {steps: 7}\n")
+    assert _run(["real", "--config", str(path), "--dry-run"], capsys).endswith(
+        f"{path}: field real.steps is now real.horizon")
 
 
 def test_dagger_refuses_to_resume_a_folder_made_with_other_arguments(tmp_path, capsys):

@@ -59,7 +59,7 @@ def _shipped(hand: str):
 
 
 def test_eval_with_two_workers_matches_one(tmp_path, capsys):
-    common = ["eval", "--policy", str(_shipped("adroit")), "--objects", "apple", "--episodes", "3",
+    common = ["eval", "--policy", str(_shipped("adroit")), "--objects", "apple", "--episodes-per-object", "3",
               "--seed", str(SEED), "--horizon", "4"]
     assert main([*common, "--workers", "1", "--out", str(tmp_path / "one")]) == 0
     assert main([*common, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
@@ -78,7 +78,7 @@ def test_eval_with_two_workers_matches_one(tmp_path, capsys):
 
 def test_sim_with_allegro_on_z1_lifts_the_sphere(tmp_path, capsys):
     rrd = tmp_path / "sim.rrd"
-    assert main(["sim", "--hand", "allegro_z1", "--object", "sphere_medium", "--steps", "150", "--rrd", str(rrd)]) == 0
+    assert main(["sim", "--hand", "allegro_z1", "--object", "sphere_medium", "--horizon", "150", "--rrd", str(rrd)]) == 0
     line = _summary(capsys.readouterr().out)
     assert line["success"] == "True" and float(line["max_lift"].rstrip("m")) > 0.1
     rows = logged_rows(rrd)
@@ -90,7 +90,7 @@ def test_sim_with_allegro_on_z1_lifts_the_sphere(tmp_path, capsys):
 def test_train_dagger_on_allegro_z1(tmp_path):
     out = tmp_path / "dagger"
     assert main(["train", "dagger", "--out", str(out), "--hand", "allegro_z1", "--objects", "sphere_small",
-                 "--iterations", "1", "--per-object", "1", "--horizon", "5", "--epochs", "1", "--workers", "1",
+                 "--iterations", "1", "--episodes-per-object", "1", "--horizon", "5", "--epochs", "1", "--workers", "1",
                  "--threads", "1"]) == 0
     policy, meta = load_policy(out / "dagger_policy.pt")
     assert policy.config.hand == "allegro_z1" and policy.config.feature_set == "DexRep"
@@ -100,7 +100,7 @@ def test_train_dagger_on_allegro_z1(tmp_path):
 
 def test_demos_synth_writes_loadable_demos(tmp_path, capsys):
     out = tmp_path / "demos"
-    assert main(["demos", "synth", "--objects", "sphere_small,box_cube", "--out", str(out), "--per-object", "1"]) == 0
+    assert main(["demos", "synth", "--objects", "sphere_small,box_cube", "--out", str(out), "--demos-per-object", "1"]) == 0
     assert "wrote 2 demos" in capsys.readouterr().out
     files = sorted(out.glob("*.npz"))
     assert [f.name.split("_00_")[0] for f in files] == ["box_cube", "sphere_small"]
@@ -111,7 +111,7 @@ def test_demos_synth_writes_loadable_demos(tmp_path, capsys):
 
 def test_retarget_and_replay_a_synthetic_demo(tmp_path, capsys):
     demos = tmp_path / "demos"
-    assert main(["demos", "synth", "--objects", "sphere_small", "--out", str(demos), "--per-object", "1"]) == 0
+    assert main(["demos", "synth", "--objects", "sphere_small", "--out", str(demos), "--demos-per-object", "1"]) == 0
     (demo,) = demos.glob("*.npz")
     out = tmp_path / "allegro.npz"
     capsys.readouterr()
@@ -156,7 +156,7 @@ def test_imported_object_in_sim_and_eval(tmp_path, capsys, monkeypatch):
     trimesh.creation.cylinder(radius=0.03, height=0.09, sections=24).export(mesh)
     assert main(["objects", "import", str(mesh), "--name", "test_cylinder"]) == 0
     assert "imported test_cylinder" in capsys.readouterr().out
-    assert main(["sim", "--object", "test_cylinder", "--steps", "5"]) == 0
+    assert main(["sim", "--object", "test_cylinder", "--horizon", "5"]) == 0
     assert _summary(capsys.readouterr().out)["object"] == "test_cylinder"
 
     env = GraspEnvFactory("adroit", "Hand2obj", ("test_cylinder",), horizon=3)()
@@ -164,7 +164,7 @@ def test_imported_object_in_sim_and_eval(tmp_path, capsys, monkeypatch):
     config = PolicyConfig.from_blocks(dict(env.observation_blocks), env.action_dim, feature_set="Hand2obj",
                                       hand="adroit")
     policy = save_policy(tmp_path / "p.pt", DexRepNetPolicy(config))
-    assert main(["eval", "--policy", str(policy), "--objects", "test_cylinder", "--episodes", "1", "--horizon", "3",
+    assert main(["eval", "--policy", str(policy), "--objects", "test_cylinder", "--episodes-per-object", "1", "--horizon", "3",
                  "--seed", str(SEED), "--out", str(tmp_path / "eval")]) == 0
     report = json.loads((tmp_path / "eval" / "eval_selected.json").read_text())
     assert [(e["object"], e["steps"]) for e in report["episodes"]] == [("test_cylinder", 3)]

@@ -137,7 +137,7 @@ def test_dagger_trains_resumes_and_cli(tmp_path, capsys, one_torch_thread):
     assert (tmp_path / "d" / "policy_01.pt").stat().st_mtime_ns == before
     assert len(read_csv(tmp_path / "d" / "dagger_log.csv")) == 2
     assert main(["train", "dagger", "--out", str(tmp_path / "c"), "--objects", OBJECT, "--iterations", "1",
-                 "--per-object", "1", "--epochs", "1", "--workers", "1", "--feature-set", "Hand2obj",
+                 "--episodes-per-object", "1", "--epochs", "1", "--workers", "1", "--feature-set", "Hand2obj",
                  "--threads", "1", "--residual-arm", "--weight-decay", "0.01", "--obs-noise", "0.1"]) == 0
     assert load_policy(tmp_path / "c" / "dagger_policy.pt")[0].config.residual_arm
     made = run_config(tmp_path / "c")
@@ -311,7 +311,7 @@ def test_the_ablation_command_tables_each_feature_set_on_a_dagger_runs_states(tm
     train_dagger([OBJECT], tmp_path / "d", GraspEnvFactory, ReactiveGrasp, config)
     out = tmp_path / "abl"
     assert main(["ablations", "--dagger", str(tmp_path / "d"), "--out", str(out), "--feature-sets", "Hand2obj",
-                 "--stride", "5", "--epochs", "1", "--episodes", "1", "--objects", "apple", "--workers", "1"]) == 0
+                 "--stride", "5", "--epochs", "1", "--episodes-per-object", "1", "--objects", "apple", "--workers", "1"]) == 0
     rows = read_csv(out / "ablations.csv")
     assert [r["feature_set"] for r in rows] == ["Hand2obj"]
     assert float(rows[0]["unseen_open_loop_mse"]) > 0 and 0 <= float(rows[0]["ours_all_pct"]) <= 100

@@ -615,7 +615,7 @@ def test_features_show_logs_dexrep_each_step(tmp_path):
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
     rrd = tmp_path / "show.rrd"
-    args = parser.parse_args(["features", "show", "--object", "sphere_medium", "--rrd", str(rrd), "--steps", "2"])
+    args = parser.parse_args(["features", "show", "--object", "sphere_medium", "--rrd", str(rrd), "--horizon", "2"])
     assert args.func(args) == 0
     rows = logged_rows(rrd)
     # The reset and each of the 2 steps log the DexRep parts next to the scene.

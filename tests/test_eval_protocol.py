@@ -92,7 +92,7 @@ def test_eval_cli_defaults_to_validation_seeds_says_its_range_and_refuses_others
     path = _policy(tmp_path / "p.pt", blocks, a)
     assert main(["eval", "--policy", str(path), "--objects", UNSEEN_OBJECT, "--seed", "0"]) == 2
     assert "must lie in one of validation" in capsys.readouterr().err
-    argv = ["eval", "--policy", str(path), "--objects", UNSEEN_OBJECT, "--episodes", "2", "--horizon", "3", "--out",
+    argv = ["eval", "--policy", str(path), "--objects", UNSEEN_OBJECT, "--episodes-per-object", "2", "--horizon", "3", "--out",
             str(tmp_path / "ev")]
     assert main(argv) == 0
     assert "validation range [1500000000, 2000000000)" in capsys.readouterr().out
@@ -118,14 +118,14 @@ def test_demo_runs_any_object_and_prints_the_measured_rates(tmp_path, env_blocks
     blocks, a = env_blocks
     path = _policy(tmp_path / "p.pt", blocks, a)
     rrd = str(tmp_path / "d.rrd")
-    assert main(["demo", "--policy", str(path), "--object", UNSEEN_OBJECT, "--seed", "12", "--steps", "2", "--rrd", rrd]) == 0
+    assert main(["demo", "--policy", str(path), "--object", UNSEEN_OBJECT, "--seed", "12", "--horizon", "2", "--rrd", rrd]) == 0
     out = capsys.readouterr().out
     assert f"object={UNSEEN_OBJECT} (unseen) seed=12" in out and "measured rates: none" in out
     metrics = {"seen": {"average_pct": 41.5, "average_ci95_pct": [38.0, 45.1], "per_object": {"x": {}, "y": {}},
                         "episodes_per_object": 10, "seed": 1000000000},
                "unseen": {"average_pct": 7.7, "per_object": {"x": {}}, "episodes_per_object": 10}}
     path.with_suffix(".json").write_text(json.dumps({"metrics": metrics}))
-    assert main(["demo", "--policy", str(path), "--object", TRAIN_OBJECTS[1], "--steps", "2", "--rrd", rrd]) == 0
+    assert main(["demo", "--policy", str(path), "--object", TRAIN_OBJECTS[1], "--horizon", "2", "--rrd", rrd]) == 0
     out = capsys.readouterr().out
     assert f"object={TRAIN_OBJECTS[1]} (train) seed=0" in out
     assert ("seen 41.5 % (95 % CI 38.0-45.1) over 2 objects x 10 episodes from seed 1000000000; "
@@ -146,7 +146,7 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
                rng.normal(size=(n, sum(blocks.values()))).astype(np.float32),
                rng.uniform(-0.3, 0.3, (n, a)).astype(np.float32)).save(folder / "data_00.npz", {"iteration": 0})
     out = tmp_path / "dapg"
-    argv = ["train", "dapg", "--init", str(init), "--demos", str(folder), "--out", str(out), "--per-object", "1",
+    argv = ["train", "dapg", "--init", str(init), "--demos", str(folder), "--out", str(out), "--episodes-per-object", "1",
             "--objects", ",".join(TRAIN_OBJECTS), "--horizon", "3", "--backend", "sequential", "--seed", "3"]
     assert main([UNSEEN_OBJECT if w == ",".join(TRAIN_OBJECTS) else w for w in argv]) == 2
     assert f"['{UNSEEN_OBJECT}'] are held-out objects" in capsys.readouterr().err

@@ -170,7 +170,7 @@ def test_ctrl_c_during_the_episode_ends_in_the_safe_stop(capsys, monkeypatch):
         os.kill(os.getpid(), signal.SIGINT)
 
     _mid_episode(monkeypatch, interrupt)
-    code = _main(["real_emulated", "--yes", "--steps", "500"])
+    code = _main(["real_emulated", "--yes", "--horizon", "500"])
     out, err = capsys.readouterr()
     assert code == 130, out + err
     assert _last_line(err) == "dexdrake real: interrupted: the devices were stopped safely", err
@@ -188,7 +188,7 @@ def test_a_device_fault_mid_episode_ends_in_a_fault_stop(capsys, monkeypatch):
         os.kill(proc.pid, signal.SIGKILL)
 
     _mid_episode(monkeypatch, kill_the_hand)
-    code = _main(["real_emulated", "--yes", "--steps", "500"])
+    code = _main(["real_emulated", "--yes", "--horizon", "500"])
     out, err = capsys.readouterr()
     assert code == 1, out + err
     assert _last_line(err).startswith("dexdrake real: fault stop in episode: Allegro hand"), err
@@ -218,7 +218,7 @@ def test_a_stale_pose_mid_episode_ends_in_a_fault_stop(capsys, monkeypatch):
 
     monkeypatch.setattr(station, "perception_executor", lambda mesh: Hanging(original(mesh)))
     _mid_episode(monkeypatch, hang.set)
-    code = _main(["real_emulated", "--yes", "--steps", "1000"])
+    code = _main(["real_emulated", "--yes", "--horizon", "1000"])
     out, err = capsys.readouterr()
     assert code == 1, out + err
     assert _last_line(err).startswith("dexdrake real: fault stop in episode: object pose") and \

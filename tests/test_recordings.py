@@ -56,11 +56,11 @@ def recordings(tmp_path_factory) -> dict[str, Path]:
     hil = out / "hil.yaml"
     hil.write_text((CONFIGS / "hil.yaml").read_text().replace("kind: rendered", "kind: sim"))
     commands = {
-        "sim": ["sim", "--steps", "3"],
-        "eval": ["eval", "--policy", _shipped("adroit"), "--objects", "apple,mug", "--episodes", "1",
+        "sim": ["sim", "--horizon", "3"],
+        "eval": ["eval", "--policy", _shipped("adroit"), "--objects", "apple,mug", "--episodes-per-object", "1",
                  "--seed", str(SEED), "--horizon", "3"],
-        "demo": ["demo", "--steps", "3"],
-        "hil": ["hil", "--config", str(hil), "--steps", "3"],
+        "demo": ["demo", "--horizon", "3"],
+        "hil": ["hil", "--config", str(hil), "--horizon", "3"],
     }
     paths = {}
     for mode, command in commands.items():

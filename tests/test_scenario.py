@@ -100,12 +100,12 @@ def test_sim_runs_a_scenarios_station_from_any_folder(tmp_path, monkeypatch, cap
     from rrd_content import logged_rows
 
     monkeypatch.chdir(tmp_path)
-    assert main(["sim", "--config", "sim", "--controller", "scripted", "--steps", "3", "--rrd", "sim.rrd"]) == 0
+    assert main(["sim", "--config", "sim", "--controller", "scripted", "--horizon", "3", "--rrd", "sim.rrd"]) == 0
     out = capsys.readouterr().out
     assert "sim: box_cube seed=0 controller=scripted grasp" in out and "steps=3" in out
     rows = logged_rows(tmp_path / "sim.rrd")  # every control step recorded from the station's ports
     assert rows["/world/object"] >= 3 and any(e.startswith("/joints/") for e in rows)
-    assert main(["sim", "--config", "sim", "--time-step", "0.002", "--steps", "1"]) == 2
+    assert main(["sim", "--config", "sim", "--time-step", "0.002", "--horizon", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "trained under time_step 5 ms (this scenario: 2 ms)" in err
 

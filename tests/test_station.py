@@ -670,7 +670,7 @@ def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_se
     if policy == "GARBAGE":
         policy = _garbage(tmp_path)
     config = _hil_config(tmp_path, policy, feature_set)
-    assert main(["hil", "--config", config, "--steps", "1"]) == 2
+    assert main(["hil", "--config", config, "--horizon", "1"]) == 2
     out, err = capsys.readouterr()
     assert out == "" and err.count("\n") == 1 and err.startswith("dexdrake hil: error: policy refused")
     assert reason in err and "weights_only=False" not in err

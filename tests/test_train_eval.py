@@ -88,7 +88,7 @@ def test_train_bc_rejects_blocks_that_do_not_match_observations(tmp_path, capsys
     ["train", "bc", "--data", "x.npz", "--out", "o", "--lr", "-1"],
     ["train", "bc", "--out", "o"],
     ["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o", "--backend", "gpu"],
-    ["eval", "--policy", "p.pt", "--episodes", "zero"],
+    ["eval", "--policy", "p.pt", "--episodes-per-object", "zero"],
     ["demo", "--seed", "one"],
 ])
 def test_cli_argument_errors_exit_with_usage(argv):
@@ -116,14 +116,14 @@ def test_the_train_flags_are_the_settings_dataclasses_fields(capsys):
     where = {"envs_per_worker": DaggerConfig.envs_per_worker, "backend": DaggerConfig.backend}
     args = parse(["train", "dagger", "--out", "o"])
     assert settings_from_args(DaggerConfig, args, **where) == DaggerConfig() and args.objects == DaggerStage.objects
-    args = parse(["train", "dagger", "--out", "o", "--per-object", "3", "--init", "p.pt", "--prior", "a", "b",
+    args = parse(["train", "dagger", "--out", "o", "--episodes-per-object", "3", "--init", "p.pt", "--prior", "a", "b",
                   "--residual-arm", "--weight-decay", "0.01"])
     assert settings_from_args(DaggerConfig, args, **where) == replace(
         DaggerConfig(), episodes_per_object=3, init="p.pt", prior=("a", "b"), residual_arm=True, weight_decay=0.01)
     args = parse(["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o"])
     assert settings_from_args(DAPGConfig, args) == DAPGConfig()
-    assert (args.objects, args.per_object, args.demo_samples) == (DapgStage.objects, DapgStage.per_object,
-                                                                    DapgStage.demo_pairs)
+    assert (args.objects, args.episodes_per_object, args.demo_samples) == (DapgStage.objects, DapgStage.episodes_per_object,
+                                                                              DapgStage.demo_pairs)
     args = parse(["train", "dapg", "--init", "p.pt", "--demos", "d.npz", "--out", "o", "--demo-weight", "0.2",
                   "--horizon", "50", "--reward", "aligned"])
     assert settings_from_args(DAPGConfig, args) == replace(DAPGConfig(), lam0=0.2, time_scale=50, reward="aligned")
@@ -148,7 +148,7 @@ def test_train_dapg_two_iterations_on_grasp_env(tmp_path, env_blocks):
     demos = _dataset(tmp_path / "d.npz", blocks, a, n=32)
     out = tmp_path / "dapg"
     argv = ["train", "dapg", "--init", str(init), "--demos", str(demos), "--out", str(out), "--iterations", "2",
-            "--per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3",
+            "--episodes-per-object", "2", "--objects", OBJECT, "--horizon", "4", "--backend", "sequential", "--seed", "3",
             "--demo-weight", "0.002", "--reward", "aligned"]
     assert main(argv) == 0
     rows = (out / "dapg_log.csv").read_text().strip().splitlines()
@@ -293,7 +293,7 @@ def test_demo_runs_a_policy_and_writes_a_recording(tmp_path, env_blocks, capsys)
     blocks, a = env_blocks
     path = _random_policy(tmp_path / "p.pt", blocks, a)
     rrd = tmp_path / "demo.rrd"
-    assert main(["demo", "--policy", str(path), "--object", OBJECT, "--steps", "3", "--rrd", str(rrd)]) == 0
+    assert main(["demo", "--policy", str(path), "--object", OBJECT, "--horizon", "3", "--rrd", str(rrd)]) == 0
     out = capsys.readouterr().out
     assert f"object={OBJECT}" in out and "steps=3" in out and "success=False" in out
     rows = logged_rows(rrd)

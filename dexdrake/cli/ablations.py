@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from dexdrake import argtypes
-from dexdrake.cli.flags import command_line, option_names
+from dexdrake.cli.flags import add_episodes_per_object, command_line, option_names
 from dexdrake.eval.ablations import AblationSettings
 
 
@@ -22,7 +22,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--stride", type=argtypes.count, default=d.stride, help="keep every n-th step of each episode")
     p.add_argument("--epochs", type=argtypes.count, default=d.epochs, help="BC epochs per set")
     p.add_argument("--lr", type=argtypes.float_in(0.0), default=d.lr, help="BC learning rate")
-    p.add_argument("--episodes", type=argtypes.count, default=d.episodes, help="closed-loop episodes per object")
+    add_episodes_per_object(p, d.episodes, "closed loop")
     p.add_argument("--objects", default=d.objects, help="'paper' (the paper's 10 unseen objects), 'unseen' or names")
     p.add_argument("--workers", type=argtypes.count, default=2, help="worker processes")
     p.add_argument("--seed", type=argtypes.seed, default=d.seed, help="BC seed")
@@ -41,7 +41,7 @@ def cmd_ablations(args: argparse.Namespace) -> int:
     from dexdrake.systems.scripted_data import featurise_labelled
 
     torch.set_num_threads(2)
-    settings = AblationSettings(str(args.dagger), args.stride, args.epochs, args.lr, args.episodes, args.objects,
+    settings = AblationSettings(str(args.dagger), args.stride, args.epochs, args.lr, args.episodes_per_object, args.objects,
                                 args.seed, args.eval_seed)
     sets = list(FEATURE_SETS) if args.feature_sets == "all" else args.feature_sets.split(",")
     command = command_line(["ablations"], args, args.recorded_options)

@@ -15,7 +15,9 @@ import time
 from pathlib import Path
 
 from dexdrake import argtypes
+from dexdrake.cli.flags import add_horizon
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.evaluate import EVAL_HORIZON
 
 POLICY_NAME = "adroit_dexrep_policy"
 FALLBACK_OBJECT = "apple"
@@ -83,14 +85,11 @@ def add_parser(subparsers) -> None:
                                                          "the manifest records a success on the object, else 0)")
     demo.add_argument("--rrd", type=argtypes.output_file(".rrd"), default=Path("demo.rrd"), help="rerun recording to write")
     demo.add_argument("--policy", type=Path, help="policy checkpoint (default: the shipped one)")
-    demo.add_argument("--steps", type=argtypes.steps, default=100,
-                      help=f"control steps (50 Hz; paper evaluation: 100; at most {argtypes.MAX_STEPS})")
+    add_horizon(demo, EVAL_HORIZON)
     demo.set_defaults(func=cmd_demo)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    if args.steps < 1:
-        raise DexdrakeError(f"--steps must be >= 1, got {args.steps}")
     policy_path = args.policy or default_policy_path()
     if not Path(policy_path).is_file():
         hint = ("the shipped default policy is missing from this install; train one with "
@@ -113,12 +112,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     recorded = recorded_success_seed(manifest, name) if args.seed is None else None
     seed = args.seed if args.seed is not None else recorded if recorded is not None else 0
     policy, _ = load_policy(policy_path)
-    env = env_factory_for_policy(policy.config, [name], args.steps)()
+    env = env_factory_for_policy(policy.config, [name], args.horizon)()
     check_env_matches(env, policy)
     logger = RerunLogger(args.rrd, "demo")
     start = time.perf_counter()
     try:
-        result = run_episode(env, mean_actor(policy), seed, args.steps, **logger.hooks(env))
+        result = run_episode(env, mean_actor(policy), seed, args.horizon, **logger.hooks(env))
     finally:
         logger.close()
     wall = time.perf_counter() - start

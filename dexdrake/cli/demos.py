@@ -38,8 +38,9 @@ def add_parser(subparsers) -> None:
     synth.add_argument("--objects", required=True,
                        help="'train', 'unseen' or comma-separated object names")
     synth.add_argument("--out", required=True, type=argtypes.output_folder, help="output folder")
-    synth.add_argument("--per-object", type=argtypes.episodes, default=3,
-                       help=f"demos per object (at most {argtypes.MAX_EPISODES})")
+    synth.add_argument("--demos-per-object", type=argtypes.episodes, default=3, metavar="N",
+                       help=f"demos made per object (demonstrations, not episodes; at most {argtypes.MAX_EPISODES}) "
+                            "(default: 3)")
     synth.add_argument("--seed", type=argtypes.seed, default=0)
     synth.set_defaults(func=cmd_synth)
     imp = sub.add_parser("import", help="convert a keypoint file (.npy/.npz/.pkl/.json/.csv) "
@@ -116,12 +117,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from dexdrake.systems.scene import ObjectPlacement
 
     names = resolve_objects(args.objects)[1]
-    check_training_seeds([(args.seed * 100003 + len(names) - 1) * 1000 + args.per_object - 1],
+    check_training_seeds([(args.seed * 100003 + len(names) - 1) * 1000 + args.demos_per_object - 1],
                          "demo episode seeds ((seed * 100003 + object index) * 1000 + k)")
     written = 0
     for i, name in enumerate(tqdm(names, desc="synthesize", unit="object")):
         for k, demo in enumerate(synthesize_object_demos(
-                name, args.per_object, seed=args.seed * 100003 + i,
+                name, args.demos_per_object, seed=args.seed * 100003 + i,
                 placement_yaw=lambda s: ObjectPlacement.from_seed(s).yaw)):
             save_demo(demo, args.out / f"{name}_{k:02d}_{demo.meta.extra['grasp']}.npz")
             written += 1

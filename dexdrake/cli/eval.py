@@ -7,8 +7,10 @@ import json
 from pathlib import Path
 
 from dexdrake import argtypes
-from dexdrake.cli.flags import add_envs_per_worker, command_line, envs_per_worker, option_names
+from dexdrake.cli.flags import (add_envs_per_worker, add_episodes_per_object, add_horizon, command_line, envs_per_worker,
+                                option_names)
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.evaluate import EVAL_HORIZON
 from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RANGES, check_evaluation_seeds, describe
 
 
@@ -17,16 +19,14 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen",
                     help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")
-    ev.add_argument("--episodes", type=argtypes.episodes, default=10,
-                    help=f"episodes per object (seeds S..S+N-1; at most {argtypes.MAX_EPISODES})")
+    add_episodes_per_object(ev, 10, "seeds S..S+N-1")
     ev.add_argument("--seed", type=argtypes.seed, default=FIRST_VALIDATION_SEED,
                     help="first episode seed S (default: the first validation seed); the seeds must lie in one of "
                          + ", ".join(f"{n} {describe(r)}" for n, r in SEED_RANGES.items())
                          + f": validation for every choice, test (from {FIRST_TEST_SEED}) once per shipped policy")
     ev.add_argument("--workers", type=argtypes.count, default=1, help="worker processes")
     add_envs_per_worker(ev, "objects (one environment each)", "; 1 with --rrd")
-    ev.add_argument("--horizon", type=argtypes.steps, default=100,
-                    help=f"control steps per episode (paper: 100; at most {argtypes.MAX_STEPS})")
+    add_horizon(ev, EVAL_HORIZON, "paper: 100")
     ev.add_argument("--out", type=argtypes.output_folder, help="folder for eval_<label>.md/.csv/.json")
     ev.add_argument("--label", type=argtypes.label, help="table label (default: seen, unseen or selected, from --objects)")
     ev.add_argument("--rrd", type=argtypes.output_file(".rrd"),
@@ -42,8 +42,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     label, objects = resolve_objects(args.objects)
     label = args.label or label
-    part = check_evaluation_seeds(args.seed, args.episodes)
-    print(f"seeds {args.seed}..{args.seed + args.episodes - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
+    part = check_evaluation_seeds(args.seed, args.episodes_per_object)
+    print(f"seeds {args.seed}..{args.seed + args.episodes_per_object - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
     logger = None
     if args.rrd:
         if args.workers > 1:
@@ -52,7 +52,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         logger = RerunLogger(args.rrd, "eval")
     try:
-        report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes, args.seed, args.workers,
+        report = evaluate_policy(args.policy, env_factory_for_policy, objects, args.episodes_per_object, args.seed, args.workers,
                                  args.horizon, label=label, record=None if logger is None else logger.hooks,
                                  envs_per_worker=envs_per_worker(args),
                                  command=command_line(["eval"], args, args.recorded_options))

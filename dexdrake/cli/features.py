@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from dexdrake import argtypes
+from dexdrake.cli.flags import add_horizon
 from dexdrake.outputs import check_writable
 
 
@@ -29,7 +30,7 @@ def _show(args: argparse.Namespace) -> int:
 
     rrd = None if args.spawn else (args.rrd or check_writable(Path(f"dexrep_{args.object}_{args.hand}_s{args.seed}.rrd"),
                                                               folder=False))
-    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.steps)
+    env = GraspEnv(training_scenario(args.hand, args.object), horizon=args.horizon)
     logger = RerunLogger(rrd, "sim", spawn=args.spawn)
     try:
         summary = env.rollout(ScriptedGrasp, args.seed, logger=logger)
@@ -54,7 +55,6 @@ def add_parser(subparsers) -> None:
     s.add_argument("--rrd", type=argtypes.output_file(".rrd"),
                    help="output .rrd file (default: dexrep_<object>_<hand>_s<seed>.rrd)")
     s.add_argument("--seed", type=argtypes.seed, default=0)
-    s.add_argument("--steps", type=argtypes.steps, default=200,
-                   help=f"control steps (20 ms each; at most {argtypes.MAX_STEPS})")
+    add_horizon(s, 200)
     s.add_argument("--spawn", action="store_true", help="stream to a live rerun viewer instead of a file")
     s.set_defaults(func=_show)

@@ -88,6 +88,20 @@ def command_line(words: list[str], args: argparse.Namespace, options: list[str])
     return shlex.join(parts)
 
 
+def add_horizon(parser: argparse.ArgumentParser, default: int | None, note: str = "") -> None:
+    """--horizon: the control steps of each episode the command runs (help: argtypes.horizon_help)."""
+    shown = f" (default: {default})" if default is not None else ""
+    parser.add_argument("--horizon", type=argtypes.steps, default=default, metavar="N",
+                        help=argtypes.horizon_help(note) + shown)
+
+
+def add_episodes_per_object(parser: argparse.ArgumentParser, default: int, note: str = "") -> None:
+    """--episodes-per-object: the episodes the command runs on each object (help:
+    argtypes.episodes_per_object_help)."""
+    parser.add_argument("--episodes-per-object", type=argtypes.episodes, default=default, metavar="N",
+                        help=argtypes.episodes_per_object_help(note) + f" (default: {default})")
+
+
 def add_backend_options(parser: argparse.ArgumentParser) -> None:
     from dexdrake.learn.samplers import BACKENDS
 

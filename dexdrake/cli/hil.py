@@ -6,15 +6,14 @@ import argparse
 from pathlib import Path
 
 from dexdrake import argtypes
-from dexdrake.cli.flags import MISMATCH_HELP
-from dexdrake.errors import DexdrakeError
+from dexdrake.cli.flags import MISMATCH_HELP, add_horizon
 from dexdrake.outputs import check_writable
 
 
 def add_parser(subparsers) -> None:
     hil = subparsers.add_parser("hil", help="run one grasp episode hardware-in-the-loop")
     hil.add_argument("--config", default="hil", help="scenario (mode hil): a packaged name (hil) or a YAML path")
-    hil.add_argument("--steps", type=argtypes.count, default=150, help="control steps")
+    add_horizon(hil, 150)
     hil.add_argument("--rrd", type=argtypes.output_file(".rrd"), help="write a rerun recording of the loop to this .rrd file")
     hil.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     hil.set_defaults(func=run_hil)
@@ -42,8 +41,6 @@ def run_hil(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.config)
     if scenario.mode != "hil":
         raise ScenarioError(f"{args.config} is a {scenario.mode} scenario; `hil` needs emulated drivers")
-    if args.steps <= 0:
-        raise DexdrakeError(f"--steps must be > 0, got {args.steps}")
     rrd = args.rrd or (scenario.rrd and check_writable(Path(scenario.rrd), folder=False))
     # refused before any device starts
     controller, description = make_controller(scenario, args.allow_scenario_mismatch)
@@ -55,7 +52,7 @@ def run_hil(args: argparse.Namespace) -> int:
     with make_station(scenario) as station:
         if logger is not None:
             logger.attach(station)
-        result = run_station_episode(station, controller, args.steps, logger)
+        result = run_station_episode(station, controller, args.horizon, logger)
     if logger is not None:
         logger.close()
     print(f"hil: {scenario.object} seed={scenario.seed} controller={description}")

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 
 from dexdrake import argtypes
-from dexdrake.cli.flags import MISMATCH_HELP
+from dexdrake.cli.flags import MISMATCH_HELP, add_horizon
 from dexdrake.cli.hil import format_rate, format_world
 from dexdrake.errors import DexdrakeError
 
@@ -25,7 +25,7 @@ def add_parser(subparsers) -> None:
                       help="check connectivity, print limits, the plan and the diagram; move nothing")
     real.add_argument("--yes", action="store_true",
                       help="start the episode without asking (scripted use); else Enter on a terminal confirms")
-    real.add_argument("--steps", type=argtypes.count, help="control steps of the episode (default: the scenario's real.steps)")
+    add_horizon(real, None, "default: the scenario's real.horizon")
     real.add_argument("--rrd", type=argtypes.output_file(".rrd"), help="write a rerun recording of the episode to this .rrd file")
     real.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     real.set_defaults(func=run_real)
@@ -102,7 +102,7 @@ def _supervised(scenario, args: argparse.Namespace, world=None):
     from dexdrake.systems.workspace import WorkspaceBox
 
     real, hand = scenario.real, load_hand(scenario.hand)
-    steps = args.steps or real.steps
+    steps = args.horizon or real.horizon
     rrd = args.rrd or scenario.rrd
     # the dry run has printed this policy's warnings already
     controller, description = make_controller(scenario, args.allow_scenario_mismatch, warn=lambda line: None)

@@ -39,8 +39,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=argtypes.seed, default=0, help="base seed of the episode placements and sampling")
     p.add_argument("--objects", default=None, help="'train', 'unseen' or comma-separated names "
                    "(default: every demo in --demos)")
-    p.add_argument("--horizon", type=argtypes.steps, default=200,
-                   help=f"control steps per episode (at most {argtypes.MAX_STEPS})")
+    flags.add_horizon(p, 200)
     p.add_argument("--workers", type=argtypes.count, default=1, help="worker processes (each builds its own envs)")
     p.set_defaults(func=cmd_replay, recorded_options=flags.option_names(p))
 

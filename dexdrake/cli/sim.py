@@ -8,7 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from dexdrake import argtypes
-from dexdrake.cli.flags import MISMATCH_HELP
+from dexdrake.cli.flags import MISMATCH_HELP, add_horizon
 from dexdrake.errors import DexdrakeError
 
 CONTROLLERS = ("scripted", "expert")
@@ -31,8 +31,7 @@ def add_parser(subparsers) -> None:
                       "scenario's policy with --config)")
     sim.add_argument("--allow-scenario-mismatch", action="store_true", help=MISMATCH_HELP)
     sim.add_argument("--seed", type=argtypes.seed, help="episode seed (default: the scenario's; without --config: 0)")
-    sim.add_argument("--steps", type=argtypes.steps, default=150,
-                     help=f"control steps (50 Hz; at most {argtypes.MAX_STEPS})")
+    add_horizon(sim, 150)
     sim.add_argument("--time-step", type=argtypes.float_in(MIN_TIME_STEP, 0.02, low_open=False),
                      help="plant step (s); default: the scenario's (5 ms); must divide the 0.02 s control period, "
                           f"at least {MIN_TIME_STEP:g} s")
@@ -94,7 +93,7 @@ def _run_env(scenario, args: argparse.Namespace, logger) -> str:
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    env = GraspEnv(scenario, horizon=args.steps)
+    env = GraspEnv(scenario, horizon=args.horizon)
     make = ReactiveGrasp if args.controller == "expert" else ScriptedGrasp
     start = time.perf_counter()
     summary = env.rollout(make, scenario.seed, logger=logger)
@@ -123,7 +122,7 @@ def _run_station(scenario, args: argparse.Namespace, logger) -> str:
     station = make_station(scenario)
     if logger is not None:
         logger.attach(station)
-    result = run_station_episode(station, controller, args.steps, logger)
+    result = run_station_episode(station, controller, args.horizon, logger)
     print(f"sim: {scenario.object} seed={scenario.seed} controller={description}")
     return (f"success={result.success} max_lift={result.max_lift:.3f} m steps={result.steps} "
             f"wall={result.wall_s:.1f} s" + (f" fault={result.fault}" if result.fault else ""))

@@ -47,7 +47,7 @@ def add_parser(subparsers) -> None:
     add_settings(dagger, DaggerStage)
     add_settings(dagger, DaggerConfig)
     dagger.add_argument("--resume-changed", action="store_true",
-                        help="go on with a run in OUT whose settings (iterations, per-object, epochs, lr, ...) differ: "
+                        help="go on with a run in OUT whose settings (iterations, episodes-per-object, epochs, lr, ...) differ: "
                              "later iterations use the new ones; fewer --iterations choose dagger_policy.pt again "
                              "among the first ones (default: refused)")
     add_envs_per_worker(dagger, "policy-driven environments")
@@ -163,7 +163,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
     policy.train()
     objects = training_objects(args.objects)
     demos = load_demo_term(args.demos, policy.config.obs_dim, policy.config.action_dim, args.demo_samples, args.seed)
-    config = settings_from_args(DAPGConfig, args, rollouts_per_iteration=args.per_object * len(objects),
+    config = settings_from_args(DAPGConfig, args, rollouts_per_iteration=args.episodes_per_object * len(objects),
                                 seed_groups=len(objects))
     factory = env_factory_for_policy(policy.config, objects, args.horizon, object_from_seed=True,
                                      task=TaskSpec(reward=config.reward))
@@ -173,7 +173,7 @@ def cmd_train_dapg(args: argparse.Namespace) -> int:
             "dataset_metadata": dataset_summary(demos.metadata), "demo_pairs": len(demos), "objects": objects,
             "init_metadata": {k: v for k, v in init_meta.items() if k in ("command", "dataset", "epoch", "iteration")},
             "scenario": _scenario_record(policy.config.hand)}
-    print(f"DAPG: {len(objects)} objects x {args.per_object} trajectories of {args.horizon} steps per iteration, "
+    print(f"DAPG: {len(objects)} objects x {args.episodes_per_object} trajectories of {args.horizon} steps per iteration, "
           f"{len(demos)} demonstration pairs, {args.iterations} iterations, backend {args.backend} with "
           f"{args.workers} worker(s) x {args.envs_per_worker} env(s) in lockstep")
     with WriterLock(args.out, f"the run folder {args.out}"):

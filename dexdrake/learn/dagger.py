@@ -65,10 +65,8 @@ class DaggerConfig:
                                                                  "describe` lists them)"})
     iterations: int = field(default=6, metadata={"help": "DAgger iterations", "type": argtypes.count})
     episodes_per_object: int = field(default=2, metadata={
-        "flag": "per-object", "type": argtypes.episodes,
-        "help": f"episodes per object per iteration (at most {argtypes.MAX_EPISODES})"})
-    horizon: int = field(default=100, metadata={"type": argtypes.steps,
-                                                "help": f"control steps per episode (at most {argtypes.MAX_STEPS})"})
+        "type": argtypes.episodes, "metavar": "N", "help": argtypes.episodes_per_object_help("each iteration")})
+    horizon: int = field(default=100, metadata={"type": argtypes.steps, "metavar": "N", "help": argtypes.horizon_help()})
     expert_noise: float = field(default=0.0, metadata={
         "type": argtypes.float_in(0.0, 1.0, low_open=False),
         "help": "DART-style correlated (OU) action-noise std on the expert's iteration 0 (normalised action units; "

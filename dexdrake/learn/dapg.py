@@ -93,8 +93,7 @@ class DAPGConfig:
     baseline_lr: float = 1e-3
     baseline_hidden: tuple[int, ...] = (128, 128)
     time_scale: int = field(default=200, metadata={  # also normalises the baseline's time feature
-        "flag": "horizon", "type": argtypes.steps,
-        "help": f"control steps per trajectory (at most {argtypes.MAX_STEPS})"})
+        "flag": "horizon", "type": argtypes.steps, "metavar": "N", "help": argtypes.horizon_help()})
     freeze_encoders: bool = True  # paper: encoders frozen after behaviour cloning
     checkpoint_every: int = 10
     seed: int = field(default=0, metadata={"type": argtypes.seed, "help": "rollout seeds, initialisation and the "

@@ -79,8 +79,12 @@ def open_run(recipe: Recipe, source: Path, out: Path) -> None:
     now = recipe_dict(recipe)
     if record.is_file():
         old = json.loads(record.read_text())["recipe"]
+        try:
+            recorded = from_dict(Recipe, old)
+        except DexdrakeError as err:
+            raise DexdrakeError(f"{record}: {err}") from None
         changes = changed_fields(old, now)
-        started = [s for s in stage_plan(from_dict(Recipe, old)) if (out / s.name).is_dir()]
+        started = [s for s in stage_plan(recorded) if (out / s.name).is_dir()]
         refused = [(f, a, b, [s.name for s in started if reads(s, f)]) for f, a, b in changes]
         refused = [r for r in refused if r[3]]
         if refused:
@@ -202,7 +206,7 @@ def run_dapg(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[s
     policy, init_meta = load_policy(init)
     policy.train()
     objects = training_objects(spec.objects)
-    config = replace(spec.config, rollouts_per_iteration=spec.per_object * len(objects), seed_groups=len(objects),
+    config = replace(spec.config, rollouts_per_iteration=spec.episodes_per_object * len(objects), seed_groups=len(objects),
                      time_scale=spec.horizon, progress=rt.progress)
     demos = load_demo_term(out / "dagger", policy.config.obs_dim, policy.config.action_dim, spec.demo_pairs,
                            config.seed)
@@ -258,9 +262,10 @@ def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
 
     spec, folder = recipe.choose, out / stage.name
     _, objects = resolve_objects(spec.objects)
+    n = spec.episodes_per_object
     rows = []
     for iteration, path in candidates(recipe, out):
-        report = _evaluate(path, objects, spec.episodes, FIRST_VALIDATION_SEED, spec.horizon, "validation",
+        report = _evaluate(path, objects, n, FIRST_VALIDATION_SEED, spec.horizon, "validation",
                            folder / f"{path.parent.name}_{iteration:04d}", rt)
         low, high = report["average_ci95_pct"]
         rows.append({"iteration": iteration, "candidate": str(path.relative_to(out)),
@@ -271,8 +276,8 @@ def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
     plot_curves(folder / "choice.csv", folder / "choice.png", "iteration", ["average_pct"],
                 title="validation success per candidate")
     lines = ["# Choice of iterate", "",
-             f"Each candidate on {len(objects)} objects x {spec.episodes} episodes of {spec.horizon} steps, seeds "
-             f"{FIRST_VALIDATION_SEED}..{FIRST_VALIDATION_SEED + spec.episodes - 1} (validation block); chosen: the "
+             f"Each candidate on {len(objects)} objects x {n} episodes of {spec.horizon} steps, seeds "
+             f"{FIRST_VALIDATION_SEED}..{FIRST_VALIDATION_SEED + n - 1} (validation block); chosen: the "
              f"highest average (ties: the later iterate). Made by `{rt.command}`.", "",
              "| iteration | candidate | average % | 95 % CI | chosen |", "|---|---|---|---|---|",
              *(f"| {r['iteration']} | {r['candidate']} | {r['average_pct']:.1f} | {r['ci95_low']:.1f}-"
@@ -291,8 +296,8 @@ def run_test(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[s
     spec, chosen = recipe.test, out / "choose" / "chosen.pt"
     metrics = {}
     for label, objects in (("seen", spec.seen), ("unseen", spec.unseen)):
-        report = _evaluate(chosen, resolve_objects(objects)[1], spec.episodes, FIRST_TEST_SEED, spec.horizon, label,
-                           out / stage.name, rt)
+        report = _evaluate(chosen, resolve_objects(objects)[1], spec.episodes_per_object, FIRST_TEST_SEED,
+                           spec.horizon, label, out / stage.name, rt)
         metrics[label] = round(report["average_pct"], 2)
     return {"average_pct": metrics, "policy_sha256": sha256(chosen)}
 

@@ -4,8 +4,9 @@ A recipe is a YAML mapping read into the `Recipe` dataclass tree: augment (optio
 expert table -> DAgger -> DAPG stages -> choice of iterate on validation seeds -> test
 evaluation -> ship, every env seeing the object pose through the recipe's `perception` model. Each stage's training settings are the training code's own config
 dataclasses (`dagger.DaggerConfig`, `dapg.DAPGConfig`); the recipe adds only what those
-configs leave to the command line (objects, episodes per object, horizon). Unknown keys,
-wrong types and fields the pipeline derives itself are refused in one line naming the field.
+configs leave to the command line (objects, episodes_per_object, horizon). Unknown keys,
+wrong types, renamed keys (`RENAMED`) and fields the pipeline derives itself are refused in
+one line naming the field.
 
 The recipe's identity is the sha256 of its canonical JSON (`recipe_sha256`), so comments
 and formatting do not change it; `changed_fields` names the dotted fields two recipes
@@ -67,8 +68,8 @@ class DapgStage:
     best), with the DAgger data as its demonstration term (`demo_pairs` of them, seeded)."""
 
     objects: str = field(default="train", metadata={"help": TRAINING_OBJECTS_HELP})
-    per_object: int = field(default=10, metadata={
-        "type": argtypes.episodes, "help": f"trajectories per object per iteration (at most {argtypes.MAX_EPISODES})"})
+    episodes_per_object: int = field(default=10, metadata={
+        "type": argtypes.episodes, "metavar": "N", "help": argtypes.episodes_per_object_help("each iteration")})
     horizon: int = 100  # control steps per trajectory
     demo_pairs: int = field(default=50000, metadata={
         "flag": "demo-samples", "type": argtypes.count,
@@ -83,7 +84,7 @@ class ChooseStage:
     the highest average success is chosen (ties: the later iterate)."""
 
     objects: str = "seen"
-    episodes: int = 5
+    episodes_per_object: int = 5
     horizon: int = EVAL_HORIZON
 
 
@@ -93,7 +94,7 @@ class TestStage:
 
     seen: str = "seen"
     unseen: str = "unseen"
-    episodes: int = 10
+    episodes_per_object: int = 10
     horizon: int = EVAL_HORIZON
 
 
@@ -136,9 +137,14 @@ class Recipe:
 # (from the expert, no prior runs), and DAPG's batch shape from the stage's objects and horizon.
 DERIVED = {
     DaggerConfig: {"workers": "--workers", "backend": "--backend", "init": "the expert", "prior": "the expert"},
-    DAPGConfig: {"rollouts_per_iteration": "per_object x objects", "seed_groups": "objects", "time_scale": "horizon",
-                 "progress": "the command"},
+    DAPGConfig: {"rollouts_per_iteration": "episodes_per_object x objects", "seed_groups": "objects",
+                 "time_scale": "horizon", "progress": "the command"},
 }
+
+
+# Keys a recipe once used: refused in one line that names the key now.
+RENAMED = {DapgStage: {"per_object": "episodes_per_object"}, ChooseStage: {"episodes": "episodes_per_object"},
+           TestStage: {"episodes": "episodes_per_object"}}
 
 
 def _typed(tp: Any, value: Any, where: str) -> Any:
@@ -171,6 +177,8 @@ def from_dict(cls: type, data: Any, where: str = "") -> Any:
     known = {f.name for f in dataclasses.fields(cls)}
     prefix = f"{where}." if where else ""
     for key in data:
+        if key in RENAMED.get(cls, {}):
+            raise DexdrakeError(f"recipe field {prefix}{key} is now {prefix}{RENAMED[cls][key]}")
         if key not in known:
             raise DexdrakeError(f"recipe field {prefix}{key} is unknown; {name} has {sorted(known)}")
         if key in DERIVED.get(cls, {}):
@@ -211,11 +219,11 @@ def check_recipe(recipe: Recipe) -> None:
     except DexdrakeError as err:
         raise DexdrakeError(f"recipe field dagger.config.arm_action: {err}") from None
     counts = {"expert.episodes_per_object": recipe.expert.episodes_per_object, "expert.horizon": recipe.expert.horizon,
-              "dagger.config.iterations": config.iterations, "choose.episodes": recipe.choose.episodes,
-              "choose.horizon": recipe.choose.horizon, "test.episodes": recipe.test.episodes,
-              "test.horizon": recipe.test.horizon}
+              "dagger.config.iterations": config.iterations,
+              "choose.episodes_per_object": recipe.choose.episodes_per_object, "choose.horizon": recipe.choose.horizon,
+              "test.episodes_per_object": recipe.test.episodes_per_object, "test.horizon": recipe.test.horizon}
     for k, stage in enumerate(recipe.dapg):
-        counts |= {f"dapg.{k}.per_object": stage.per_object, f"dapg.{k}.horizon": stage.horizon,
+        counts |= {f"dapg.{k}.episodes_per_object": stage.episodes_per_object, f"dapg.{k}.horizon": stage.horizon,
                    f"dapg.{k}.demo_pairs": stage.demo_pairs, f"dapg.{k}.config.iterations": stage.config.iterations}
         if stage.config.reward not in TARGET_THRESHOLDS:
             raise DexdrakeError(f"recipe field dapg.{k}.config.reward: {stage.config.reward!r} is not one of "

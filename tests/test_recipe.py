@@ -21,7 +21,7 @@ RECIPES = Path(__file__).resolve().parents[1] / "configs" / "recipes"
 TINY = RECIPES / "tiny.yaml"
 
 
-@pytest.mark.parametrize("name", ["tiny", "adroit", "allegro_z1"])
+@pytest.mark.parametrize("name", ["tiny", "adroit", "allegro_z1", "adroit_4f", "adroit_3f", "adroit_2f"])
 def test_shipped_recipes_load(name):
     recipe = load_recipe(RECIPES / f"{name}.yaml")
     assert [s.name for s in stage_plan(recipe)][-2:] == ["choose", "test"]

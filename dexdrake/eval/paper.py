@@ -28,3 +28,10 @@ PAPER_ABLATIONS: dict[str, float] = {
     "DexRep+pGlo": 76.2,
     "DexRep": 83.9,
 }
+# Table II: success % on the unseen GRAB objects of hands with fewer fingers, per feature set
+# (fingers -> {feature set: success %}).
+PAPER_FEWER_FINGERS: dict[int, dict[str, float]] = {
+    2: {"Hand2obj": 9.0, "pGlo": 38.3, "DexRep": 68.8},
+    3: {"Hand2obj": 17.9, "pGlo": 56.4, "DexRep": 81.8},
+    4: {"Hand2obj": 0.0, "pGlo": 18.6, "DexRep": 83.9},
+}

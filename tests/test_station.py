@@ -641,7 +641,7 @@ def test_policy_checkpoint_paths_resolve_to_the_shipped_models(tmp_path, monkeyp
 
 
 # ----------------------------------------------------------------------------- policies
-def _hil_config(tmp_path, policy: str | None, feature_set: str = "DexRep") -> str:
+def _hil_config(tmp_path, policy: str | None, feature_set: str = "DexRep+Vel") -> str:
     text = (CONFIGS / "hil.yaml").read_text().split("\npolicy:")[0]
     if policy is not None:
         text += f"\npolicy:\n  checkpoint: {policy}\n  feature_set: {feature_set}\n"
@@ -660,7 +660,7 @@ def _garbage(tmp_path) -> str:
     ("no/such/policy.pt", "DexRep", "does not exist"),
     ("GARBAGE", "DexRep", "not a dexdrake policy file"),
     ("models/weights/adroit_dexrep_policy.pt", "DexRep", "trained for hand 'adroit'"),
-    ("models/weights/allegro_z1_dexrep_policy.pt", "Hand2obj", "trained on feature set 'DexRep'"),
+    ("models/weights/allegro_z1_dexrep_policy.pt", "Hand2obj", "trained on feature set 'DexRep+Vel'"),
 ])
 def test_hil_refuses_a_policy_it_cannot_run(tmp_path, capsys, policy, feature_set, reason):
     """Exit 2 and one line; never the scripted grasp in its place, never torch's advice to
@@ -684,7 +684,7 @@ def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
     assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
     controller, description = make_controller(hil_scenario())
     assert controller.get_name() == "policy" and controller.HasSubsystemNamed("policy_system")
-    assert "allegro_z1_dexrep_policy.pt" in description and "2451 observations -> 22" in description
+    assert "allegro_z1_dexrep_policy.pt" in description and "2473 observations -> 22 actions, arm by palm_pose" in description
     with pytest.raises(ScenarioError, match="policy.checkpoint must name"):
         parse_scenario("policy: {checkpoint: ''}")
 
@@ -747,7 +747,7 @@ def test_real_dry_run_checks_every_device_and_the_policy(tmp_path, capsys, polic
                  "nothing sent (the protocol has no pure query)", "camera recorded: OK",
                  "payload 0.955 kg", "controller: policy models/weights/allegro_z1_dexrep_policy.pt",
                  "diagram (built, not run): station (real: command_to_devices, workspace_guard, z1_driver, allegro_driver, "
-                 "devices_to_hand_state, perception, pose_age_hold) -> dexrep (DexRep, fast path) -> controller (PolicySystem) -> command",
+                 "devices_to_hand_state, perception, pose_age_hold) -> dexrep (DexRep+Vel, fast path) -> controller (PolicySystem) -> command",
                  "all devices answered"):
         assert line in out, out
     assert "lift 0.17" not in out
@@ -875,7 +875,8 @@ def test_scenegraph_feature_path_reaches_dexrep_and_agrees_with_the_fast_path():
         surf_a, surf_b = (x[h + voxels:h + voxels + 4 * n].reshape(n, 4) for x in (a, b))
         np.testing.assert_allclose(surf_a[:, 0], surf_b[:, 0], atol=1e-6)
         assert np.all(np.einsum("ij,ij->i", surf_a[:, 1:], surf_b[:, 1:]) > 0.99)
-        same = np.all(a[h + voxels + 4 * n:].reshape(n, -1) == b[h + voxels + 4 * n:].reshape(n, -1), axis=1)
+        geo = slice(h + voxels + 4 * n, h + voxels + 4 * n + blocks["local_geo"])
+        same = np.all(a[geo].reshape(n, -1) == b[geo].reshape(n, -1), axis=1)
         assert same.mean() >= 0.9
 
 

@@ -165,6 +165,31 @@ def test_a_reset_fault_clears_the_parents_view_too(z1_emulator):
         assert wait_for(lambda: arm.state().fault is not None, 5.0)
 
 
+def test_a_target_written_before_reset_fault_is_never_applied_after_it(z1_emulator):
+    """A target the parent wrote while the arm was faulted, just before reset_fault(), is
+    dropped with the reset: the child's driver re-arms holding the position the arm sagged
+    to; the next target is followed."""
+    emu = z1_emulator
+    with DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm") as arm:
+        up = np.array([0.0, 1.0, -1.0, 0.0, 0.0, 0.0])
+        arm.command_positions(up)
+        assert wait_for(lambda: np.allclose(emu.q, up, atol=0.02), 15.0)
+        emu.stall(1.5)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        assert wait_for(lambda: emu.stall_until < time.monotonic() and np.max(np.abs(emu.q - up)) > 0.3, 10.0)
+        time.sleep(0.3)  # replies are back
+        arm.command_positions(up)
+        arm.reset_fault()
+        assert wait_for(lambda: arm.state().fault is None and arm.state().fsm == ArmFSMState.LOWCMD, 5.0)
+        q_sag = emu.q
+        time.sleep(0.5)
+        assert arm.state().fault is None
+        np.testing.assert_allclose(arm.state().q_target, q_sag, atol=0.05)
+        np.testing.assert_allclose(emu.q, q_sag, atol=0.05)
+        arm.command_positions(up)
+        assert wait_for(lambda: np.allclose(emu.q, up, atol=0.02), 15.0)
+
+
 def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():
     quiet = _multicast_bus_args()  # nobody answers on this bus
     hand = DriverProcess(functools.partial(allegro_on_bus, quiet, 0, HAND), PROC, "Allegro hand")

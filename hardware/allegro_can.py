@@ -698,6 +698,11 @@ class AllegroHand(SafeStopContext):
                    fault=self.fault.reason)
         return out
 
+    def loop_times(self, since: float = -math.inf) -> np.ndarray:
+        """The PD cycles' times (the clock's s) after `since`, of the last 20000 kept."""
+        times = np.fromiter(list(self._stats.cycle_times), float)
+        return times[times > since]
+
     # --------------------------------------------------------------- loop
     def _send_zero_torque(self) -> None:
         for f in range(NUM_FINGERS):

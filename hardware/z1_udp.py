@@ -571,6 +571,11 @@ class Z1Arm(SafeStopContext):
                    torque_clamped=self.torque_clamped, fault=self.fault.reason)
         return out
 
+    def loop_times(self, since: float = -math.inf) -> np.ndarray:
+        """The loop's tick times (the clock's s) after `since`, of the last 20000 kept."""
+        times = np.fromiter(list(self._tick_times), float)
+        return times[times > since]
+
     # --------------------------------------------------------------- loop
     def _send(self, cmd: SendCmd, tick: bool = False) -> None:
         """Send `cmd`; a loop `tick`'s command is dropped once stop() has begun."""

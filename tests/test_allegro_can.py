@@ -256,6 +256,9 @@ def test_pd_loop_tracks_target(rig):
         assert st.fault is None and np.all(np.abs(st.tau_pwm) <= hand.pwm_limit)
         stats = hand.stats()
         assert stats["cycles"] > 10 and stats["rate_hz"] > 0 and stats["max_ms"] >= stats["p50_ms"] > 0
+        times = hand.loop_times()
+        assert times.size > 10 and np.all(np.diff(times) > 0)
+        np.testing.assert_array_equal(hand.loop_times(times[-3])[:2], times[-2:])  # and those since
     assert wait_for(lambda: not emu.servo_on, 1.0)
 
 

@@ -103,12 +103,16 @@ def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
         assert wait_for(lambda: np.allclose(arm.state().q, target, atol=0.02)
                         and np.allclose(emu.q, target, atol=0.02), 15.0)
         assert arm.stats()["cycles"] > 10
+        times = arm.loop_times()  # the child's tick times, on the clock every process shares
+        assert times.size > 10 and np.all(np.diff(times) > 0) and times[-1] <= time.monotonic()
+        assert np.all(arm.loop_times(times[-1]) > times[-1])
         with pytest.raises(HardwareError, match="6 joint targets"):
             arm.command_positions(np.zeros(5))
         sent = emu.commands_received
     assert not arm.running and _gone(pid)
     assert emu.commands_received > sent and emu.fsm == ArmFSMState.PASSIVE
     assert arm.stats()["cycles"] > 10  # the final report of the child
+    assert arm.loop_times().size == 0
     with pytest.raises(HardwareError, match="not running"):
         arm.command_positions(target)
 

@@ -88,16 +88,19 @@ class WallTimeUp(Exception):
 
 class SoakMonitor:
     """An episode logger (the calls the episode loop makes on systems/rerun_logger.RerunLogger:
-    `log_station_step`, `log_fault`): samples the loops every `sample_s` of control and ends
-    the run (WallTimeUp) once `wall_limit_s` of wall time have passed. The drivers' loop
-    times come from the drivers (`loop_times`, in this process or through their process's
-    proxy); the world's, from a simulated-clock HilWorld's step times or, for the wall-clock
+    `log_station_step`, `log_fault`): samples the loops every `sample_s` of control or of
+    wall time, whichever comes first (the drivers keep their last 20000 loop times: 40 s of
+    Z1 ticks), and ends the run (WallTimeUp) once `wall_limit_s` of wall time have passed.
+    The drivers' loop times come from the drivers (`loop_times`, in this process or through
+    their process's proxy); the world's, from a simulated-clock HilWorld's step times or, for the wall-clock
     world in its process, from its statistics."""
 
     def __init__(self, station, sample_s: float, wall_limit_s: float = np.inf):
         self.station = station
         self.wall_end = time.perf_counter() + wall_limit_s
+        self.sample_s = sample_s
         self.every = max(1, round(sample_s / station.scenario.control_period))
+        self.next_sample = time.perf_counter() + sample_s  # wall time
         self.can = _Periods(2 * 0.003)
         self.z1 = _Periods(2 * 0.002)
         self.world = _Periods(np.inf)
@@ -108,6 +111,7 @@ class SoakMonitor:
         self.rss: list[tuple[float, float]] = [(0.0, rss_mb())]
 
     def sample(self) -> None:
+        self.next_sample = time.perf_counter() + self.sample_s
         d, world = self.station.devices, self.station.world
         self.can.take(d["allegro"].loop_times(self.can.last))
         self.z1.take(d["z1"].loop_times(self.z1.last))
@@ -127,7 +131,7 @@ class SoakMonitor:
             self.step_walls.append(now - self._wall)
         self._wall = now
         self.steps += 1
-        if self.steps % self.every == 0:
+        if self.steps % self.every == 0 or now >= self.next_sample:
             self.sample()
             self.rss.append((t, rss_mb()))
         if now > self.wall_end:
@@ -271,7 +275,7 @@ def main() -> int:
     controller = "scenario" if args.policy else "sine"
     if wall_clock:
         print(f"soak: {scenario.name} {args.minutes:g} wall min on the wall-clock emulated world: {run.episodes} "
-              f"supervised episodes of up to {args.episode_s:g} s ({run.steps} control steps), controller "
+              f"supervised episode{'' if run.episodes == 1 else 's'} of up to {args.episode_s:g} s ({run.steps} control steps), controller "
               f"{controller}; wall {wall:.0f} s, CPU of this process {cpu:.0f} s, world real-time factor "
               f"{world['real_time_factor']:.2f}")
     else:

@@ -4,19 +4,19 @@ percentiles, faults and memory at start and end.
 The station of `--config` (camera "sim", the world's true object pose, unless --perception)
 runs a gentle sine controller around the pre-grasp pose (every finger joint +-0.15 rad at
 0.2 Hz, every arm joint +-0.05 rad at 0.05 Hz) or, with --policy, the scenario's own
-controller. The scenario's mode picks the world:
+controller, for one episode of `--minutes` of control. The scenario's mode picks the world:
   hil (default: the packaged hil scenario): every device on the world's simulated clock, in
-      this process; one episode of `--minutes` of simulated time. `--wall-minutes` bounds
-      its wall time as well (a loaded host runs the world slower than real time): the run
-      then ends at the control step where it is reached, and says how much simulated time
-      it covered.
+      this process; the episode loop on that clock.
   real with `emulated_world` drivers (configs/real_emulated_world.yaml): the wall-clock
-      world in its own process (systems/emulated_world.py), each driver in its own, as
-      `dexdrake real` runs them: supervised episodes (systems/real_episode.py: the move to
-      the start pose, `--episode-s` of control, the retreat) back to back on one station
-      for `--minutes` of wall time. `--realtime-priority` replaces the scenario's SCHED_FIFO
-      priority of the driver and world processes (0: normal scheduling).
-Sampled every `--sample-s` of control and after each episode:
+      world in its own process (systems/emulated_world.py), each driver in its own, and the
+      episode supervised as `dexdrake real` runs it (systems/real_episode.py: the move to
+      the start pose, the episode in real time, the retreat, the safe stop).
+      `--realtime-priority` replaces the scenario's SCHED_FIFO priority of the driver and
+      world processes (0: normal scheduling).
+`--wall-minutes` bounds the run's wall time as well (a loaded host runs the hil world slower
+than real time, and starves the control loop of either): the run then ends at the control
+step where it is reached (safe stop, no retreat), and says how much it covered.
+Sampled every `--sample-s` of control or wall time:
   CAN: the Allegro PD loop's cycle times (the devices' clock; deadline 2 x the 3 ms period);
   Z1: the UDP client's tick times (the devices' clock; deadline 2 x 2 ms);
   control: hil: the wall time of each control step (deadline: the control period, i.e.
@@ -35,11 +35,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import itertools
 import os
 import sys
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,8 +90,8 @@ class SoakMonitor:
     wall time, whichever comes first (the drivers keep their last 20000 loop times: 40 s of
     Z1 ticks), and ends the run (WallTimeUp) once `wall_limit_s` of wall time have passed.
     The drivers' loop times come from the drivers (`loop_times`, in this process or through
-    their process's proxy); the world's, from a simulated-clock HilWorld's step times or, for the wall-clock
-    world in its process, from its statistics."""
+    their process's proxy); the world's, from a simulated-clock HilWorld's step times or, for
+    the wall-clock world in its process, from its statistics."""
 
     def __init__(self, station, sample_s: float, wall_limit_s: float = np.inf):
         self.station = station
@@ -120,11 +118,6 @@ class SoakMonitor:
         else:
             self.world_stats.append(world.stats())
 
-    def end_episode(self) -> None:
-        """The next step begins an episode: its wall time, which includes the episode's
-        set-up, is not a control step's."""
-        self._wall = None
-
     def log_station_step(self, t, hand_state, command, object_pose, stats, world_pose) -> None:
         now = time.perf_counter()
         if self._wall is not None:
@@ -135,7 +128,7 @@ class SoakMonitor:
             self.sample()
             self.rss.append((t, rss_mb()))
         if now > self.wall_end:
-            raise WallTimeUp(f"wall-time limit reached at t = {t:.1f} s simulated")
+            raise WallTimeUp(f"wall-time limit reached at t = {t:.1f} s of control")
 
     def log_fault(self, text: str) -> None:
         pass
@@ -159,75 +152,48 @@ def sine_controller(hand, q0: np.ndarray):
 
 @dataclass
 class Soaked:
-    """What a soak ran: control steps done (of `planned`, hil), supervised episodes (real),
-    the fault that ended it, why it ended early, and the controller's statistics (hil: the
-    episode's; real: the commands held and clipped, summed over the episodes)."""
+    """What a soak ran: control steps done, the fault that ended it (hil: the episode's;
+    real: with the supervised sequence's phase), why it ended early, and the controller's
+    statistics (None when it ended early)."""
 
     steps: int
-    planned: int | None
-    episodes: int
     fault: str | None
     note: str
     policy: dict | None
 
 
-def soak_simulated(station, controllers: Iterator, minutes: float, monitor: SoakMonitor,
-                   episode_s: float) -> Soaked:
-    """hil: one episode of `minutes` of simulated time (`episode_s` is not used)."""
+def soak(station, controller, steps: int, monitor: SoakMonitor) -> Soaked:
+    """One episode of `steps` control periods: hil, the episode loop on the simulated clock;
+    real (the wall-clock world), `dexdrake real`'s supervised sequence around it."""
     from dexdrake.systems.diagram import run_station_episode
-
-    steps = int(round(minutes * 60 / station.scenario.control_period))
-    try:
-        result = run_station_episode(station, next(controllers), steps, logger=monitor)
-    except WallTimeUp as err:  # the station's exit stops the devices as after any episode
-        return Soaked(monitor.steps, steps, 1, None, f" ({err})", None)
-    return Soaked(result.steps, steps, 1, result.fault, "", result.stats["policy"])
-
-
-def soak_wall_clock(station, controllers: Iterator, minutes: float, monitor: SoakMonitor,
-                    episode_s: float) -> Soaked:
-    """real on the wall-clock world: supervised episodes (`dexdrake real`'s sequence) of
-    `episode_s` of control each, back to back until `minutes` of wall time have passed."""
     from dexdrake.systems.real_episode import run_supervised
 
-    period = station.scenario.control_period
-    end = time.perf_counter() + minutes * 60
-    episodes, fault, note, counts = 0, None, "", {"non_finite": 0, "clipped": 0}
-    while fault is None and (left := end - time.perf_counter()) > 0:
-        steps = max(1, int(min(episode_s, left) / period))
-        monitor.end_episode()
-        try:
-            out = run_supervised(station, next(controllers), steps, monitor, say=lambda line: None)
-        except WallTimeUp as err:
-            note = f" ({err})"
-            break
-        finally:
-            monitor.sample()
-        episodes += 1
-        if out.fault is not None:
-            fault = f"episode {episodes}, {out.phase}: {out.fault}"
-        if out.episode is not None:
-            counts = {k: v + out.episode.stats["policy"][k] for k, v in counts.items()}
-    return Soaked(monitor.steps, None, episodes, fault, note, counts)
+    try:
+        if station.mode == "hil":
+            result = run_station_episode(station, controller, steps, logger=monitor)
+            return Soaked(result.steps, result.fault, "", result.stats["policy"])
+        out = run_supervised(station, controller, steps, monitor, say=lambda line: None)
+    except WallTimeUp as err:  # the station's exit stops the devices as after any episode
+        return Soaked(monitor.steps, None, f" ({err})", None)
+    return Soaked(monitor.steps, None if out.fault is None else f"{out.phase}: {out.fault}", "",
+                  None if out.episode is None else out.episode.stats["policy"])
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="hil", help="a hil scenario, or a real one with emulated_world drivers")
     parser.add_argument("--minutes", type=float, default=10.0,
-                        help="hil: simulated minutes; real: wall minutes of supervised episodes")
+                        help="minutes of control (hil: simulated; real: on the wall clock)")
     parser.add_argument("--policy", action="store_true", help="the scenario's controller, not the sine")
     parser.add_argument("--perception", action="store_true", help="keep the scenario's camera")
     parser.add_argument("--wall-minutes", type=float, default=np.inf,
                         help="end the run after this much wall time even if --minutes is not reached")
     parser.add_argument("--sample-s", type=float, default=5.0)
-    parser.add_argument("--episode-s", type=float, default=60.0, help="real: control seconds of each episode")
     parser.add_argument("--realtime-priority", type=int,
                         help="real: SCHED_FIFO priority of the driver and world processes, 0: normal "
                              "scheduling (default: the scenario's)")
     args = parser.parse_args()
 
-    from dexdrake.hands.description import load_hand
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.emulated_devices import Emulators
     from dexdrake.systems.emulated_world import running_world
@@ -249,12 +215,8 @@ def main() -> int:
             parser.error(f"--realtime-priority must be 0..99, got {args.realtime_priority}")
         for entry in (scenario.drivers.hand, scenario.drivers.arm):
             entry.realtime_priority = args.realtime_priority or None
-    if args.policy:  # a new one for each episode: a Drake system belongs to one diagram
-        controllers = (make_controller(scenario)[0] for _ in itertools.count())
-    else:
-        hand = load_hand(scenario.hand)
-        controllers = itertools.repeat(sine_controller(hand, hand.pregrasp_vector()))
-    controllers = itertools.chain([next(controllers)], controllers)  # the first made before the devices start
+    steps = int(round(args.minutes * 60 / scenario.control_period))
+    controller = make_controller(scenario)[0] if args.policy else None
     rss0 = rss_mb()
     wall0, cpu0 = time.perf_counter(), time.process_time()
     with contextlib.ExitStack() as stack:
@@ -264,24 +226,19 @@ def main() -> int:
             scenario = stack.enter_context(running_world(scenario, emulators))
             world = emulators.world
         station = stack.enter_context(make_station(scenario, world=world))
+        if controller is None:
+            controller = sine_controller(station.hand, station.hand.pregrasp_vector())
         monitor = SoakMonitor(station, args.sample_s, args.wall_minutes * 60)
         monitor.rss[0] = (0.0, rss0)
-        soak = soak_wall_clock if wall_clock else soak_simulated
-        run = soak(station, controllers, args.minutes, monitor, args.episode_s)
+        run = soak(station, controller, steps, monitor)
         monitor.close()
         world = station.world.stats()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     walls = np.asarray(monitor.step_walls) * 1e3
-    controller = "scenario" if args.policy else "sine"
-    if wall_clock:
-        print(f"soak: {scenario.name} {args.minutes:g} wall min on the wall-clock emulated world: {run.episodes} "
-              f"supervised episode{'' if run.episodes == 1 else 's'} of up to {args.episode_s:g} s ({run.steps} control steps), controller "
-              f"{controller}; wall {wall:.0f} s, CPU of this process {cpu:.0f} s, world real-time factor "
-              f"{world['real_time_factor']:.2f}")
-    else:
-        print(f"soak: {scenario.name} {args.minutes:g} simulated min ({run.steps}/{run.planned} control steps), "
-              f"controller {controller}; wall {wall:.0f} s, CPU {cpu:.0f} s, "
-              f"real-time factor {world['real_time_factor']:.2f}")
+    where = "in a supervised episode on the wall-clock emulated world" if wall_clock else "on the simulated clock"
+    print(f"soak: {scenario.name} {args.minutes:g} min of control ({run.steps}/{steps} control steps) {where}, "
+          f"controller {'scenario' if args.policy else 'sine'}; wall {wall:.0f} s, CPU "
+          f"{'of this process ' if wall_clock else ''}{cpu:.0f} s, real-time factor {world['real_time_factor']:.2f}")
     print(f"  fault: {run.fault or 'none'}{run.note}")
     clock = "wall clock" if wall_clock else "sim clock"
     for name, per in ((f"CAN PD loop ({clock}, deadline 6 ms)", monitor.can),
@@ -292,9 +249,11 @@ def main() -> int:
     period_ms = scenario.control_period * 1e3
     deadline_ms = 2 * period_ms if wall_clock else period_ms
     policy = run.policy
-    print(f"  control step ({'wall period' if wall_clock else 'wall'}, deadline {deadline_ms:.0f} ms): p50 "
-          f"{np.percentile(walls, 50):.1f} p90 {np.percentile(walls, 90):.1f} p99 {np.percentile(walls, 99):.1f} "
-          f"max {walls.max():.1f} ms, missed {int(np.sum(walls > deadline_ms))} of {walls.size}"
+    times = ("none timed" if walls.size == 0 else
+             f"p50 {np.percentile(walls, 50):.1f} p90 {np.percentile(walls, 90):.1f} p99 "
+             f"{np.percentile(walls, 99):.1f} max {walls.max():.1f} ms")
+    print(f"  control step ({'wall period' if wall_clock else 'wall'}, deadline {deadline_ms:.0f} ms): {times}, "
+          f"missed {int(np.sum(walls > deadline_ms))} of {walls.size}"
           + ("" if policy is None else ("" if wall_clock else f"; sim-clock period p99 {policy['p99_ms']:.2f} ms")
              + f", non-finite held {policy['non_finite']}, clipped {policy['clipped']}"))
     if wall_clock:
@@ -312,7 +271,6 @@ def main() -> int:
     print(f"  load average {os.getloadavg()[0]:.1f}")
     print(f"command: .venv/bin/python scripts/soak_hil.py --config {args.config} --minutes {args.minutes:g}"
           + (f" --wall-minutes {args.wall_minutes:g}" if np.isfinite(args.wall_minutes) else "")
-          + (f" --episode-s {args.episode_s:g}" if wall_clock else "")
           + ("" if args.realtime_priority is None else f" --realtime-priority {args.realtime_priority}")
           + (" --policy" if args.policy else "") + (" --perception" if args.perception else ""))
     return 1 if run.fault else 0

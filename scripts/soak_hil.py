@@ -244,7 +244,8 @@ def main() -> int:
     for name, per in ((f"CAN PD loop ({clock}, deadline 6 ms)", monitor.can),
                       (f"Z1 UDP loop ({clock}, deadline 4 ms)", monitor.z1)):
         r = per.report()
-        print(f"  {name}: {r['n']} periods, p50 {r['p50_ms']:.2f} p90 {r['p90_ms']:.2f} p99 "
+        print(f"  {name}: no periods" if r["n"] == 0 else
+              f"  {name}: {r['n']} periods, p50 {r['p50_ms']:.2f} p90 {r['p90_ms']:.2f} p99 "
               f"{r['p99_ms']:.2f} max {r['max_ms']:.2f} ms, missed {r['missed']}")
     period_ms = scenario.control_period * 1e3
     deadline_ms = 2 * period_ms if wall_clock else period_ms

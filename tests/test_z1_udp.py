@@ -881,22 +881,22 @@ def test_a_reset_before_the_controller_is_heard_again_re_arms_at_the_measured_po
     PASSIVE until it hears a state, then re-enters LOWCMD holding that measured position
     with no velocity and no torque but gravity's (the old set-point and feed-forward
     are gone), and no overspeed follows."""
-    arm = make_arm(emulator, watchdog_timeout_s=0.5)
+    arm = make_arm(emulator, watchdog_timeout_s=2.0)  # outlasts the test's steps while stalled
     with arm:
         arm.command_positions(TARGET, tau_ff=np.full(6, 0.3))
         assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.02, 10.0)
         emulator.stall(30.0)
-        assert wait_for(lambda: arm.state().fault is not None, 2.0)
+        assert wait_for(lambda: arm.state().fault is not None, 5.0)
         assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)  # sagged, PASSIVE
         time.sleep(0.3)
         n = len(emulator.log)
         arm.reset_fault()
-        assert wait_for(lambda: arm.state().fault is None, 1.0)  # reset done, nothing heard yet
+        assert wait_for(lambda: arm.state().fault is None, 5.0)  # reset done, nothing heard yet
         time.sleep(0.02)
         assert not _lowcmd_after(emulator, n)
         q_sag = emulator.q
         emulator.stall(0)
-        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 1.0), arm.state().fault
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 5.0), arm.state().fault
         first = _lowcmd_after(emulator, n)[0].joints[:6]
         q_first = np.array([j.Pos for j in first])
         np.testing.assert_allclose(q_first, np.clip(q_sag, LOWER + 0.02, UPPER - 0.02), atol=0.02)
@@ -918,11 +918,11 @@ def test_the_target_follows_the_arm_until_the_controller_takes_the_mode_again(em
         emulator.motor_temperature_c = 71
         assert wait_for(lambda: arm.state().fault is not None, 1.0)
         emulator.motor_temperature_c = 25
-        time.sleep(0.02)  # no reply with the old temperature is left on its way
+        time.sleep(0.2)  # no reply with the old temperature is left on its way
         emulator.force_passive(1.0)
         n = len(emulator.log)
         arm.reset_fault()
-        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 3.0), arm.state().fault
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 10.0), arm.state().fault
         assert np.max(np.abs(emulator.q - TARGET)) > 0.3  # it sagged while refused
         first = np.array([j.Pos for j in _lowcmd_after(emulator, n)[-1].joints[:6]])
         time.sleep(0.3)

@@ -884,7 +884,7 @@ def test_a_reset_before_the_controller_is_heard_again_re_arms_at_the_measured_po
     arm = make_arm(emulator, watchdog_timeout_s=2.0)  # outlasts the test's steps while stalled
     with arm:
         arm.command_positions(TARGET, tau_ff=np.full(6, 0.3))
-        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.02, 10.0)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.05, 20.0)
         emulator.stall(30.0)
         assert wait_for(lambda: arm.state().fault is not None, 5.0)
         assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)  # sagged, PASSIVE
@@ -914,7 +914,7 @@ def test_the_target_follows_the_arm_until_the_controller_takes_the_mode_again(em
     arm = make_arm(emulator)
     with arm:
         arm.command_positions(TARGET)
-        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.02, 10.0)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.05, 20.0)
         emulator.motor_temperature_c = 71
         assert wait_for(lambda: arm.state().fault is not None, 1.0)
         emulator.motor_temperature_c = 25

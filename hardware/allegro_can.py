@@ -15,7 +15,8 @@ timestamps where the interface sets them), a hot joint or palm (any reading abov
 `max_temperature_c`, or below -40 C), a status fault bit, temperatures of a finger or the
 status not heard for their timeouts (polled by RTR), a failing loop. `stop()` sends zero
 torque before anything else. `reset_fault()` re-runs the whole start sequence (after a
-power loss the hand streams nothing until told). `probe()` asks info and serial only.
+power loss the hand streams nothing until told) and re-arms at the measured position (the
+set-point from before it dropped). `probe()` asks info and serial only.
 """
 
 from __future__ import annotations
@@ -572,6 +573,8 @@ class AllegroHand(SafeStopContext):
         while self.bus.recv(0.0) is not None:  # flush
             pass
         self._halted = False
+        with self._lock:
+            self._has_command = False
         self._start_sequence()
         self._running.set()
         self._thread = threading.Thread(target=self._loop, name="allegro-pd", daemon=True)
@@ -579,12 +582,12 @@ class AllegroHand(SafeStopContext):
         return self.info
 
     def _start_sequence(self) -> None:
-        """Servo off, info, serial, periodic read, servo on; the loop then holds the measured
-        position (HardwareError when the hand does not answer, is too hot or its info reports
-        a fault)."""
+        """Servo off, info, serial, periodic read, servo on; the loop's first cycle then starts
+        from the measured position (HardwareError when the hand does not answer, is too hot or
+        its info reports a fault)."""
         cfg = self.config
         with self._lock:
-            self._initialised, self._has_command = False, False
+            self._initialised = False
             self._fresh = [False] * NUM_FINGERS
             self._heard = [False] * NUM_FINGERS
         self._send(ServoOff())
@@ -663,11 +666,15 @@ class AllegroHand(SafeStopContext):
             return self._target.copy()
 
     def reset_fault(self) -> None:
-        """Clear a latched fault: re-run the start sequence and hold the current position.
+        """Clear a latched fault: re-run the start sequence and hold the position measured
+        after it (every finger heard anew) until the next `command_positions`; the set-point
+        commanded before this call is dropped now.
 
         While running, the loop thread does the reset (a hand that does not answer trips
         again); when stopped, only the latch clears (`start()` runs the sequence).
         """
+        with self._lock:
+            self._has_command = False
         if self.running:
             self._reset_request.set()
         else:
@@ -690,6 +697,11 @@ class AllegroHand(SafeStopContext):
                    rejected_commands=self.limits.non_finite, clamped_commands=self.limits.clipped,
                    fault=self.fault.reason)
         return out
+
+    def loop_times(self, since: float = -math.inf) -> np.ndarray:
+        """The PD cycles' times (the clock's s) after `since`, of the last 20000 kept."""
+        times = np.fromiter(list(self._stats.cycle_times), float)
+        return times[times > since]
 
     # --------------------------------------------------------------- loop
     def _send_zero_torque(self) -> None:

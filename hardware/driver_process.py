@@ -9,7 +9,9 @@ registering their closing on `stack`), starts it and supervises it every `poll_p
   parent -> child  shared memory: the joint target (seqlock: sequence number, values) and
                    the parent's heartbeat (CLOCK_MONOTONIC, shared by all processes),
                    written every `heartbeat_period_s` by a thread of the proxy; a stop flag.
-                   Pipe: requests (stats, reset_fault, stop).
+                   Pipe: requests (stats, loop_times, stop; reset_fault with the sequence number of the
+                   last target written before it: that target is never applied after the
+                   reset, whose driver holds the measured position until the next one).
   child -> parent  shared memory: the driver's latest state (seqlock, written by the child);
                    pipe: the fault reason as soon as the driver latches one, replies.
 
@@ -204,15 +206,17 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
     while not terminated.is_set() and buf[_CONTROL + _STOP] == 0:
         try:
             if conn.poll(config.poll_period_s):
-                request = conn.recv()
-                if request == "stop":
-                    return None
-                if request == "reset_fault":
-                    resetting, reset_until = driver.state().fault, time.monotonic() + config.reset_grace_s
-                    driver.reset_fault()
-                    fault_sent = None
-                elif request == "stats":
-                    conn.send(("stats", driver.stats()))
+                match conn.recv():
+                    case "stop":
+                        return None
+                    case ("reset_fault", seq_written):
+                        resetting, reset_until = driver.state().fault, time.monotonic() + config.reset_grace_s
+                        driver.reset_fault()
+                        fault_sent, seq_done = None, max(seq_done, seq_written)
+                    case "stats":
+                        conn.send(("stats", driver.stats()))
+                    case ("loop_times", since):
+                        conn.send(("loop_times", driver.loop_times(since)))
         except (EOFError, OSError):
             return "parent process gone"
         command = _read(buf[_COMMAND:], n)  # None: the parent died writing (its heartbeat tells)
@@ -239,7 +243,8 @@ def _supervise(driver, codec: StateCodec, conn, buf: np.ndarray, config: Process
 class DriverProcess(SafeStopContext):
     """Proxy of a driver running in its own process (module docstring): `start()`,
     `command_positions(q)`, `state()` (with the fault the child reported), `running`,
-    `stats()`, `reset_fault()`, `stop()`; a context manager like the drivers."""
+    `stats()`, `loop_times(since)`, `reset_fault()`, `stop()`; a context manager like the
+    drivers."""
 
     def __init__(self, factory: Factory, config: ProcessConfig | None = None, name: str = "driver"):
         self.factory, self.config, self.name = factory, config or ProcessConfig(), name
@@ -412,15 +417,30 @@ class DriverProcess(SafeStopContext):
             reply = self._pump(self.config.stop_timeout_s, "stats")
         return {} if reply is None or reply[0] != "stats" else reply[1]
 
+    def loop_times(self, since: float = -math.inf) -> np.ndarray:
+        """The child's driver's loop times after `since` (CLOCK_MONOTONIC s, as in every
+        process); none once it has stopped."""
+        with self._lock:
+            if not self.running:
+                return np.zeros(0)
+            try:
+                self._conn.send(("loop_times", since))
+            except OSError:  # the child ended since `running` was read
+                return np.zeros(0)
+            reply = self._pump(self.config.stop_timeout_s, "loop_times")
+        return np.zeros(0) if reply is None or reply[0] != "loop_times" else reply[1]
+
     def reset_fault(self) -> None:
-        """Ask the child's driver to clear its latched fault (its own rules apply); the
-        child reports that fault again only if it is still latched `reset_grace_s` later."""
+        """Ask the child's driver to clear its latched fault (its own rules apply: the
+        drivers re-arm holding the measured position); a target written before this call
+        and not yet taken by the child is dropped. The child reports that fault again only
+        if it is still latched `reset_grace_s` later."""
         with self._lock:
             self._pump(0.0)  # fault reports already on their way belong to before the reset
             if not self.running:
                 raise HardwareError(f"{self.name}: the driver process is not running")
             self._fault = None
-            self._conn.send("reset_fault")
+            self._conn.send(("reset_fault", float(self._buf[_COMMAND])))
 
 
 # ----------------------------------------------------------------------------- factories

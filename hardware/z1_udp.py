@@ -15,7 +15,8 @@ beyond them is refused. Safety: targets clamped `limit_margin_rad` inside the jo
 a velocity limit on targets, torque clamped to the effort limits; a state watchdog, motor
 error flags, motor temperatures, joints reported beyond their velocity limit and the
 controller leaving the mode on its own (never re-armed: specs/z1.md) latch a fault and
-command PASSIVE until `reset_fault()`. `stop()` holds first, then commands PASSIVE.
+command PASSIVE until `reset_fault()`, which re-arms at the position measured after it (the
+old set-point and feed-forward dropped). `stop()` holds first, then commands PASSIVE.
 `probe()` checks the ports without sending anything (the protocol has no pure query).
 `OfficialZ1` wraps Unitree's own `unitree_arm_interface` binding when it is importable.
 """
@@ -388,6 +389,7 @@ class Z1Arm(SafeStopContext):
         self._send_lock = threading.Lock()
         self._halted = False  # set by stop(): the loop sends nothing from then on
         self._in_mode = False  # the controller reached the mode since (re)start
+        self._heard = False  # a state came since (re)start or reset: `_last` shows the arm now
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
@@ -449,8 +451,9 @@ class Z1Arm(SafeStopContext):
             raise HardwareError(f"Z1: fault latched ({self.fault.reason}); call reset_fault() first")
         cfg = self.config
         with self._lock:
-            self._initialised, self._has_command, self._last = False, False, None
-            self._in_mode = self._halted = False
+            self._forget_command()
+            self._initialised, self._last = False, None
+            self._in_mode = self._halted = self._heard = False
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((cfg.host, cfg.local_port))
@@ -522,14 +525,26 @@ class Z1Arm(SafeStopContext):
             return self._target.copy()
 
     def reset_fault(self) -> None:
-        """Clear a latched fault; the arm re-enters the mode holding its current position.
+        """Clear a latched fault and drop the set-point and feed-forward commanded before it.
 
-        While running, the loop thread does the reset; when stopped, only the latch clears.
+        While running, the loop thread clears the latch, commands PASSIVE until it hears a
+        state from the controller (the last one heard may be from before the arm sagged),
+        then re-enters the mode holding the position measured when the controller takes it
+        (zero velocity, no feed-forward but gravity's) until the next `command_positions`.
+        When stopped, only the latch clears.
         """
+        with self._lock:
+            self._forget_command()
         if self.running:
             self._reset_request.set()
         else:
             self.fault.reset()
+
+    def _forget_command(self) -> None:
+        """No set-point and no feed-forward (under `_lock`): the loop holds the measured position."""
+        self._has_command = self._dq_given = False
+        self._dq_target = np.zeros(NUM_ARM_JOINTS)
+        self._tau_ff = np.zeros(NUM_ARM_JOINTS)
 
     def state(self) -> Z1State:
         """The newest state the controller sent: replies already delivered to the socket
@@ -555,6 +570,11 @@ class Z1Arm(SafeStopContext):
                    rejected_commands=self.limits.non_finite, clamped_commands=self.limits.clipped,
                    torque_clamped=self.torque_clamped, fault=self.fault.reason)
         return out
+
+    def loop_times(self, since: float = -math.inf) -> np.ndarray:
+        """The loop's tick times (the clock's s) after `since`, of the last 20000 kept."""
+        times = np.fromiter(list(self._tick_times), float)
+        return times[times > since]
 
     # --------------------------------------------------------------- loop
     def _send(self, cmd: SendCmd, tick: bool = False) -> None:
@@ -608,7 +628,7 @@ class Z1Arm(SafeStopContext):
             self._answered, self._replies_flowing = self.commands_sent, True
             self._watchdog.feed()
             with self._lock:
-                self._last, self._t_state = st, self._clock()
+                self._last, self._t_state, self._heard = st, self._clock(), True
             self._check_motors(st)
 
     def _check_motors(self, st: RecvState) -> None:
@@ -633,19 +653,27 @@ class Z1Arm(SafeStopContext):
                                 f"(limit {self.settings.max_measured_velocity[i]:g} rad/s)")
                 return
 
+    def _fresh_state(self) -> RecvState | None:
+        """The newest state, if one came since (re)start or reset."""
+        with self._lock:
+            return self._last if self._heard else None
+
     def _hold(self) -> SendCmd:
         """The mode's command at the measured position with zero velocity (LOWCMD: the
         configured gains and the gravity feed-forward); PASSIVE when there is nothing to hold
-        (a fault, no state yet, or the controller not in the mode)."""
-        st, mode = self._last, self.config.mode
+        (a fault, no state since (re)start or reset, or the controller not in the mode)."""
+        st, mode = self._fresh_state(), self.config.mode
         if self.fault.tripped or st is None or st.state != mode:
             return SendCmd(ArmFSMState.PASSIVE)
         q = np.clip([j.Pos for j in st.joints[:NUM_ARM_JOINTS]], self.limits.lower, self.limits.upper)
         return self._mode_command(q, np.zeros(NUM_ARM_JOINTS), np.zeros(NUM_ARM_JOINTS))
 
     def _command(self, dt: float) -> SendCmd:
-        """The command for this tick from the current state, target and safety status."""
-        st = self._last
+        """The command for this tick from the current state, target and safety status:
+        PASSIVE until a state comes after (re)start or reset; while the controller is not
+        in the mode (entering it, or after a reset), the reference, and the target until the
+        caller sends one, follow the measured position."""
+        st = self._fresh_state()
         if self.fault.tripped or st is None:
             return SendCmd(ArmFSMState.PASSIVE)
         mode = self.config.mode
@@ -654,18 +682,17 @@ class Z1Arm(SafeStopContext):
         elif self._in_mode:  # only the client may take the arm out of the mode: never re-arm
             self.fault.trip(f"controller left {mode.name} for {st.state.name} on its own")
             return SendCmd(ArmFSMState.PASSIVE)
-        q = np.array([j.Pos for j in st.joints[:NUM_ARM_JOINTS]])
+        if st.state not in (mode, ArmFSMState.PASSIVE):
+            return SendCmd(ArmFSMState.PASSIVE)  # modes change only through PASSIVE
+        q = np.clip([j.Pos for j in st.joints[:NUM_ARM_JOINTS]], self.limits.lower, self.limits.upper)
         with self._lock:
-            if not self._initialised:
-                self._rate.reset(np.clip(q, self.limits.lower, self.limits.upper))
+            if not self._initialised or st.state != mode:  # (re-)arming at the measured position
+                self._rate.reset(q)
                 if not self._has_command:
                     self._target = self._rate.output
                     self.limits.reset(self._target)
                 self._initialised = True
-            if st.state not in (mode, ArmFSMState.PASSIVE):
-                return SendCmd(ArmFSMState.PASSIVE)  # modes change only through PASSIVE
             if st.state != mode:  # request the mode, holding the measured position
-                self._rate.reset(np.clip(q, self.limits.lower, self.limits.upper))
                 q_ref = self._rate.output
                 dq_ref = np.zeros(NUM_ARM_JOINTS)
             else:
@@ -717,9 +744,9 @@ class Z1Arm(SafeStopContext):
             self._tick_times.append(now)
             if self._reset_request.is_set():
                 self._reset_request.clear()
-                with self._lock:
+                with self._lock:  # reset_fault() dropped the command; states before are stale
                     self.fault.reset()
-                    self._initialised, self._has_command, self._in_mode = False, False, False
+                    self._initialised = self._in_mode = self._heard = False
                 self._watchdog.reset()
             self._receive_reply()  # the command of this tick acts on the newest state
             if not self.fault.tripped and self._watchdog.expired(now):

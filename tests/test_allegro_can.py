@@ -256,6 +256,9 @@ def test_pd_loop_tracks_target(rig):
         assert st.fault is None and np.all(np.abs(st.tau_pwm) <= hand.pwm_limit)
         stats = hand.stats()
         assert stats["cycles"] > 10 and stats["rate_hz"] > 0 and stats["max_ms"] >= stats["p50_ms"] > 0
+        times = hand.loop_times()
+        assert times.size > 10 and np.all(np.diff(times) > 0)
+        np.testing.assert_array_equal(hand.loop_times(times[-3])[:2], times[-2:])  # and those since
     assert wait_for(lambda: not emu.servo_on, 1.0)
 
 
@@ -699,3 +702,32 @@ def test_a_message_the_transport_cannot_deliver_is_counted_by_driver_and_emulato
     finally:
         for bus in (host, dev, sender):
             bus.shutdown()
+
+
+def test_reset_re_arms_at_the_measured_position_and_keeps_a_set_point_sent_after_it(rig):
+    """Fingers moved while the hand was off: reset_fault() re-arms holding where they are
+    now, not the set-point from before the fault; a set-point sent right after
+    reset_fault() is the one followed."""
+    hand, emu, _ = rig
+    with hand:
+        old = LOWER + 0.5 * (UPPER - LOWER)
+        hand.command_positions(old)
+        assert wait_for(lambda: np.max(np.abs(emu.q - old)) < 0.03, 4.0)
+        emu.stall(0.5)
+        assert wait_for(lambda: hand.state().fault is not None and not emu.servo_on, 1.0)
+        moved = LOWER + 0.2 * (UPPER - LOWER)  # pushed by hand while off
+        emu.dynamics.dq, emu.dynamics.q = np.zeros(16), moved.copy()
+        assert wait_for(lambda: np.allclose(emu.q, moved, atol=0.01), 1.0)
+        time.sleep(0.5)  # the stream is back
+        hand.reset_fault()
+        assert wait_for(lambda: hand.state().fault is None and emu.servo_on, 3.0)
+        time.sleep(0.3)
+        np.testing.assert_allclose(hand.state().q_target, moved, atol=0.03)
+        np.testing.assert_allclose(emu.q, moved, atol=0.03)
+        emu.stall(0.5)
+        assert wait_for(lambda: hand.state().fault is not None and not emu.servo_on, 1.0)
+        time.sleep(0.5)
+        new = LOWER + 0.4 * (UPPER - LOWER)
+        hand.reset_fault()
+        hand.command_positions(new)
+        assert wait_for(lambda: np.max(np.abs(emu.q - new)) < 0.03, 4.0), hand.state()

@@ -103,12 +103,16 @@ def test_z1_in_its_process_follows_targets_and_stops_in_passive(z1_emulator):
         assert wait_for(lambda: np.allclose(arm.state().q, target, atol=0.02)
                         and np.allclose(emu.q, target, atol=0.02), 15.0)
         assert arm.stats()["cycles"] > 10
+        times = arm.loop_times()  # the child's tick times, on the clock every process shares
+        assert times.size > 10 and np.all(np.diff(times) > 0) and times[-1] <= time.monotonic()
+        assert np.all(arm.loop_times(times[-1]) > times[-1])
         with pytest.raises(HardwareError, match="6 joint targets"):
             arm.command_positions(np.zeros(5))
         sent = emu.commands_received
     assert not arm.running and _gone(pid)
     assert emu.commands_received > sent and emu.fsm == ArmFSMState.PASSIVE
     assert arm.stats()["cycles"] > 10  # the final report of the child
+    assert arm.loop_times().size == 0
     with pytest.raises(HardwareError, match="not running"):
         arm.command_positions(target)
 
@@ -163,6 +167,31 @@ def test_a_reset_fault_clears_the_parents_view_too(z1_emulator):
         assert wait_for(lambda: arm.state().fault is not None, 10.0)
         arm.reset_fault()  # the replies are still stalled: the watchdog trips again
         assert wait_for(lambda: arm.state().fault is not None, 5.0)
+
+
+def test_a_target_written_before_reset_fault_is_never_applied_after_it(z1_emulator):
+    """A target the parent wrote while the arm was faulted, just before reset_fault(), is
+    dropped with the reset: the child's driver re-arms holding the position the arm sagged
+    to; the next target is followed."""
+    emu = z1_emulator
+    with DriverProcess(functools.partial(z1_client, _z1(emu)), PROC, "Z1 arm") as arm:
+        up = np.array([0.0, 1.0, -1.0, 0.0, 0.0, 0.0])
+        arm.command_positions(up)
+        assert wait_for(lambda: np.allclose(emu.q, up, atol=0.02), 15.0)
+        emu.stall(1.5)
+        assert wait_for(lambda: arm.state().fault is not None, 10.0)
+        assert wait_for(lambda: emu.stall_until < time.monotonic() and np.max(np.abs(emu.q - up)) > 0.3, 10.0)
+        time.sleep(0.3)  # replies are back
+        arm.command_positions(up)
+        arm.reset_fault()
+        assert wait_for(lambda: arm.state().fault is None and arm.state().fsm == ArmFSMState.LOWCMD, 5.0)
+        q_sag = emu.q
+        time.sleep(0.5)
+        assert arm.state().fault is None
+        np.testing.assert_allclose(arm.state().q_target, q_sag, atol=0.05)
+        np.testing.assert_allclose(emu.q, q_sag, atol=0.05)
+        arm.command_positions(up)
+        assert wait_for(lambda: np.allclose(emu.q, up, atol=0.02), 15.0)
 
 
 def test_a_driver_that_cannot_start_raises_in_the_parent_and_leaves_no_process():

@@ -868,3 +868,64 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(sigint_storm):
             arm.local_port
     finally:
         emu.stop()
+
+
+def _lowcmd_after(emu: Z1Emulator, n: int) -> list[SendCmd]:
+    """The LOWCMD commands the emulator obeyed after its first `n` logged commands."""
+    return [c for c in list(emu.log)[n:] if c.state == ArmFSMState.LOWCMD]
+
+
+def test_a_reset_before_the_controller_is_heard_again_re_arms_at_the_measured_position(emulator):
+    """The last state heard before a silence shows the arm at its old target; it sagged in
+    PASSIVE since. reset_fault() while the controller is still silent: the client commands
+    PASSIVE until it hears a state, then re-enters LOWCMD holding that measured position
+    with no velocity and no torque but gravity's (the old set-point and feed-forward
+    are gone), and no overspeed follows."""
+    arm = make_arm(emulator, watchdog_timeout_s=2.0)  # outlasts the test's steps while stalled
+    with arm:
+        arm.command_positions(TARGET, tau_ff=np.full(6, 0.3))
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.05, 20.0)
+        emulator.stall(30.0)
+        assert wait_for(lambda: arm.state().fault is not None, 5.0)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) > 0.3, 3.0)  # sagged, PASSIVE
+        time.sleep(0.3)
+        n = len(emulator.log)
+        arm.reset_fault()
+        assert wait_for(lambda: arm.state().fault is None, 5.0)  # reset done, nothing heard yet
+        time.sleep(0.02)
+        assert not _lowcmd_after(emulator, n)
+        q_sag = emulator.q
+        emulator.stall(0)
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 5.0), arm.state().fault
+        first = _lowcmd_after(emulator, n)[0].joints[:6]
+        q_first = np.array([j.Pos for j in first])
+        np.testing.assert_allclose(q_first, np.clip(q_sag, LOWER + 0.02, UPPER - 0.02), atol=0.02)
+        np.testing.assert_allclose([j.W for j in first], 0.0)
+        np.testing.assert_allclose([j.T for j in first], arm.model.gravity(q_first), atol=1e-4)
+        time.sleep(0.3)
+        assert arm.state().fault is None and emulator.fsm == ArmFSMState.LOWCMD
+        np.testing.assert_allclose(emulator.q, q_sag, atol=0.05)
+
+
+def test_the_target_follows_the_arm_until_the_controller_takes_the_mode_again(emulator):
+    """After reset_fault() the controller refuses LOWCMD for a while and the arm keeps
+    sagging: the client re-arms holding where the arm is when LOWCMD is entered, not where
+    it was at the reset."""
+    arm = make_arm(emulator)
+    with arm:
+        arm.command_positions(TARGET)
+        assert wait_for(lambda: np.max(np.abs(emulator.q - TARGET)) < 0.05, 20.0)
+        emulator.motor_temperature_c = 71
+        assert wait_for(lambda: arm.state().fault is not None, 1.0)
+        emulator.motor_temperature_c = 25
+        time.sleep(0.2)  # no reply with the old temperature is left on its way
+        emulator.force_passive(1.0)
+        n = len(emulator.log)
+        arm.reset_fault()
+        assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 10.0), arm.state().fault
+        assert np.max(np.abs(emulator.q - TARGET)) > 0.3  # it sagged while refused
+        first = np.array([j.Pos for j in _lowcmd_after(emulator, n)[-1].joints[:6]])
+        time.sleep(0.3)
+        assert arm.state().fault is None
+        np.testing.assert_allclose(arm.state().q_target, first, atol=0.05)
+        assert np.max(np.abs(emulator.q - TARGET)) > 0.3

@@ -10,7 +10,8 @@ with rho(e) = e^2/2, or the Huber loss of width `huber` (m) when configured (lin
 it: unmatched vectors pull with bounded force, and the sum of errors is traded rather than
 the sum of their squares). Key vectors v_i (robot) and their human counterparts v_i^H:
     wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
-            the base vectors (weight x `base`) hold the palm's orientation
+            the base vectors (weight x `base`) hold the palm's orientation (left out
+            with a fixed wrist)
     finger  thumb tip -> each tip (weight x `thumb`), tip -> tip      t_i = k_f v_i^H, or
             DexPilot's pinch projection: thumb-finger with human length < eps:
             t = eta1 * unit, w = s1; finger-finger with both fingers pinching: t = eta2 * unit,
@@ -126,10 +127,16 @@ class Retargeter:
         V = E[kv.b.tolist(), :] - E[kv.a.tolist(), :]
         v = ca.reshape(V.T, -1, 1)  # row-major flattening
         self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
+        kinds = np.array(kv.kind)
+        self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
+                                               "object", "position", "palm")}
+        self._base = self._masks["wrist"] & (np.arange(len(kinds)) % 2 == 1)  # wrist -> base
         vectors = ca.Function("vectors", [q, a], [v])
-        # a fixed wrist has no object terms: those vectors are left out of the solve
-        self._rows = np.array([i for i, k in enumerate(kv.kind)
-                               if not (fixed_wrist and k == "object")])
+        # a fixed wrist has no object terms and its palm cannot turn: the object and
+        # wrist->base vectors (which would only pull the abduction joints towards the human
+        # knuckles, adding their tracker noise) are left out of the solve
+        self._rows = np.flatnonzero(~(self._masks["object"] | self._base) if fixed_wrist
+                                    else np.ones(len(kinds), bool))
         step = _compiled(self._lm_step(vectors, q, a))
         # zero-copy evaluation: inputs and outputs live in these numpy buffers
         n, m = len(self.joint_names), len(self._rows)
@@ -140,10 +147,6 @@ class Retargeter:
             self._buf.set_arg(i, memoryview(arr))
         for i, arr in enumerate(self._out):
             self._buf.set_res(i, memoryview(arr))
-        kinds = np.array(kv.kind)
-        self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
-                                               "object", "position", "palm")}
-        self._base = self._masks["wrist"] & (np.arange(len(kinds)) % 2 == 1)  # wrist -> base
         self._tf = np.flatnonzero(self._masks["thumb-finger"])
         self._tf_finger = np.array([kv.fingers[i][1] for i in self._tf], int)
         self._ff = np.flatnonzero(self._masks["finger-finger"])

@@ -11,7 +11,7 @@ One YAML file per hand in `dexdrake/retarget/configs/<hand>.yaml`:
     scales: {wrist: auto, finger: auto, object: 1.0}    # k_i; auto = robot/human length
     weights: {wrist: 1.0, base: 1.0, finger: 1.0, thumb: 1.0, object: 1.0,
               object_decay: 0.03, object_contact: 0.012, object_depth: 0.0, palm: 1.0,
-              wrist_position: 0.05, smooth: 4.0e-3, huber: .inf}  # base, thumb: x wrist, x finger
+              wrist_position: 0.05, smooth: 4.0e-3}   # base, thumb: x wrist, x finger
     pinch: {eps_enter: 0.03, eps_leave: 0.05, eta1: 1.0e-4, eta2: 0.03, s1: 200, s2: 400}
     solver: {iterations: 10, first_iterations: 80, damping: 1.0e-6, filter: 1.0,
              filter_speed: .inf}
@@ -27,7 +27,6 @@ description's grasp centre; override with body/offset) where the human's palm ce
 `solver.filter` low-passes the output trajectory (alpha, 1 = off), adaptively when
 `solver.filter_speed` (rad/frame) is finite: joints moving that fast are not filtered
 (`retargeter.low_pass`).
-`huber` (m) makes each key vector's loss linear beyond that error (default .inf: squared).
 Finger-to-object targets move `object_depth` inside the object's surface when the human
 fingertip is within `object_contact` of it (fading out at twice that), so the position
 servos squeeze the object instead of stopping at its surface.
@@ -101,7 +100,7 @@ class RetargetConfig:
 
 _DEFAULT_WEIGHTS = {"wrist": 1.0, "base": 1.0, "finger": 1.0, "thumb": 1.0, "object": 1.0,
                     "object_decay": 0.03, "object_contact": 0.012, "object_depth": 0.0,
-                    "palm": 1.0, "wrist_position": 0.05, "smooth": 4e-3, "huber": np.inf}
+                    "palm": 1.0, "wrist_position": 0.05, "smooth": 4e-3}
 
 
 def _point(hand: HandDescription, name: str, d: dict, human: int) -> RobotPoint:

@@ -5,10 +5,8 @@ CasADi function compiled to machine code (`_compiled`); a warm-started frame tak
 
 Objective per frame (DexRepNet, DexPilot-style), over the policy joints that can move (the
 6 virtual arm joints are the global hand pose M_g; a fixed wrist solves the fingers only):
-    sum_i w_i rho(|| v_i^R(q) - t_i ||) + w_smooth/2 || q - q_prev ||^2,   lo <= q <= hi
-with rho(e) = e^2/2, or the Huber loss of width `huber` (m) when configured (linear beyond
-it: unmatched vectors pull with bounded force, and the sum of errors is traded rather than
-the sum of their squares). Key vectors v_i (robot) and their human counterparts v_i^H:
+    1/2 sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth/2 || q - q_prev ||^2,   lo <= q <= hi
+Key vectors v_i (robot) and their human counterparts v_i^H:
     wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
             the base vectors (weight x `base`) hold the palm's orientation (left out
             with a fixed wrist)
@@ -165,16 +163,13 @@ class Retargeter:
         """One bounded Levenberg-Marquardt step, compiled to a CasADi SX function
         (q, q_ref, targets, weights, anchors, smooth, mu) -> (q', mu', |dq|max): a Gauss-Newton
         step with analytic (symbolic) Jacobians for
-            sum_i w_i rho(||v_i(q) - t_i||) + smooth/2 ||q - q_ref||^2,   lo <= q <= hi
-        on the active joints, solved by an unrolled Cholesky on the free set (joints at a bound
-        that the gradient pushes out keep zero step); kept only if it lowers the cost, and the
-        damping mu shrinks (kept) or grows (refused; |dq|max is then inf). rho is the Huber
-        loss with the config's `huber` (m; inf: 1/2 e^2), minimised by reweighting: each vector
-        counts as w_i min(1, huber / e_i), so a vector that cannot be matched (another hand's
-        proportions, a tracker glitch) pulls with a bounded force and the sum of errors, which
-        the errors are judged by, is what is traded rather than their squares."""
+            1/2 sum_i w_i ||v_i(q) - t_i||^2 + smooth/2 ||q - q_ref||^2,   lo <= q <= hi
+        on the active joints (the solved vectors `_rows` only), solved by an unrolled Cholesky
+        on the free set (joints at a bound that the gradient pushes out keep zero step); kept
+        only if it lowers the cost, and the damping mu shrinks (kept) or grows (refused;
+        |dq|max is then inf)."""
         act, rows = self._active, self._rows
-        m, huber = len(rows), self.config.weight("huber")
+        m = len(rows)
         lo, hi = self.lower[act], self.upper[act]
         x = q[act.tolist()]
         q_ref, t, w = ca.SX.sym("q_ref", q.numel()), ca.SX.sym("t", 3 * m), ca.SX.sym("w", m)
@@ -182,22 +177,14 @@ class Retargeter:
         pick = np.ravel(3 * rows[:, None] + np.arange(3)).tolist()
         dx_ref = x - q_ref[act.tolist()]
 
-        def residual(qq):  # (per-vector errors (3, m), their norms (1, m), cost)
-            e = ca.reshape(vectors(qq, a)[pick] - t, 3, m)
-            norm = ca.sqrt(ca.sum1(e * e) + 1e-18)
-            if np.isinf(huber):
-                rho = 0.5 * norm * norm
-            else:
-                rho = ca.if_else(norm > huber, huber * (norm - 0.5 * huber), 0.5 * norm * norm)
+        def residual(qq):  # (weighted residuals (3 m), cost)
+            r = ca.vec(sw * ca.reshape(vectors(qq, a)[pick] - t, 3, m))
             dx = qq[act.tolist()] - q_ref[act.tolist()]
-            return e, norm, ca.dot(w, rho.T) + 0.5 * smooth * ca.dot(dx, dx)
+            return r, 0.5 * ca.dot(r, r) + 0.5 * smooth * ca.dot(dx, dx)
 
-        e, norm, cost = residual(q)
-        irls = w if np.isinf(huber) else w * ca.fmin(1.0, huber / norm.T)
-        sw = ca.repmat(ca.sqrt(irls).T, 3, 1)  # (3, m): per component
-        r = ca.vec(sw * e)
-        # the reweighting is held fixed within the step
-        J = ca.mtimes(ca.diag(ca.vec(sw)), ca.jacobian(ca.vec(e), x))
+        sw = ca.repmat(ca.sqrt(w).T, 3, 1)  # (3, m): per component
+        r, cost = residual(q)
+        J = ca.jacobian(r, x)
         g = ca.mtimes(J.T, r) + smooth * dx_ref
         H = ca.mtimes(J.T, J) + (smooth + mu) * ca.SX.eye(len(act))
         fixed = ca.logic_or(ca.logic_and(x <= lo + 1e-9, g > 0),
@@ -208,7 +195,7 @@ class Retargeter:
         q_new = ca.SX(q)
         for k, i in enumerate(act):
             q_new[int(i)] = x_new[k]
-        keep = ca.logic_and(ok, residual(q_new)[2] <= cost)
+        keep = ca.logic_and(ok, residual(q_new)[1] <= cost)
         return ca.Function("lm_step", [q, q_ref, t, w, a, smooth, mu], [
             ca.if_else(keep, q_new, q),
             ca.if_else(keep, ca.fmax(0.3 * mu, 1e-9), ca.fmax(10 * mu, 1e-6)),

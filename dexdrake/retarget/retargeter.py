@@ -463,7 +463,7 @@ def _compiled(f: ca.Function) -> ca.Function:
     """`f` as machine code: its C source (CasADi code generation) compiled once by the
     system C compiler (`$CC`, else cc) into the cache, named by the source's hash, and loaded
     from there afterwards (about 10x faster than CasADi's virtual machine). `f` itself when
-    no compiler is found or compiling fails."""
+    no compiler is found, compiling fails or the cache cannot be written."""
     import hashlib
     import os
     import shutil
@@ -475,20 +475,23 @@ def _compiled(f: ca.Function) -> ca.Function:
     gen = ca.CodeGenerator(f"{f.name()}.c")
     gen.add(f)
     code = gen.dump()
-    folder = cache_dir() / "casadi"
-    lib = folder / f"{f.name()}_{hashlib.sha256(code.encode()).hexdigest()[:16]}.so"
-    if not lib.exists():
-        cc = shutil.which(os.environ.get("CC", "cc"))
-        if cc is None:
-            return f
-        folder.mkdir(exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
-            src.write_text(code)
-            if subprocess.run([cc, "-O1", "-fPIC", "-shared", str(src), "-o", str(out), "-lm"],
-                              capture_output=True).returncode != 0:
+    cc = shutil.which(os.environ.get("CC", "cc"))
+    try:
+        folder = cache_dir() / "casadi"
+        lib = folder / f"{f.name()}_{hashlib.sha256(code.encode()).hexdigest()[:16]}.so"
+        if not lib.exists():
+            if cc is None:
                 return f
-            os.replace(out, lib)  # atomic: a concurrent build writes the same file
+            folder.mkdir(exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
+                src.write_text(code)
+                if subprocess.run([cc, "-O1", "-fPIC", "-shared", str(src), "-o", str(out),
+                                   "-lm"], capture_output=True).returncode != 0:
+                    return f
+                os.replace(out, lib)  # atomic: a concurrent build writes the same file
+    except OSError:  # an unwritable cache
+        return f
     return ca.external(f.name(), str(lib))
 
 

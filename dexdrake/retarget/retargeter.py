@@ -1,12 +1,15 @@
 """Human keypoints -> robot joint angles, solved per frame with a bounded Levenberg-Marquardt
-on CasADi-generated key vectors and Jacobians.
+whose step (key vectors, analytic Jacobians, Cholesky solve, bounds, accept test) is one
+CasADi function compiled to machine code (`_compiled`); a warm-started frame takes
+`solver.iterations` such steps, the targets of a whole sequence are computed at once.
 
 Objective per frame (DexRepNet, DexPilot-style), over the policy joints that can move (the
 6 virtual arm joints are the global hand pose M_g; a fixed wrist solves the fingers only):
     1/2 sum_i w_i || v_i^R(q) - t_i ||^2 + w_smooth/2 || q - q_prev ||^2,   lo <= q <= hi
 Key vectors v_i (robot) and their human counterparts v_i^H:
     wrist   wrist -> each fingertip and finger base        t_i = k_i v_i^H (k_i auto: robot/human);
-            the base vectors (weight x `base`) hold the palm's orientation
+            the base vectors (weight x `base`) hold the palm's orientation (left out
+            with a fixed wrist)
     finger  thumb tip -> each tip (weight x `thumb`), tip -> tip      t_i = k_f v_i^H, or
             DexPilot's pinch projection: thumb-finger with human length < eps:
             t = eta1 * unit, w = s1; finger-finger with both fingers pinching: t = eta2 * unit,
@@ -29,7 +32,8 @@ human vectors); `w_smooth` and the output low-pass (`solver.filter`, `low_pass`)
 i.e. error on moving frames, for less jitter. The smoothness term damps the joint directions
 that the key vectors hardly fix (where tracker noise moves q most) and leaves the well-fixed
 ones almost free; the low-pass, adaptive with `solver.filter_speed`, smooths still joints
-hard and follows moving ones closely.
+hard and follows moving ones closely. `solver.iterations` trades time for convergence: with
+the warm start and the smoothness term a frame is near its optimum after one or two steps.
 """
 
 from __future__ import annotations
@@ -39,7 +43,6 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from scipy.linalg.lapack import dposv as _posv  # Cholesky solve of H x = g, SPD H
 
 from dexdrake.demos.format import HumanDemo
 from dexdrake.errors import DexdrakeError
@@ -122,22 +125,26 @@ class Retargeter:
         V = E[kv.b.tolist(), :] - E[kv.a.tolist(), :]
         v = ca.reshape(V.T, -1, 1)  # row-major flattening
         self._active = np.flatnonzero(self.lower < self.upper)  # the joints solved for
-        q_act = ca.vertcat(*[q[int(i)] for i in self._active])
-        vj = ca.Function("vectors", [q, a], [ca.densify(v), ca.densify(ca.jacobian(v, q_act))])
-        # zero-copy evaluation: inputs/outputs live in these numpy buffers; _JT holds the
-        # Jacobian's transpose for the active joints only
-        self._q, self._a = np.zeros(len(self.joint_names)), np.zeros(3 * nf)
-        self._v = np.zeros(3 * len(kv.kind))
-        self._JT = np.zeros((len(self._active), 3 * len(kv.kind)))
-        self._buf, self._eval = vj.buffer()
-        for i, arr in enumerate((self._q, self._a)):
-            self._buf.set_arg(i, memoryview(arr))
-        for i, arr in enumerate((self._v, self._JT)):
-            self._buf.set_res(i, memoryview(arr))
         kinds = np.array(kv.kind)
         self._masks = {c: kinds == c for c in ("wrist", "thumb-finger", "finger-finger",
                                                "object", "position", "palm")}
         self._base = self._masks["wrist"] & (np.arange(len(kinds)) % 2 == 1)  # wrist -> base
+        vectors = ca.Function("vectors", [q, a], [v])
+        # a fixed wrist has no object terms and its palm cannot turn: the object and
+        # wrist->base vectors (which would only pull the abduction joints towards the human
+        # knuckles, adding their tracker noise) are left out of the solve
+        self._rows = np.flatnonzero(~(self._masks["object"] | self._base) if fixed_wrist
+                                    else np.ones(len(kinds), bool))
+        step = _compiled(self._lm_step(vectors, q, a))
+        # zero-copy evaluation: inputs and outputs live in these numpy buffers
+        n, m = len(self.joint_names), len(self._rows)
+        self._in = [np.zeros(k) for k in (n, n, 3 * m, m, 3 * nf, 1, 1)]
+        self._out = [np.zeros(k) for k in (n, 1, 1)]
+        self._buf, self._eval = step.buffer()
+        for i, arr in enumerate(self._in):
+            self._buf.set_arg(i, memoryview(arr))
+        for i, arr in enumerate(self._out):
+            self._buf.set_res(i, memoryview(arr))
         self._tf = np.flatnonzero(self._masks["thumb-finger"])
         self._tf_finger = np.array([kv.fingers[i][1] for i in self._tf], int)
         self._ff = np.flatnonzero(self._masks["finger-finger"])
@@ -150,6 +157,49 @@ class Retargeter:
         self._weights[self._base] *= cfg.weight("base")
         self._weights[self._tf] *= cfg.weight("thumb")
         self._pinch = np.zeros(nf, bool)
+        self._smooth = cfg.weight("smooth")
+
+    def _lm_step(self, vectors: ca.Function, q: ca.SX, a: ca.SX) -> ca.Function:
+        """One bounded Levenberg-Marquardt step, compiled to a CasADi SX function
+        (q, q_ref, targets, weights, anchors, smooth, mu) -> (q', mu', |dq|max): a Gauss-Newton
+        step with analytic (symbolic) Jacobians for
+            1/2 sum_i w_i ||v_i(q) - t_i||^2 + smooth/2 ||q - q_ref||^2,   lo <= q <= hi
+        on the active joints (the solved vectors `_rows` only), solved by an unrolled Cholesky
+        on the free set (joints at a bound that the gradient pushes out keep zero step); kept
+        only if it lowers the cost, and the damping mu shrinks (kept) or grows (refused;
+        |dq|max is then inf)."""
+        act, rows = self._active, self._rows
+        m = len(rows)
+        lo, hi = self.lower[act], self.upper[act]
+        x = q[act.tolist()]
+        q_ref, t, w = ca.SX.sym("q_ref", q.numel()), ca.SX.sym("t", 3 * m), ca.SX.sym("w", m)
+        smooth, mu = ca.SX.sym("smooth"), ca.SX.sym("mu")
+        pick = np.ravel(3 * rows[:, None] + np.arange(3)).tolist()
+        dx_ref = x - q_ref[act.tolist()]
+
+        def residual(qq):  # (weighted residuals (3 m), cost)
+            r = ca.vec(sw * ca.reshape(vectors(qq, a)[pick] - t, 3, m))
+            dx = qq[act.tolist()] - q_ref[act.tolist()]
+            return r, 0.5 * ca.dot(r, r) + 0.5 * smooth * ca.dot(dx, dx)
+
+        sw = ca.repmat(ca.sqrt(w).T, 3, 1)  # (3, m): per component
+        r, cost = residual(q)
+        J = ca.jacobian(r, x)
+        g = ca.mtimes(J.T, r) + smooth * dx_ref
+        H = ca.mtimes(J.T, J) + (smooth + mu) * ca.SX.eye(len(act))
+        fixed = ca.logic_or(ca.logic_and(x <= lo + 1e-9, g > 0),
+                            ca.logic_and(x >= hi - 1e-9, g < 0))
+        free = 1 - fixed
+        step, ok = _cholesky_solve(H * ca.mtimes(free, free.T) + ca.diag(fixed), g * free)
+        x_new = ca.fmin(ca.fmax(x - step, lo), hi)
+        q_new = ca.SX(q)
+        for k, i in enumerate(act):
+            q_new[int(i)] = x_new[k]
+        keep = ca.logic_and(ok, residual(q_new)[1] <= cost)
+        return ca.Function("lm_step", [q, q_ref, t, w, a, smooth, mu], [
+            ca.if_else(keep, q_new, q),
+            ca.if_else(keep, ca.fmax(0.3 * mu, 1e-9), ca.fmax(10 * mu, 1e-6)),
+            ca.if_else(keep, ca.mmax(ca.fabs(x_new - x)), np.inf)])
 
     @property
     def num_joints(self) -> int:
@@ -208,14 +258,16 @@ class Retargeter:
         return np.vstack([points, anchors, np.zeros((1, 3))])
 
     def _human_points(self, kp: np.ndarray) -> np.ndarray:
-        """The human counterparts of the FK points: keypoints, then the palm centre."""
-        pts = kp[self.human_index]
+        """The human counterparts of the FK points: keypoints, then the palm centre;
+        (..., 21, 3) -> (..., points, 3)."""
+        pts = kp[..., self.human_index, :]
         palm = self.config.palm
         if palm is None:
             return pts
         from dexdrake.demos.human_hand import palm_centre
 
-        return np.vstack([pts, palm_centre(kp, palm.out, palm.along)[None]])
+        return np.concatenate([pts, palm_centre(kp, palm.out, palm.along)[..., None, :]],
+                              axis=-2)
 
     def reset(self) -> None:
         """Forget the pinch (hysteresis) state, e.g. at the start of a new sequence."""
@@ -227,34 +279,50 @@ class Retargeter:
         """(targets (m, 3), weights (m,), anchors used) for one frame; updates pinch state.
 
         normals: outward surface normals at the anchors (None: from anchor - tip)."""
+        T, w, A = self._targets(np.asarray(keypoints, float)[None],
+                                None if anchors is None else np.asarray(anchors, float)[None],
+                                None if normals is None else np.asarray(normals, float)[None])
+        return T[0], w[0], A[0]
+
+    def _targets(self, kp: np.ndarray, anchors: np.ndarray | None,
+                 normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`targets` for F frames at once: kp (F, 21, 3), anchors and normals (F, nf, 3) or
+        None -> (F, m, 3), (F, m), (F, nf, 3); the pinch state runs through the frames."""
         cfg, kv, pp = self.config, self.kv, self.config.pinch
         nf = len(cfg.fingers)
-        kp = np.asarray(keypoints, float)
-        if kp.shape != (21, 3) or not np.all(np.isfinite(kp)):
-            raise DexdrakeError(f"keypoints must be a finite (21, 3) array, got {kp.shape}")
+        if kp.shape[1:] != (21, 3) or not np.all(np.isfinite(kp)):
+            raise DexdrakeError(f"keypoints must be a finite (21, 3) array, got {kp.shape[1:]}")
         has_obj = anchors is not None
-        A = np.asarray(anchors, float) if has_obj else np.zeros((nf, 3))
-        if A.shape != (nf, 3):
+        A = anchors if has_obj else np.zeros((len(kp), nf, 3))
+        if A.shape[1:] != (nf, 3):
             raise DexdrakeError(f"object_points must be ({nf}, 3): one per finger "
-                                f"{cfg.fingers}, got {A.shape}")
-        E = self._extended(self._human_points(kp), A)
-        vh = E[kv.b] - E[kv.a]
+                                f"{cfg.fingers}, got {A.shape[1:]}")
+        E = np.concatenate([self._human_points(kp), A, np.zeros((len(kp), 1, 3))], axis=1)
+        vh = E[:, kv.b] - E[:, kv.a]
         T = vh * self.scales[:, None]
-        d = np.linalg.norm(vh, axis=1)
-        w = self._weights.copy()
+        d = np.linalg.norm(vh, axis=2)
+        w = np.tile(self._weights, (len(kp), 1))
         if has_obj:
             obj = self._masks["object"]
-            w[obj] = cfg.weight("object") / (1 + (d[obj] / cfg.weight("object_decay")) ** 2)
-            T[obj] = self._squeeze(vh[obj], d[obj], normals)
+            w[:, obj] = cfg.weight("object") / (1 + (d[:, obj] / cfg.weight("object_decay")) ** 2)
+            T[:, obj] = self._squeeze(vh[:, obj], d[:, obj], normals)
         # DexPilot pinch projection with hysteresis (eps_enter to enter, eps_leave to leave)
-        eps = np.where(self._pinch[self._tf_finger], pp.eps_leave, pp.eps_enter)
-        self._pinch[self._tf_finger] = d[self._tf] < eps
-        unit = vh / np.maximum(d, 1e-9)[:, None]
-        s1 = self._tf[self._pinch[self._tf_finger]]
-        T[s1], w[s1] = pp.eta1 * unit[s1], pp.s1
+        pinch = np.zeros((len(kp), nf), bool)
+        state, d_tf = self._pinch[self._tf_finger], d[:, self._tf]
+        for f, dist in enumerate(d_tf):
+            state = dist < np.where(state, pp.eps_leave, pp.eps_enter)
+            pinch[f, self._tf_finger] = state
+        if len(kp):
+            self._pinch[:] = pinch[-1]
+        unit = vh / np.maximum(d, 1e-9)[..., None]
+        projected = np.zeros(w.shape, bool)
+        projected[:, self._tf] = pinch[:, self._tf_finger]
+        s2 = np.zeros(w.shape, bool)
         if len(self._ff):
-            s2 = self._ff[self._pinch[self._ff_pair].all(axis=1)]
-            T[s2], w[s2] = pp.eta2 * unit[s2], pp.s2
+            s2[:, self._ff] = pinch[:, self._ff_pair].all(axis=2)
+        T = np.where(projected[..., None], pp.eta1 * unit,
+                     np.where(s2[..., None], pp.eta2 * unit, T))
+        w = np.where(projected, pp.s1, np.where(s2, pp.s2, w))
         return T, w, A
 
     def _squeeze(self, tip_to_anchor: np.ndarray, d: np.ndarray, normals: np.ndarray | None
@@ -266,10 +334,10 @@ class Retargeter:
         if depth <= 0.0:
             return tip_to_anchor
         if normals is None:  # outward normal from the anchor towards the (outside) tip
-            normals = -tip_to_anchor / np.maximum(d, 1e-9)[:, None]
+            normals = -tip_to_anchor / np.maximum(d, 1e-9)[..., None]
         s = np.clip(2.0 - d / contact, 0.0, 1.0)
         # goal = tip - s (d + depth) n  =>  anchor - goal = tip_to_anchor + s (d + depth) n
-        return tip_to_anchor + (s * (d + depth))[:, None] * normals
+        return tip_to_anchor + (s * (d + depth))[..., None] * normals
 
     def retarget_frame(self, keypoints: np.ndarray, object_points: np.ndarray | None = None,
                        q_prev: np.ndarray | None = None,
@@ -283,71 +351,36 @@ class Retargeter:
         """
         if q_prev is None:
             self.reset()
-            T, w, A = self.targets(keypoints, object_points, object_normals)
-            q0 = self.reference_q()
-            return self._solve(T, w, A, q0, q0, 0.0, self.config.first_iterations)
-        q_prev = np.asarray(q_prev, float)
-        if q_prev.shape != (self.num_joints,):
-            raise DexdrakeError(f"q_prev must have shape ({self.num_joints},), got "
-                                f"{q_prev.shape}")
-        T, w, A = self.targets(keypoints, object_points, object_normals)
-        q0 = np.clip(q_prev, self.lower, self.upper)
-        return self._solve(T, w, A, q0, q0, self.config.weight("smooth"), self.config.iterations)
-
-    def _solve(self, T, w, A, q, q_ref, smooth: float, iterations: int) -> np.ndarray:
-        """Bounded Levenberg-Marquardt on the joints whose limits differ (fixed wrist: the
-        fingers) for 1/2 sum_i w_i ||v_i(q) - t_i||^2 + smooth/2 ||q - q_ref||^2: Gauss-Newton
-        steps on the free set (joints at a bound that the gradient pushes out stay there),
-        each kept only if it lowers the cost (else the damping grows)."""
-        act = self._active
-        lo, hi = self.lower[act], self.upper[act]
-        t = T.reshape(-1)
-        sw = np.repeat(np.sqrt(w), 3)
-        x, x_ref = q[act], q_ref[act]
-        eye = np.eye(len(x))
-
-        def evaluate(xx):
-            self._q[act] = xx
-            self._eval()
-            return residuals(xx)
-
-        def residuals(xx):  # from the buffers of the last evaluation
-            r = sw * (self._v - t)
-            dx = xx - x_ref
-            return r, self._JT.T * sw[:, None], 0.5 * (r @ r + smooth * dx @ dx)
-
-        a = A.ravel()
-        if np.array_equal(self._q, q) and np.array_equal(self._a, a):
-            r, J, cost = residuals(x)  # warm start where the last solve ended
         else:
-            self._q[:], self._a[:] = q, a
-            r, J, cost = evaluate(x)
-        mu = self.config.damping
+            q_prev = np.asarray(q_prev, float)
+            if q_prev.shape != (self.num_joints,):
+                raise DexdrakeError(f"q_prev must have shape ({self.num_joints},), got "
+                                    f"{q_prev.shape}")
+        T, w, A = self.targets(keypoints, object_points, object_normals)
+        return self._solve_frame(T[self._rows].ravel(), w[self._rows], A.ravel(), q_prev)
+
+    def _solve_frame(self, t: np.ndarray, w: np.ndarray, a: np.ndarray,
+                     q_prev: np.ndarray | None) -> np.ndarray:
+        """A cold start (from the reference pose, no smoothness, `first_iterations`) or a
+        warm start from q_prev (`smooth` towards it, `iterations`), for the solved vectors'
+        flat targets t, weights w and flat anchors a."""
+        q, q_ref, t_in, w_in, a_in, smooth, mu = self._in
+        t_in[:], w_in[:], a_in[:], mu[0] = t, w, a, self.config.damping
+        if q_prev is None:
+            q[:], smooth[0], iterations = self.reference_q(), 0.0, self.config.first_iterations
+        else:
+            np.clip(q_prev, self.lower, self.upper, out=q)
+            smooth[0], iterations = self._smooth, self.config.iterations
+        q_ref[:] = q
+        # up to `iterations` compiled LM steps (`_lm_step`); stop once a kept step moves no
+        # joint by more than 1e-4 rad
+        q_out, mu_out, moved = self._out
         for _ in range(iterations):
-            g = J.T @ r + smooth * (x - x_ref)
-            H = J.T @ J + (smooth + mu) * eye
-            fixed = ((x <= lo + 1e-9) & (g > 0)) | ((x >= hi - 1e-9) & (g < 0))
-            if fixed.any():  # no step for those: zero their rows/columns, unit diagonal
-                H[fixed, :] = 0.0
-                H[:, fixed] = 0.0
-                H[fixed, fixed] = 1.0
-                g = np.where(fixed, 0.0, g)
-            _, step, info = _posv(H, g)
-            x_new = np.clip(x - step, lo, hi)
-            r_new, J_new, cost_new = evaluate(x_new)
-            if info == 0 and cost_new <= cost:
-                converged = np.max(np.abs(x_new - x)) < 1e-4
-                x, r, J, cost = x_new, r_new, J_new, cost_new
-                mu = max(mu * 0.3, 1e-9)
-                if converged:
-                    break
-            else:
-                mu = max(mu * 10, 1e-6)
-        if not np.array_equal(self._q[act], x):  # leave the buffers at the solution
-            evaluate(x)
-        out = np.array(q, float)
-        out[act] = x
-        return out
+            self._eval()
+            q[:], mu[0] = q_out, mu_out[0]
+            if moved[0] < 1e-4:
+                break
+        return q.copy()
 
     def robot_points(self, q: np.ndarray) -> np.ndarray:
         """World positions of the config's robot points [wrist, tips..., bases...]."""
@@ -391,17 +424,19 @@ class Retargeter:
 
         closest = None if self.fixed_wrist else _closest_point_fn(demo, object_mesh)
         keypoints = self.place(demo.keypoints) if place or self.fixed_wrist else demo.keypoints
+        anchors = normals = None
+        if closest is not None:
+            found = [closest(self.human_tips(kp), t) for t, kp in enumerate(keypoints)]
+            anchors, normals = (np.array([f[i] for f in found]) for i in (0, 1))
         self.reset()
-        out = np.zeros((demo.num_frames, self.num_joints))
+        T, w, A = self._targets(np.asarray(keypoints, float), anchors, normals)
+        F = demo.num_frames
+        T, w, A = T[:, self._rows].reshape(F, -1), w[:, self._rows], A.reshape(F, -1)
+        out = np.zeros((F, self.num_joints))
         q = None
-        for t in tqdm(range(demo.num_frames), desc=f"retarget {self.hand.name}",
-                      disable=not progress, unit="frame"):
-            kp = keypoints[t]
-            anchors = normals = None
-            if closest is not None:
-                anchors, normals = closest(self.human_tips(kp), t)
-            q = self.retarget_frame(kp, anchors, q, normals)
-            out[t] = q
+        for t in tqdm(range(F), desc=f"retarget {self.hand.name}", disable=not progress,
+                      unit="frame"):
+            q = out[t] = self._solve_frame(T[t], w[t], A[t], q)
         return low_pass(out, self.config.filter, self.config.filter_speed)
 
 
@@ -422,6 +457,63 @@ def low_pass(Q: np.ndarray, alpha: float, speed: float = np.inf) -> np.ndarray:
         step = 0.3 * d + 0.7 * step
         out[t] = out[t - 1] + (alpha + (1.0 - alpha) * np.minimum(1.0, np.abs(step) / speed)) * d
     return out
+
+
+def _compiled(f: ca.Function) -> ca.Function:
+    """`f` as machine code: its C source (CasADi code generation) compiled once by the
+    system C compiler (`$CC`, else cc) into the cache, named by the source's hash, and loaded
+    from there afterwards (about 10x faster than CasADi's virtual machine). `f` itself when
+    no compiler is found, compiling fails or the cache cannot be written."""
+    import hashlib
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    from dexdrake.paths import cache_dir
+
+    gen = ca.CodeGenerator(f"{f.name()}.c")
+    gen.add(f)
+    code = gen.dump()
+    cc = shutil.which(os.environ.get("CC", "cc"))
+    try:
+        folder = cache_dir() / "casadi"
+        lib = folder / f"{f.name()}_{hashlib.sha256(code.encode()).hexdigest()[:16]}.so"
+        if not lib.exists():
+            if cc is None:
+                return f
+            folder.mkdir(exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
+                src.write_text(code)
+                if subprocess.run([cc, "-O1", "-fPIC", "-shared", str(src), "-o", str(out),
+                                   "-lm"], capture_output=True).returncode != 0:
+                    return f
+                os.replace(out, lib)  # atomic: a concurrent build writes the same file
+    except OSError:  # an unwritable cache
+        return f
+    return ca.external(f.name(), str(lib))
+
+
+def _cholesky_solve(H: ca.SX, g: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """(H^-1 g, H positive definite) for a dense symmetric SX matrix, unrolled: the
+    Cholesky factor, then forward and back substitution."""
+    n = H.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    ok = ca.SX(1)
+    for j in range(n):
+        s = H[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), ca.SX(0))
+        ok = ca.logic_and(ok, s > 0)
+        L[j][j] = ca.sqrt(ca.fmax(s, 1e-300))
+        for i in range(j + 1, n):
+            L[i][j] = (H[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
+    y = [ca.SX(0)] * n
+    for i in range(n):
+        y[i] = (g[i] - sum((L[i][k] * y[k] for k in range(i)), ca.SX(0))) / L[i][i]
+    x = [ca.SX(0)] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), ca.SX(0))) / L[i][i]
+    return ca.vertcat(*x), ok
 
 
 def _closest_point_fn(demo: HumanDemo, mesh):

@@ -578,6 +578,30 @@ def test_scenegraph_and_fast_paths_agree(hand_scene, geometries):
         assert same.mean() >= 0.9
 
 
+def test_extractor_gives_the_bits_of_the_features_computed_one_group_at_a_time(hand_scene, geometries,
+                                                                             load_script):
+    """The per-step kernel (body poses read once, one closest-point query for every group)
+    against scripts/bench_features.py's peer, which computes each group on its own from the
+    public functions of dexrep.features."""
+    from dexdrake.dexrep.feature_sets import FEATURE_SETS, FeatureExtractor
+
+    reference_features = load_script("bench_features").reference_features
+    s, g = hand_scene, geometries["torus"]
+    rng = np.random.default_rng(17)
+    contexts = [_posed_context(s, rng) for _ in range(4)]
+    for feature_set in FEATURE_SETS:
+        fx = FeatureExtractor(s["hand"], s["plant"], s["hand_instance"], g, feature_set, "fast")
+        for _, pctx, X_WO in contexts:
+            out, closest = fx.with_closest(pctx, X_WO)
+            np.testing.assert_array_equal(
+                out, reference_features(s["hand"], s["plant"], s["hand_instance"], g, feature_set, pctx, X_WO))
+            if closest is not None:
+                X = X_WO.GetAsMatrix4()
+                expect = g.closest_points((fx.hand_points(pctx) - X[:3, 3]) @ X[:3, :3])
+                for field in ("distance", "points", "normals"):
+                    np.testing.assert_array_equal(getattr(closest, field), getattr(expect, field))
+
+
 def test_dexrep_system_outputs_extractor_features(hand_scene, geometries):
     from dexdrake.systems.dexrep_system import DexRepSystem
 

@@ -151,20 +151,60 @@ def _grid_axis(size: float, resolution: int) -> np.ndarray:
 def test_fast_occupancy_interpolates_only_the_voxels_the_balls_leave_open(geometries, monkeypatch):
     # nearest-node pass: only voxels whose nearest node's distance lies between the balls
     # give or take that node's error are interpolated (so their true distance lies there give
-    # or take twice that error and the mesh's facets); of those, only the ones whose
-    # interpolated distance lies between the balls are split into 8 children
+    # or take twice that error and the mesh's facets), each with its 8 children, in one call
+    # per level; the gradient only at the last
     g = geometries["torus"]
     edge, slack, facets = 0.02, 2 * g.sdf.spacing * np.sqrt(3) / 2, 2e-4
     rng = np.random.default_rng(14)
-    for _ in range(3):
-        queries = _GridQueries(monkeypatch)
-        X_OG = random_pose(rng, 0.04)
-        FastOccupancy()(X_OG, g)
-        (u, sd), (children, _), *planar = queries.trilinear
-        true = torus_sd(u * g.sdf.spacing + g.sdf.origin)
-        assert np.all(true >= edge / 2 - slack - facets) and np.all(true <= edge * np.sqrt(3) / 2 + slack + facets)
-        assert len(children) == 8 * np.sum((sd > edge / 2) & (sd <= edge * np.sqrt(3) / 2)) > 0
-        assert len(planar) == 1 and 0 < len(planar[0][0]) < len(children)
+    for levels in (1, 2):
+        for _ in range(3):
+            queries = _GridQueries(monkeypatch)
+            X_OG = random_pose(rng, 0.04)
+            FastOccupancy(levels=levels)(X_OG, g)
+            (u, sd, with_gradient), *rest = queries.trilinear
+            m = len(u) // 9
+            assert m > 0 and len(u) == 9 * m and with_gradient == (levels == 1)
+            true = torus_sd(u[:m] * g.sdf.spacing + g.sdf.origin)
+            assert np.all(true >= edge / 2 - slack - facets) and np.all(true <= edge * np.sqrt(3) / 2 + slack + facets)
+            np.testing.assert_allclose(u[m:].reshape(m, 8, 3).mean(axis=1), u[:m], atol=1e-12)
+            assert [w for _, _, w in rest] == [True] * (levels - 1)
+            if rest:  # the second level: the children of the first level's open children
+                open_children = (sd[m:] > edge / 4) & (sd[m:] <= edge / 2 * np.sqrt(3) / 2)
+                assert 0 < len(rest[0][0]) <= 8 * open_children.sum()
+
+
+def _lazy_fast_occupancy(X_OG, geometry, levels, size=0.2, resolution=10):
+    """FastOccupancy's nearest-node pass, then the rule by `_refine`, which interpolates only
+    the points each step needs (one grid call for the undecided voxels, then per level one
+    for the children of the open ones and one with gradients for the last level's open)."""
+    from dexdrake.dexrep.occupancy import _SQRT3_2, _refine
+
+    R, t, grid, edge = X_OG[:3, :3], X_OG[:3, 3], geometry.sdf, size / resolution
+    M = R.T * (1.0 / grid.spacing)
+    U = voxel_centres(size, resolution) @ M + (t - grid.origin) * (1.0 / grid.spacing)
+    sd = grid.nearest_node_index_value(U)
+    slack = grid.spacing * _SQRT3_2 + 1e-6
+    occ = sd <= edge / 2 - slack
+    owner = np.flatnonzero(~occ & (sd <= edge * _SQRT3_2 + slack))
+    sd = grid.trilinear_index(U[owner])
+    occ[owner[sd <= edge / 2]] = True
+    keep = (sd > edge / 2) & (sd <= edge * _SQRT3_2)
+    _refine(occ, owner[keep], U[owner][keep], grid.trilinear_index, M, R, edge, levels)
+    return occ.astype(np.float64)
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_fast_occupancy_equals_the_rule_asking_the_grid_only_what_it_needs(geometries, levels):
+    # one grid call per level decides every voxel as the lazy order does, bit for bit
+    rng = np.random.default_rng(21)
+    occupied = 0
+    for name in ("torus", "box", "sphere"):
+        for _ in range(6):
+            X_OG = random_pose(rng, 0.05)
+            fast = FastOccupancy(levels=levels)(X_OG, geometries[name])
+            np.testing.assert_array_equal(fast, _lazy_fast_occupancy(X_OG, geometries[name], levels))
+            occupied += fast.sum()
+    assert occupied > 500
 
 
 def test_occupancy_of_a_half_space_is_decided_by_the_balls_alone_when_it_can():
@@ -232,7 +272,7 @@ class _GridQueries:
 
         def trilinear_index(grid, u, with_gradient=False):
             out = trilinear(grid, u, with_gradient)
-            self.trilinear.append((u.copy(), out[0] if with_gradient else out))
+            self.trilinear.append((u.copy(), out[0] if with_gradient else out, with_gradient))
             return out
 
         monkeypatch.setattr(SdfGrid, "nearest_node_index_value", nearest_node_index_value)
@@ -536,6 +576,30 @@ def test_scenegraph_and_fast_paths_agree(hand_scene, geometries):
         # local-geo: the same sample unless two samples are nearly equidistant
         same = np.all(a[1193:].reshape(22, 64) == b[1193:].reshape(22, 64), axis=1)
         assert same.mean() >= 0.9
+
+
+def test_extractor_gives_the_bits_of_the_features_computed_one_group_at_a_time(hand_scene, geometries,
+                                                                             load_script):
+    """The per-step kernel (body poses read once, one closest-point query for every group)
+    against scripts/bench_features.py's peer, which computes each group on its own from the
+    public functions of dexrep.features."""
+    from dexdrake.dexrep.feature_sets import FEATURE_SETS, FeatureExtractor
+
+    reference_features = load_script("bench_features").reference_features
+    s, g = hand_scene, geometries["torus"]
+    rng = np.random.default_rng(17)
+    contexts = [_posed_context(s, rng) for _ in range(4)]
+    for feature_set in FEATURE_SETS:
+        fx = FeatureExtractor(s["hand"], s["plant"], s["hand_instance"], g, feature_set, "fast")
+        for _, pctx, X_WO in contexts:
+            out, closest = fx.with_closest(pctx, X_WO)
+            np.testing.assert_array_equal(
+                out, reference_features(s["hand"], s["plant"], s["hand_instance"], g, feature_set, pctx, X_WO))
+            if closest is not None:
+                X = X_WO.GetAsMatrix4()
+                expect = g.closest_points((fx.hand_points(pctx) - X[:3, 3]) @ X[:3, :3])
+                for field in ("distance", "points", "normals"):
+                    np.testing.assert_array_equal(getattr(closest, field), getattr(expect, field))
 
 
 def test_dexrep_system_outputs_extractor_features(hand_scene, geometries):

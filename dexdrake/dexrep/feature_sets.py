@@ -133,7 +133,7 @@ class FeatureExtractor:
         return self._grid_from(self._body_poses(plant_context))
 
     def _grid_from(self, poses: np.ndarray) -> np.ndarray:
-        X = np.eye(4)
+        X = F.EYE4.copy()
         X[:3, :3] = poses[self._anchor, :, :3]
         X[:3, 3] = poses[self._anchor] @ self._anchor_offset
         return X

@@ -29,6 +29,7 @@ from dexdrake.dexrep.occupancy import OCCUPANCY_LEVELS, fast_occupancy
 from dexdrake.errors import DexdrakeError
 
 SURFACE_CLIP = 0.20  # m
+EYE4 = np.eye(4)  # copied where a pose is built (cheaper than np.eye); never written to
 
 
 def as_matrix(X) -> np.ndarray:
@@ -48,7 +49,7 @@ def _points(p: np.ndarray, label: str = "points") -> np.ndarray:
 
 def rigid_inverse(X: np.ndarray) -> np.ndarray:
     """The inverse of a 4x4 rigid transform."""
-    out = np.eye(4)
+    out = EYE4.copy()
     out[:3, :3] = X[:3, :3].T
     out[:3, 3] = -(X[:3, 3] @ X[:3, :3])
     return out

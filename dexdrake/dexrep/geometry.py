@@ -74,7 +74,7 @@ class SdfGrid:
         nodes, whose values are >= SDF_PAD (the object is never near them)."""
         i = np.floor(u + 0.5)
         np.maximum(i, 0.0, out=i)
-        np.minimum(i, self._max_index + 1, out=i)
+        np.minimum(i, self._max_node, out=i)
         return self._flat[self._flat_index(i)].astype(np.float64)
 
     def _flat_index(self, i: np.ndarray) -> np.ndarray:
@@ -97,6 +97,11 @@ class SdfGrid:
     def _max_index(self) -> np.ndarray:
         """The largest cell index per axis (the last node's index - 1), as floats."""
         return np.array(self.values.shape, dtype=np.float64) - 2
+
+    @cached_property
+    def _max_node(self) -> np.ndarray:
+        """The last node's index per axis, as floats."""
+        return self._max_index + 1
 
     @cached_property
     def _corner_offsets(self) -> np.ndarray:

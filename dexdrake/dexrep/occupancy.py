@@ -13,11 +13,12 @@ missing a convex one (its error on curved surfaces is about w^2 / (2 * radius of
 curvature), w <= e*sqrt(3)/2: below 1 mm for 1 cm children on a 2 cm radius).
 
 `occupancy_in_frame` applies the rule with any signed-distance function (the SceneGraph
-path). `FastOccupancy` applies it to an object's cached SDF grid with few, large numpy
-calls: a bounding-sphere cull, one matmul for all centres (in grid-index coordinates), a
-nearest-node classification with its proven error bound as slack, a trilinear evaluation
-of the undecided (boundary) voxels, and per level one batched trilinear evaluation of
-their children (the gradient only for the children the exact tests leave undecided).
+path), asking it only for the points each step of the rule needs. `FastOccupancy` applies
+it to an object's cached SDF grid with few, large numpy calls: a bounding-sphere cull, one
+matmul for all centres (in grid-index coordinates), a nearest-node classification with its
+proven error bound as slack, then one trilinear evaluation per level: the undecided
+(boundary) voxels together with their children, with gradients at the last level (a few
+hundred interpolations more than the rule needs cost less than the calls they save).
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ def _refine(occ: np.ndarray, owner: np.ndarray, centres: np.ndarray, sd_fn: Sign
         if len(owner) == 0:
             return
         edge /= 2
-        centres = (centres[:, None, :] + (_CHILD_SIGNS * edge) @ M).reshape(-1, 3)
+        centres = _children(centres, edge, M)
         owner = np.repeat(owner, 8)
         sd = sd_fn(centres, False)
         occ[owner[sd <= edge / 2]] = True
@@ -108,7 +109,8 @@ class FastOccupancy:
     """Occupancy of one grid spec (size, resolution, levels) against cached SDF grids.
 
     Works in the SDF grid's index coordinates u = (p_O - origin) / spacing, so one matmul
-    maps all voxel centres there; distances stay in metres.
+    maps all voxel centres there; distances stay in metres. Decides every voxel as `_refine`
+    does, with one grid call per level (see the module docstring).
     """
 
     def __init__(self, size: float = 0.2, resolution: int = 10, levels: int = OCCUPANCY_LEVELS):
@@ -136,13 +138,50 @@ class FastOccupancy:
         edge = self._edge
         occ = sd <= edge / 2 - slack
         owner = np.flatnonzero(~occ & (sd <= edge * _SQRT3_2 + slack))
-        # the undecided ones again, with the interpolated distance (no slack)
-        pts = U[owner]
-        sd = grid.trilinear_index(pts)
-        occ[owner[sd <= edge / 2]] = True
-        keep = (sd > edge / 2) & (sd <= edge * _SQRT3_2)
-        _refine(occ, owner[keep], pts[keep], grid.trilinear_index, M, R, edge, self.levels)
+        if len(owner):  # the undecided ones again, with the interpolated distance (no slack)
+            self._decide(occ, owner, U[owner], grid, M, R)
         return occ.astype(np.float64)
+
+    def _decide(self, occ: np.ndarray, owner: np.ndarray, centres: np.ndarray, grid, M: np.ndarray,
+                R: np.ndarray) -> None:
+        """Sets occ[owner] where the cubes at `centres` (index coordinates, edge `_edge`) are
+        occupied by the rule on interpolated distances, as `_refine` decides them: the
+        children's values serve only the cubes the balls leave open, the gradients only the
+        last level's children left open (each in `_refine`'s order, so their rows and the
+        matmul that turns them into the grid frame are `_refine`'s)."""
+        edge, m, levels = self._edge, len(owner), self.levels
+        children = _children(centres, edge / 2, M)
+        sd, grad = _interpolated(grid, np.concatenate([centres, children]), levels == 1)
+        parent = sd[:m]
+        occ[owner[parent <= edge / 2]] = True
+        split = np.repeat((parent > edge / 2) & (parent <= edge * _SQRT3_2), 8)
+        owner, centres, sd = np.repeat(owner, 8)[split], children[split], sd[m:][split]
+        for level in range(1, levels + 1):
+            edge /= 2
+            occ[owner[sd <= edge / 2]] = True
+            open_ = (sd > edge / 2) & (sd <= edge * _SQRT3_2)
+            open_ &= ~occ[owner]
+            owner = owner[open_]
+            if len(owner) == 0:
+                return
+            if level == levels:
+                grad = (grad[m:][split] if level == 1 else grad)[open_]
+                occ[owner[_planar_hit(sd[open_], grad @ R, edge / 2)]] = True
+                return
+            centres = _children(centres[open_], edge / 2, M)
+            owner = np.repeat(owner, 8)
+            sd, grad = _interpolated(grid, centres, level + 1 == levels)
+
+
+def _children(centres: np.ndarray, edge: float, M: np.ndarray) -> np.ndarray:
+    """(8m, 3) centres of the 8 children (edge `edge`) of each cube at `centres` (m, 3), child
+    k of cube i at row 8i + k; M maps grid-frame offsets into the centres' frame (rows)."""
+    return (centres[:, None, :] + (_CHILD_SIGNS * edge) @ M).reshape(-1, 3)
+
+
+def _interpolated(grid, u: np.ndarray, with_gradient: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """(trilinear sd, its gradient or None) at index-coordinate points `u`."""
+    return grid.trilinear_index(u, True) if with_gradient else (grid.trilinear_index(u), None)
 
 
 @cache

@@ -55,6 +55,8 @@ from dexdrake.hardware.safety import (
 NUM_MOTOR_SLOTS = 7  # 6 joints + gripper
 SDK_PORT, CONTROLLER_PORT = 8072, 8071  # the SDK binds 8072; z1_controller binds 8071
 COMMAND_HEAD = (0xFE, 0xFF)  # SendCmd.head: anything else is dropped by the controller
+MODE_SETTLE_TICKS = 10  # the controller counts as in the mode once seen there after this many ticks in a
+# row of requesting it: a PASSIVE the client itself sent before (a fault, a reset) may act later
 
 # motor error flags and connection codes (Motor_State)
 MOTOR_OVER_CURRENT, MOTOR_PHASE_LEAKAGE, MOTOR_OVER_HEAT, MOTOR_JUMPED = 0x01, 0x02, 0x04, 0x20
@@ -389,6 +391,7 @@ class Z1Arm(SafeStopContext):
         self._send_lock = threading.Lock()
         self._halted = False  # set by stop(): the loop sends nothing from then on
         self._in_mode = False  # the controller reached the mode since (re)start
+        self._requested = 0  # ticks in a row whose command requested the mode
         self._heard = False  # a state came since (re)start or reset: `_last` shows the arm now
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -454,6 +457,7 @@ class Z1Arm(SafeStopContext):
             self._forget_command()
             self._initialised, self._last = False, None
             self._in_mode = self._halted = self._heard = False
+            self._requested = 0
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((cfg.host, cfg.local_port))
@@ -677,9 +681,9 @@ class Z1Arm(SafeStopContext):
         if self.fault.tripped or st is None:
             return SendCmd(ArmFSMState.PASSIVE)
         mode = self.config.mode
-        if st.state == mode:
-            self._in_mode = True
-        elif self._in_mode:  # only the client may take the arm out of the mode: never re-arm
+        if st.state == mode and self._requested >= MODE_SETTLE_TICKS:
+            self._in_mode = True  # (a PASSIVE this client sent just before may still act on the controller)
+        elif st.state != mode and self._in_mode:  # only the client may take the arm out of the mode: never re-arm
             self.fault.trip(f"controller left {mode.name} for {st.state.name} on its own")
             return SendCmd(ArmFSMState.PASSIVE)
         if st.state not in (mode, ArmFSMState.PASSIVE):
@@ -747,12 +751,15 @@ class Z1Arm(SafeStopContext):
                 with self._lock:  # reset_fault() dropped the command; states before are stale
                     self.fault.reset()
                     self._initialised = self._in_mode = self._heard = False
+                    self._requested = 0
                 self._watchdog.reset()
             self._receive_reply()  # the command of this tick acts on the newest state
             if not self.fault.tripped and self._watchdog.expired(now):
                 self.fault.trip(f"no Z1 state for {self._watchdog.since_last(now) * 1e3:.0f} ms")
+            command = self._command(now - last_tick)
+            self._requested = self._requested + 1 if command.state == self.config.mode else 0
             try:
-                self._send(self._command(now - last_tick), tick=True)
+                self._send(command, tick=True)
             except OSError:
                 self.packet_errors["socket"] += 1
             last_tick = now

@@ -794,6 +794,7 @@ def test_spontaneous_passive_is_a_fault_never_re_armed(emulator):
     arm = make_arm(emulator)
     with arm:
         assert wait_for(lambda: emulator.fsm == ArmFSMState.LOWCMD, 1.0)
+        time.sleep(0.1)  # beyond MODE_SETTLE_TICKS of requesting the mode: no PASSIVE of the client's still acts
         emulator.force_passive(0.3)
         assert wait_for(lambda: arm.state().fault is not None, 1.0)
         assert arm.state().fault == "controller left LOWCMD for PASSIVE on its own"

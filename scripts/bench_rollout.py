@@ -125,7 +125,7 @@ def instrument(sections: Sections, sample_every: int = 5):
 
     def _sample_contact_split(env, q_command, acc):
         diagram, t = env.diagram, env.context.get_time() + env.scenario.control_period
-        q = np.clip(q_command, env._mid - env._half, env._mid + env._half)
+        q = np.clip(q_command, *env.scene.hand.joint_limits())
         runs = {}
         for key, far in (("full", False), ("free", True)):
             ctx = env.context.Clone()

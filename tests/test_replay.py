@@ -180,7 +180,7 @@ def test_replayer_tracks_the_demo_and_samples_after_a_failure(demo_dir):
     env = replayer.env("sphere_small")
     plan = replayer.plan(demo, 11)
     raw = replayer.run(env, plan)
-    np.testing.assert_allclose(raw.actions[0], (plan.q_demo[1] - env._mid) / env._half, atol=1e-6)
+    np.testing.assert_allclose(raw.actions[0], env.normalise(plan.q_demo[1]), atol=1e-6)
     q_measured = raw.observations[1:, :30]  # hand positions follow the set-points closely
     assert np.abs(q_measured[:, :6] - plan.q_demo[1:10, :6]).max() < 0.05
     sampled = replayer.run(env, plan, replayer.perturbation(env, plan, np.random.default_rng([11, 1])), attempt=1)

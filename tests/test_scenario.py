@@ -59,7 +59,7 @@ def test_a_checkpoint_records_its_scenario_and_one_without_loads_as_the_shipped_
     assert meta["scenario"] == record and record["time_step"] == 0.005 and record["target_limits"] is not None
     _, meta = load_policy(save_policy(tmp_path / "without.pt", policy))
     assert meta["scenario"] == UNRECORDED_SCENARIO
-    _, shipped = load_policy(REPO / "models" / "weights" / "allegro_z1_dexrep_policy.pt")
+    _, shipped = load_policy(REPO / "models" / "weights" / "adroit_dexrep_policy.pt")
     assert shipped["scenario"] == {"time_step": 0.005, "control_period": 0.02, "target_limits": None,
                                    "depth_noise": False}
 

@@ -9,8 +9,10 @@ joint set-points, for each way of commanding the arm (ARM_ACTIONS):
   (ArmIK.solve) from the measured arm positions, so the map is the same wherever the arm is
   measured (simulation, hardware). The fingers' actions map as in "joints".
 
-Actions outside [-1, 1] are clipped; a non-finite action maps to non-finite set-points, which
-the command guard holds (dexdrake/command_guard.py)."""
+A joint's action outside [-1, 1] maps beyond its limits and a non-finite one to a non-finite
+set-point: the command guard clips the one and holds the other, counting both
+(dexdrake/command_guard.py). Palm-pose actions are clipped to [-1, 1] (the box) before the IK;
+non-finite ones leave the arm's set-points non-finite."""
 
 from __future__ import annotations
 
@@ -53,10 +55,11 @@ class ActionMap:
     def command(self, action: np.ndarray, q_measured: np.ndarray) -> np.ndarray:
         """The joint set-points of `action`, the arm's solved from the measured positions
         `q_measured` (policy order; read by "palm_pose" only)."""
-        a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
+        a = np.asarray(action, dtype=float)
         q = self.mid + a * self.half
         if self.n_arm:
             n = self.n_arm
+            a = np.clip(a, -1.0, 1.0)
             if not np.isfinite(a[:n]).all():
                 q[:n] = np.nan
                 return q

@@ -6,7 +6,7 @@ joint set-points, for each way of commanding the arm (ARM_ACTIONS):
   the palm's grasp-centre position, mid + action * half over the description's box, and its
   rotation R = R_ref exp(action * rotation) (a rotation vector, R_ref the palm's rotation at
   the pre-grasp pose). Their set-points are the arm's inverse kinematics of that pose
-  (ArmIK.solve) from the measured arm positions, so the map is the same wherever the arm is
+  (ArmIK.step, to convergence) from the measured arm positions, so the map is the same wherever the arm is
   measured (simulation, hardware). The fingers' actions map as in "joints".
 
 A joint's action outside [-1, 1] maps beyond its limits and a non-finite one to a non-finite
@@ -21,7 +21,9 @@ from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.math import RotationMatrix
 
 from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.hands.arm_ik import ArmIK
 from dexdrake.hands.description import HandDescription
+from dexdrake.hands.kinematics import hand_kinematics
 
 ARM_ACTIONS = ("joints", "palm_pose")
 IK_STEPS, IK_TOLERANCE = 30, 1e-6  # the palm pose's IK: at most this many steps, to this weighted error (m)
@@ -39,9 +41,6 @@ class ActionMap:
         self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
         self.n_arm = len(hand.arm_joints) if arm_action == "palm_pose" else 0
         if self.n_arm:
-            from dexdrake.hands.arm_ik import ArmIK
-            from dexdrake.hands.kinematics import hand_kinematics
-
             box = hand.palm_pose_action
             if box is None or self.n_arm != 6:
                 raise DexdrakeError(f"hand {hand.name!r} has no palm-pose arm action (a six-joint arm and "

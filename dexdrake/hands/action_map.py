@@ -17,13 +17,13 @@ non-finite ones leave the arm's set-points non-finite."""
 from __future__ import annotations
 
 import numpy as np
-from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.math import RotationMatrix
 
 from dexdrake.errors import DexdrakeError, UnknownNameError
 from dexdrake.hands.arm_ik import ArmIK
 from dexdrake.hands.description import HandDescription
 from dexdrake.hands.kinematics import hand_kinematics
+from dexdrake.perceived_pose import rotation_from_vector
 
 ARM_ACTIONS = ("joints", "palm_pose")
 IK_STEPS, IK_TOLERANCE = 30, 1e-6  # the palm pose's IK: at most this many steps, to this weighted error (m)
@@ -63,7 +63,7 @@ class ActionMap:
                 q[:n] = np.nan
                 return q
             centre = self._centre_mid + a[:3] * self._centre_half
-            R = self._R_ref @ _exp(a[3:n] * self._rotation)
+            R = self._R_ref @ rotation_from_vector(a[3:n] * self._rotation)
             q[:n] = self.ik.step(centre, R, np.asarray(q_measured, dtype=float)[:n], IK_STEPS, IK_TOLERANCE)
         return q
 
@@ -77,14 +77,6 @@ class ActionMap:
             a[:3] = (centre - self._centre_mid) / self._centre_half
             a[3: self.n_arm] = _log(self._R_ref.T @ R) / self._rotation
         return a
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """The rotation matrix of rotation vector w."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3)
-    return RotationMatrix(AngleAxis(angle, w / angle)).matrix()
 
 
 def _log(R: np.ndarray) -> np.ndarray:

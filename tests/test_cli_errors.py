@@ -114,6 +114,7 @@ BAD = [
     (["objects", "import", "notes.txt", "--name", "x", "--up-axis", "w"], "--up-axis"),
     (["objects", "import", "notes.txt", "--name", "x", "--scale", "-1"], "--scale"),
     (["objects", "remove", "nothing"], "unknown user object"),
+    (["objects", "novelty", "--out", "novelty.txt"], "--out"),
     (["eval", "--policy", "missing.pt", "--label", "a/b"], "--label"),
     (["eval", "--policy", "missing.pt", "--out", "notes.txt"], "--out"),
     (["eval", "--policy", "missing.pt", "--rrd", "folder"], "--rrd"),

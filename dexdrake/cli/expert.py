@@ -75,21 +75,16 @@ def _common(parser: argparse.ArgumentParser, objects: str) -> None:
     add_backend_options(parser)
 
 
-def _check_hand(name: str):
-    from dexdrake.hands.description import load_hand
-
-    return load_hand(name)
-
-
 def cmd_table(args: argparse.Namespace) -> int:
     from dexdrake.eval.expert import controller_table
+    from dexdrake.hands.description import load_hand
     from dexdrake.learn.samplers import make_sampler
     from dexdrake.objects.library import get_object, resolve_objects
     from dexdrake.systems.env_factory import GraspEnvFactory, training_scenario
     from dexdrake.systems.reactive_grasp import ReactiveGrasp, expert_grasps_path
     from dexdrake.systems.scripted_grasp import ScriptedGrasp
 
-    _check_hand(args.hand)
+    load_hand(args.hand)  # an unknown hand: one line, before any work
     label, objects = resolve_objects(args.objects)
     make = ReactiveGrasp if args.controller == "expert" else ScriptedGrasp
     factory = GraspEnvFactory(args.hand, None, tuple(objects), args.horizon)
@@ -118,6 +113,7 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 def cmd_choose(args: argparse.Namespace) -> int:
     from dexdrake.eval.expert import choice_lines, choose_variants
+    from dexdrake.hands.description import load_hand
     from dexdrake.learn.samplers import make_sampler
     from dexdrake.objects.library import list_objects
     from dexdrake.objects.meshfile import write_atomic
@@ -125,7 +121,7 @@ def cmd_choose(args: argparse.Namespace) -> int:
     from dexdrake.systems.env_factory import GraspEnvFactory
     from dexdrake.systems.reactive_grasp import expert_grasps_path, variant_expert
 
-    hand = _check_hand(args.hand)
+    hand = load_hand(args.hand)
     out = args.out or check_writable(expert_grasps_path(args.hand), folder=False)
     training = [o.name for o in list_objects("train")]
     names, old = training, None

@@ -22,7 +22,7 @@ MAX_COPIES, MAX_SHAPES = 50, 999  # as dexdrake.objects.augment.MAX_COPIES, MAX_
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add `objects list`, `import`, `remove`, `augment` and `novelty` to a subparsers action."""
-    parser = subparsers.add_parser("objects", help="list or import grasp objects")
+    parser = subparsers.add_parser("objects", help="list, import or augment grasp objects; how new the held-out ones are")
     sub = parser.add_subparsers(dest="objects_command", required=True)
 
     p_list = sub.add_parser("list", help="table of library objects")

@@ -92,7 +92,7 @@ def controller_episode(make: MakeController, env: Any, policy: None, job: tuple[
     cpu, calls = 0.0, 0
 
     def timed(env: Any) -> Callable[[Any], Any]:
-        env.fingertip_distances()  # queried after every env step; the first query loads the object's geometry
+        env.fingertip_distances()  # the first query loads the object's geometry: here, outside the timed calls
         controller = make(env)
 
         def call(env: Any) -> Any:

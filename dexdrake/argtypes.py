@@ -71,9 +71,6 @@ def episodes_per_object_help(note: str = "") -> str:
     return f"episodes per object ({note + '; ' if note else ''}at most {MAX_EPISODES})"
 
 
-def seed_list(text: str) -> list[int]:
-    """Comma-separated seeds (integers >= 0), at least one: '100,101,102'."""
-    return [seed(item) for item in text.split(",")]
 positive = float_in(0.0)
 non_negative = float_in(0.0, low_open=False)
 

@@ -6,7 +6,7 @@ expert-driven env step costs and how often the grasp expert succeeds under each,
 
 Each approximation (systems/scenario.py CONTACT_APPROXIMATIONS) runs the grasp expert
 (ReactiveGrasp) on every object of the split at seeds 0..N-1 and the evaluation's horizon
-(as scripts/scripted_grasp_table.py) in the training scenario with only `contact_approximation`
+(as `dexdrake expert table`) in the training scenario with only `contact_approximation`
 changed. Per approximation: the
 expert's success with its 95 % Wilson interval, episodes that diverged, and CPU ms per env step
 (plant, features, reward and expert: the whole step) with its ratio to the first

@@ -564,7 +564,7 @@ def build_hand_yaml(name: str, fingers: tuple[str, ...]) -> str:
         lines += [
             "# Named closed poses the expert may choose per object (GraspScript.closed_pose): 'oppose'",
             "# swings the thumb tip under the palm against the object's near side instead of across",
-            "# the palm (found by simulated grasp trials, scripts/choose_expert_grasps.py).",
+            "# the palm (found by simulated grasp trials, `dexdrake expert choose`).",
             "grasp_poses: {oppose: {" + ", ".join(f"{k}: {_f(v)}" for k, v in THUMB_OPPOSE.items()) + "}}",
         ]
     return "\n".join(lines + [""])

@@ -217,8 +217,9 @@ class GraspEnv:
             self._tips_at = q
         return self._tips.copy()
 
-    def rollout(self, make_controller, seed: int, logger=None) -> EpisodeResult:
-        """Runs one episode from `reset(seed)` (the one episode loop, dexdrake/episode.py).
+    def rollout(self, make_controller, seed: int, logger=None, object_name: str | None = None) -> EpisodeResult:
+        """Runs one episode from `reset(seed)` (on `object_name` when given; the one episode
+        loop, dexdrake/episode.py).
         `make_controller(env)` is called once after the reset and returns
         `controller(env) -> q_command` (set-points), called every control step; `logger` (a
         RerunLogger) records the episode."""
@@ -229,7 +230,7 @@ class GraspEnv:
             controller = controller or make_controller(self)
             return self.normalise(controller(self))
 
-        return run_episode(self, act, seed, **({} if logger is None else logger.hooks(self)))
+        return run_episode(self, act, seed, object_name=object_name, **({} if logger is None else logger.hooks(self)))
 
 
 def _rows_of(points, among) -> np.ndarray | None:

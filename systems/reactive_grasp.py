@@ -27,7 +27,7 @@ and re-planned whenever the grasp for the object's pose has moved or turned (`re
 `replan_turn`) before the fingers close; the lift keeps the palm's current rotation (not the
 plan's) and rises to a height set by the object's resting height. The grasp geometry is
 the hand's `GraspScript` with the variant chosen for the object by simulated trials
-(`models/weights/<hand>_expert_grasps.json`, scripts/choose_expert_grasps.py).
+(`models/weights/<hand>_expert_grasps.json`, `dexdrake expert choose`).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class ReactiveRules:
 
 
 def expert_grasps_path(hand: str) -> Path:
-    """The hand's table of per-object grasp variants (written by scripts/choose_expert_grasps.py)."""
+    """The hand's table of per-object grasp variants (written by `dexdrake expert choose`)."""
     return models_dir() / "weights" / f"{hand}_expert_grasps.json"
 
 
@@ -94,6 +94,12 @@ def expert_script(hand: HandDescription, object_name: str) -> GraspScript:
     entry = table["objects"].get(object_name)
     script = script_for(hand)
     return replace(script, **table["variants"][entry["variant"]]) if entry else script
+
+
+def variant_expert(overrides: dict, env) -> ReactiveGrasp:
+    """The expert for `env`'s episode with the hand's grasp script changed by `overrides` (a
+    grasp variant, dexdrake.eval.expert.VARIANTS): what `dexdrake expert choose` tries."""
+    return ReactiveGrasp(env, replace(script_for(env.scene.hand), **overrides))
 
 
 class ReactiveGrasp(ScriptedGrasp):

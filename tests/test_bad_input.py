@@ -103,6 +103,9 @@ OUTPUTS = [
     (["train", "dagger", "--objects", "sphere_small"], "--out", "/"),
     (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz"], "--out", "/"),
     (["encoder", "train"], "--out", ".pt"),
+    (["expert", "table"], "--out", ".md"),
+    (["expert", "choose"], "--out", ".json"),
+    (["objects", "novelty"], "--out", ".md"),
 ]
 BAD_PLACES = [("/proc/dexdrake_no/x", "cannot write to '/proc'"),  # unwritable even for root
               ("notes.txt/x", "is a file, not a folder")]          # a file where a folder is needed
@@ -222,6 +225,7 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
       "--batch-size", "2", "--out", "enc.pt"], "the loss is"),
     (["objects", "augment", "--copies", "100000"], "at most 50"),
     (["objects", "augment", "--shapes", "5000"], "at most 999"),
+    (["objects", "novelty", "--copies", "100000"], "at most 50"),
     (["sim", "--time-step", "1e-9"], "--time-step"),
     (["features", "show", "--object", "apple", "--horizon", "0"], "--horizon"),
     (["sim", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
@@ -237,10 +241,12 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
      "argument --horizon: must be at most 10000"),
     (["demos", "synth", "--objects", "apple", "--out", "demos", "--demos-per-object", "99999"],
      "argument --demos-per-object: must be at most 10000"),
+    (["expert", "table", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
+    (["expert", "choose", "--episodes-per-object", "99999"], "argument --episodes-per-object: must be at most 10000"),
 ], ids=["bc-nan", "eval-nan", "dagger-init-nan", "dapg-init-nan", "encoder-nan", "augment-copies",
-        "augment-shapes", "sim-time-step", "features-horizon", "sim-horizon", "features-horizon-bound", "demo-horizon",
+        "augment-shapes", "novelty-copies", "sim-time-step", "features-horizon", "sim-horizon", "features-horizon-bound", "demo-horizon",
         "eval-episodes-per-object", "eval-horizon", "dagger-horizon", "dagger-episodes-per-object", "dapg-horizon",
-        "replay-horizon", "synth-demos-per-object"])
+        "replay-horizon", "synth-demos-per-object", "expert-table-horizon", "expert-choose-episodes-per-object"])
 def test_numbers_that_would_lose_work_or_never_finish(world, capsys, argv, message, one_torch_thread):
     err = _fails(argv, capsys, world, log="run/bc/bc_log.csv")  # BC's log keeps the epochs it ran
     assert message in err, err
@@ -251,7 +257,9 @@ def test_numbers_that_would_lose_work_or_never_finish(world, capsys, argv, messa
                                          (["ablations"], "--episodes-per-object"), (["eval"], "--episodes-per-object"), (["eval"], "--horizon"),
                                          (["train", "dagger"], "--horizon"), (["train", "dagger"], "--episodes-per-object"),
                                          (["train", "dapg"], "--horizon"), (["train", "dapg"], "--episodes-per-object"),
-                                         (["demos", "replay"], "--horizon"), (["demos", "synth"], "--demos-per-object")])
+                                         (["demos", "replay"], "--horizon"), (["demos", "synth"], "--demos-per-object"),
+                                         (["expert", "table"], "--horizon"), (["expert", "table"], "--episodes-per-object"),
+                                         (["expert", "choose"], "--horizon"), (["expert", "choose"], "--episodes-per-object")])
 def test_help_states_the_bound(capsys, words, flag):
     from dexdrake import argtypes
 

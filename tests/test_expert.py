@@ -1,6 +1,8 @@
 """The grasp plan shared by the scripted grasp and the expert (ReactiveGrasp), the expert's label
 as a function of the state, and the cost of its lift label (a few Jacobian steps, not an IK solve)."""
 
+import json
+
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RotationMatrix
@@ -277,37 +279,39 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
 
 
 @pytest.mark.parametrize("hand_name", ["adroit", "allegro_z1"])
-def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant(hand_name, load_script):
+def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant(hand_name):
+    from dexdrake.eval.expert import hand_variants
     from dexdrake.hands.description import load_hand
     from dexdrake.objects.library import list_objects
     from dexdrake.systems import reactive_grasp
 
     reactive_grasp._expert_grasps.cache_clear()
     table = reactive_grasp._expert_grasps(hand_name)
-    assert table["command"].startswith("python scripts/choose_expert_grasps.py")
+    assert table["command"].startswith("dexdrake expert choose")
     assert not set(table["seeds"]) & set(range(10))  # the expert table's seeds 0..9 stay unseen by the choice
     assert {o.name for o in list_objects("train")} == set(table["objects"])
     hand = load_hand(hand_name)
-    assert list(table["variants"]) == load_script("choose_expert_grasps").hand_variants(hand)
+    assert list(table["variants"]) == hand_variants(hand)
     for name, entry in table["objects"].items():
         counts = entry["successes"]
         assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())
         reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)
 
 
-def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_trying_all(load_script):
-    chooser = load_script("choose_expert_grasps")
+def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_trying_all():
+    from dexdrake.eval.expert import best_variant
+
     rng = np.random.default_rng(0)
     variants, seeds = ["a", "b", "c", "d"], [10, 11, 12, 13]
     for _ in range(200):
         table = {(v, s): bool(rng.random() < p) for v, p in zip(variants, rng.random(4)) for s in seeds}
         calls = []
-        best, tried = chooser.best_variant(variants, seeds, lambda v, s: calls.append((v, s)) or table[v, s])
+        best, tried = best_variant(variants, seeds, lambda v, s: calls.append((v, s)) or table[v, s])
         counts = {v: sum(table[v, s] for s in seeds) for v in variants}
         assert best == max(variants, key=lambda v: (counts[v], -variants.index(v)))  # as if all were tried
         assert all(tried[v] == [table[v, s] for s in seeds[: len(tried[v])]] for v in variants)
         assert len(calls) == sum(map(len, tried.values()))
-    best, tried = chooser.best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
+    best, tried = best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
     assert best == "a" and [len(tried[v]) for v in variants] == [4, 0, 0, 0]
 
 
@@ -351,3 +355,48 @@ def test_allegro_pinch_poses_point_the_fingertips_down_and_close_them_toward_the
     for ring in ("joint_9.0", "joint_10.0", "joint_11.0"):  # the ring finger stays stretched out of the way
         assert q_open[j[ring]] == q_closed[j[ring]] == 0.0
     assert q_closed[j["joint_14.0"]] > q_open[j["joint_14.0"]]  # the thumb pushes toward the fingertips
+
+
+@pytest.mark.parametrize("controller", ["expert", "scripted"])
+def test_expert_table_writes_the_markdown_and_csv_it_prints(tmp_path, capsys, controller):
+    import csv
+
+    from dexdrake.cli import main
+
+    out = tmp_path / "table.md"
+    argv = ["expert", "table", "--objects", "sphere_small", "--controller", controller, "--episodes-per-object", "2",
+            "--seed", "3", "--horizon", "4", "--workers", "1", "--backend", "sequential", "--out", str(out)]
+    assert main(argv) == 0
+    text = out.read_text()
+    assert text in capsys.readouterr().out
+    assert "`dexdrake expert table --hand adroit --objects sphere_small --workers 1 --backend sequential" in text
+    assert f"--controller {controller} --episodes-per-object 2 --seed 3 --horizon 4 --out {out}`" in text
+    assert "Seeds 3..4 per object" in text and "| sphere_small | sphere | " in text
+    rows = list(csv.DictReader(out.with_suffix(".csv").open()))
+    assert [(r["kind"], r["name"], r["category"], r["episodes"]) for r in rows] == [
+        ("object", "sphere_small", "sphere", "2"), ("category", "", "sphere", "2")]
+    assert float(rows[0]["ms_per_call"]) > 0 and rows[0]["successes"] == rows[1]["successes"]
+
+
+def test_expert_choose_writes_the_grasp_table_and_re_chooses_objects_on_its_seeds(tmp_path, capsys):
+    from dexdrake.cli import main
+    from dexdrake.eval.expert import hand_variants
+    from dexdrake.hands.description import load_hand
+
+    out = tmp_path / "grasps.json"
+    base = ["expert", "choose", "--episodes-per-object", "1", "--horizon", "3", "--backend", "sequential",
+            "--out", str(out)]
+    assert main([*base, "--objects", "sphere_small"]) == 0
+    table = json.loads(out.read_text())
+    variants = hand_variants(load_hand("adroit"))
+    assert (table["hand"], table["seeds"], table["horizon"], list(table["variants"])) == ("adroit", [100], 3, variants)
+    assert table["command"].startswith("dexdrake expert choose --hand adroit --objects sphere_small")
+    entry = table["objects"]["sphere_small"]
+    assert entry["variant"] in variants and set(entry["successes"]) == set(variants)
+    assert capsys.readouterr().out.rstrip().endswith(f"wrote {out}")
+    assert main([*base, "--objects", "can_soda", "--seed", "7"]) == 2  # another seed block than the table's
+    assert "was chosen on seeds 100..100 (--seed 100 --episodes-per-object 1)" in capsys.readouterr().err
+    assert main([*base, "--objects", "can_soda"]) == 0
+    again = json.loads(out.read_text())
+    assert list(again["objects"]) == ["sphere_small", "can_soda"] and again["command"] == table["command"]
+    assert again["objects"]["sphere_small"] == entry and again["objects"]["can_soda"]["command"].endswith(str(out))

@@ -99,11 +99,34 @@ def test_each_unseen_object_is_farther_from_all_training_and_augmented_objects_t
     train = shapes.recipe_names("train")
     nn = [similarity.nearest(points[n], [points[m] for m in train if m != n])[1] for n in train]
     threshold = float(np.median(nn))
-    assert 0.004 < threshold < 0.012  # millimetres apart, as measured (scripts/object_novelty.py)
+    assert 0.004 < threshold < 0.012  # millimetres apart, as measured (`dexdrake objects novelty`)
     names = list(points)
     for name in shapes.recipe_names("unseen"):
         k, d = similarity.nearest(similarity.surface_points(load_obj(get_object(name).mesh_path)), list(points.values()))
         assert d > threshold, f"{name} is {1000 * d:.1f} mm from {names[k]}, within {1000 * threshold:.1f} mm"
+
+
+def test_objects_novelty_writes_the_table_it_prints_naming_each_held_out_objects_nearest_reference(
+        tmp_path, capsys, monkeypatch):
+    from dexdrake.cli import main
+    from dexdrake.objects import library
+
+    few = {"train": {"sphere_small", "sphere_medium", "box_cube"}, "unseen": {"star"}, "validation": set(),
+           "near": set()}  # a small library: the command's work is that of every object
+    every = library.list_objects
+    monkeypatch.setattr(library, "list_objects", lambda split=None: [o for o in every(split) if o.name in few[split]])
+    out = tmp_path / "novelty.md"
+    assert main(["objects", "novelty", "--copies", "1", "--shapes", "0", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text in capsys.readouterr().out
+    assert f"- command: `dexdrake objects novelty --copies 1 --shapes 0 --out {out}`" in text
+    assert "- 6 reference objects: 3 training objects, 1 scaled copies of each, 0 procedural shapes" in text
+    (row,) = [line for line in text.splitlines() if line.startswith("| star |")]
+    _, name, split, category, nearest, distance, beyond, _ = (cell.strip() for cell in row.split("|"))
+    assert (split, category) == ("unseen", "star") and nearest in {"sphere_small", "sphere_medium", "box_cube",
+                                                                    "sphere_small_s1", "sphere_medium_s1", "box_cube_s1"}
+    threshold = float(text.split("nearest training neighbour, ")[1].split(" mm")[0])
+    assert beyond == ("yes" if float(distance) > threshold else "no")
 
 
 def test_chamfer_distance_is_zero_for_a_turned_copy_and_grows_with_scale():

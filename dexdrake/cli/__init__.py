@@ -26,7 +26,7 @@ COMMAND_MODULES = [
     "dexdrake.cli.features", "dexdrake.cli.encoder",
     "dexdrake.cli.hil", "dexdrake.cli.real",
     "dexdrake.cli.train", "dexdrake.cli.eval", "dexdrake.cli.demo",
-    "dexdrake.cli.ablations",
+    "dexdrake.cli.expert", "dexdrake.cli.ablations",
 ]
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dexdrake import argtypes
+from dexdrake.cli.flags import command_line, option_names
 
 if TYPE_CHECKING:
     from dexdrake.objects.library import ObjectInfo
@@ -20,8 +21,8 @@ MAX_COPIES, MAX_SHAPES = 50, 999  # as dexdrake.objects.augment.MAX_COPIES, MAX_
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add `objects list`, `import`, `remove` and `augment` to a subparsers action."""
-    parser = subparsers.add_parser("objects", help="list or import grasp objects")
+    """Add `objects list`, `import`, `remove`, `augment` and `novelty` to a subparsers action."""
+    parser = subparsers.add_parser("objects", help="list, import or augment grasp objects; how new the held-out ones are")
     sub = parser.add_subparsers(dest="objects_command", required=True)
 
     p_list = sub.add_parser("list", help="table of library objects")
@@ -44,12 +45,31 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
     p_aug = sub.add_parser("augment", help="scaled copies of the training objects and procedural shapes, to train on "
                            "(split 'augmented')")
-    p_aug.add_argument("--copies", type=argtypes.int_at_least(1, MAX_COPIES), default=2,
-                       help=f"copies per training object (default 2, at most {MAX_COPIES})")
-    p_aug.add_argument("--shapes", type=argtypes.int_at_least(0, MAX_SHAPES), default=0,
-                       help=f"procedural shapes (superquadrics and compounds of them; default 0, at most {MAX_SHAPES})")
+    _add_augmented(p_aug, 2, 0)
     p_aug.set_defaults(func=cmd_augment)
+
+    p_nov = sub.add_parser("novelty", help="how new the held-out objects are: each one's nearest training or "
+                           "augmented object (markdown)",
+                           description="Each unseen, validation and near object's nearest reference (the training "
+                                       "objects, their scaled copies and the procedural shapes of `objects augment "
+                                       "--copies C --shapes S`, built in memory) by mean surface Chamfer distance, "
+                                       "best over yaw, against a threshold: the median training object's distance to "
+                                       "its nearest training neighbour. Prints and writes a markdown table naming "
+                                       "the command.")
+    _add_augmented(p_nov, 4, 100, "the augmented split to measure against: ")
+    p_nov.add_argument("--out", type=argtypes.output_file(".md"),
+                       help="the table to write (default: models/objects/novelty.md)")
+    p_nov.set_defaults(func=cmd_novelty, recorded_options=option_names(p_nov))
     return parser
+
+
+def _add_augmented(parser: argparse.ArgumentParser, copies: int, shapes: int, what: str = "") -> None:
+    """--copies and --shapes: the augmented split (dexdrake.objects.augment)."""
+    parser.add_argument("--copies", type=argtypes.int_at_least(1, MAX_COPIES), default=copies,
+                        help=f"{what}copies per training object (default {copies}, at most {MAX_COPIES})")
+    parser.add_argument("--shapes", type=argtypes.int_at_least(0, MAX_SHAPES), default=shapes,
+                        help=f"{what}procedural shapes (superquadrics and compounds of them; default {shapes}, "
+                             f"at most {MAX_SHAPES})")
 
 
 def _known_pieces(info: "ObjectInfo") -> int | None:
@@ -120,4 +140,18 @@ def cmd_augment(args: argparse.Namespace) -> int:
     names = build_augmented(args.copies, args.shapes)
     print(f"{len(names) - args.shapes} scaled copies (per-axis factors in {SCALE_RANGE[0]}-{SCALE_RANGE[1]}) and "
           f"{args.shapes} procedural shapes in {store.augmented_root()}; train on them with `--objects train+augmented`")
+    return 0
+
+
+def cmd_novelty(args: argparse.Namespace) -> int:
+    """Write and print the held-out objects' novelty table (dexdrake.objects.similarity.novelty_table)."""
+    from dexdrake.objects.meshfile import write_atomic
+    from dexdrake.objects.similarity import novelty_table
+    from dexdrake.outputs import check_writable
+    from dexdrake.paths import models_dir
+
+    out = args.out or check_writable(models_dir() / "objects" / "novelty.md", folder=False)
+    text = novelty_table(args.copies, args.shapes, command_line(["objects", "novelty"], args, args.recorded_options))
+    write_atomic(out, text.encode())
+    print(text + f"wrote {out}")
     return 0

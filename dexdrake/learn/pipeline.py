@@ -137,36 +137,21 @@ def run_augment(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dic
 
 def run_expert(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[str, Any]:
     """The expert alone, `episodes_per_object` episodes per DAgger object from the first
-    validation seed: expert_table.md/.csv (object, category, successes, rate)."""
-    from dexdrake.learn.curves import write_csv
-    from dexdrake.learn.dagger import collect
+    validation seed: expert_table.md/.csv (dexdrake.eval.expert's per-object table)."""
+    from dexdrake.eval.expert import controller_table
     from dexdrake.learn.samplers import make_sampler
     from dexdrake.objects.library import get_object, training_objects
 
     objects = training_objects(recipe.dagger.objects)
     n = recipe.expert.episodes_per_object
     factory = rt.make_env(recipe.hand, None, tuple(objects), recipe.expert.horizon)
-    jobs = [(name, FIRST_VALIDATION_SEED + i) for name in objects for i in range(n)]
     with make_sampler(factory, rt.backend, rt.workers, rt.address) as sampler:
-        data = collect(sampler, None, jobs, 0.0, "expert", rt.make_expert)
-    rows = []
-    for name in objects:
-        wins = sum(bool(s) for o, s in zip(data.objects, data.success) if o == name)
-        runs = sum(o == name for o in data.objects)
-        rows.append({"object": name, "category": get_object(name).category, "successes": wins, "episodes": runs,
-                     "success_pct": round(100.0 * wins / max(runs, 1), 1)})
-    folder = out / stage.name
-    write_csv(folder / "expert_table.csv", list(rows[0]), rows)
-    total = sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
-    lines = [f"# The expert alone on the {recipe.hand} training objects", "",
-             f"{n} episodes per object of {recipe.expert.horizon} control steps, seeds {FIRST_VALIDATION_SEED}.."
-             f"{FIRST_VALIDATION_SEED + n - 1} (validation block). Made by `{rt.command}`.", "",
-             "| object | category | successes | success % |", "|---|---|---|---|",
-             *(f"| {r['object']} | {r['category']} | {r['successes']}/{r['episodes']} | {r['success_pct']} |"
-               for r in rows),
-             f"| **all** | | {total[0]}/{total[1]} | {100.0 * total[0] / max(total[1], 1):.1f} |", ""]
-    write_atomic(folder / "expert_table.md", "\n".join(lines).encode())
-    return {"success_pct": round(100.0 * total[0] / max(total[1], 1), 2), "episodes": total[1]}
+        table = controller_table(sampler, rt.make_expert, objects, {name: get_object(name).category for name in objects},
+                                 FIRST_VALIDATION_SEED, n, recipe.expert.horizon, "expert")
+    table.write(out / stage.name / "expert_table.md", f"The expert alone on the {recipe.hand} training objects",
+                [f"{n} episodes per object of {recipe.expert.horizon} control steps, seeds {table.seeds_text()} "
+                 f"(validation block); ms = CPU time per expert call. Made by `{rt.command}`."])
+    return {"success_pct": round(table.success_pct(), 2), "episodes": len(objects) * n}
 
 
 def run_dagger(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[str, Any]:

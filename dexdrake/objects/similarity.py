@@ -93,3 +93,47 @@ def reference_meshes(copies: int, shapes: int) -> dict[str, trimesh.Trimesh]:
     for k in range(1, shapes + 1):
         out[shape_name(k)] = procedural_shape(k)[0]
     return out
+
+
+NOVELTY_SPLITS = ("unseen", "validation", "near")  # the held-out splits `novelty_table` measures
+
+
+def training_median_nn(points: dict[str, np.ndarray], train: list[str]) -> float:
+    """Median over training objects of the distance (m) to the nearest other training object."""
+    from tqdm import tqdm
+
+    return float(np.median([nearest(points[n], [points[m] for m in train if m != n])[1]
+                            for n in tqdm(train, desc="training neighbours", unit="obj")]))
+
+
+def novelty_table(copies: int, shapes: int, command: str) -> str:
+    """How new the held-out objects are, as markdown naming `command`: each one's nearest
+    reference (the training objects, `copies` scaled copies of each, `shapes` procedural
+    shapes: the augmented split of `dexdrake objects augment`) by `distance`, and whether it
+    lies beyond the threshold, the median training object's distance to its nearest training
+    neighbour."""
+    from tqdm import tqdm
+
+    from dexdrake.objects.library import list_objects
+    from dexdrake.objects.meshfile import load_obj
+
+    refs = reference_meshes(copies, shapes)
+    names = list(refs)
+    points = {n: surface_points(m) for n, m in refs.items()}
+    train = [i.name for i in list_objects("train")]
+    threshold = training_median_nn(points, train)
+    lines = ["# Held-out objects against the training and augmented objects", "",
+             f"- command: `{command}`",
+             (f"- {len(names)} reference objects: {len(train)} training objects, {copies} scaled copies of each, "
+              f"{shapes} procedural shapes"),
+             f"- distance: mean surface Chamfer, best over yaw (dexdrake.objects.similarity, {POINTS} points, {YAWS} turns)",
+             ("- threshold: the median training object's distance to its nearest training neighbour, "
+              f"{1000 * threshold:.1f} mm"), "",
+             "| object | split | category | nearest reference | distance (mm) | beyond the threshold |",
+             "|---|---|---|---|---|---|"]
+    for split in NOVELTY_SPLITS:
+        for info in tqdm(list_objects(split), desc=split, unit="obj"):
+            k, d = nearest(surface_points(load_obj(info.mesh_path)), [points[n] for n in names])
+            lines.append(f"| {info.name} | {split} | {info.category} | {names[k]} | {1000 * d:.1f} | "
+                         f"{'yes' if d > threshold else 'no'} |")
+    return "\n".join(lines) + "\n"

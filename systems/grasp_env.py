@@ -2,8 +2,8 @@
 
 Built from a sim Scenario (systems/scenario.py): the sim station of every mode, its plant
 step, control period and the drivers' target limits. Actions are normalised set-points in
-[-1, 1] (policy order) of the joints or, with `arm_action="palm_pose"`, of the palm's pose and
-the fingers (dexdrake/hands/action_map.py). Each `step` holds the
+[-1, 1] (policy order) of the joints or, with `arm_action` "palm_pose" or "palm_step", of the
+palm's pose or its step and of the fingers (dexdrake/hands/action_map.py). Each `step` holds the
 set-point for one control period of the plant and scores the step with `dexdrake.task`.
 Observations are the selected DexRep feature set (hand state always included), computed at
 the object pose the scenario's perception model delivers (dexdrake/perceived_pose.py: pose
@@ -125,7 +125,7 @@ class GraspEnv:
     def normalise(self, q_command: np.ndarray) -> np.ndarray:
         """The normalised action that `step` maps to set-points `q_command` (from the arm's
         present position)."""
-        return self.actions.normalise(q_command)
+        return self.actions.normalise(q_command, self.scene.hand_positions(self.plant_context))
 
     def step_positions(self, q_command: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
         """Like `step` with joint set-points in physical units (rad, m); `command_guard`

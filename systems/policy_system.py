@@ -82,5 +82,5 @@ class PolicySystem(LeafSystem):
 
     def hold(self, context: Context, q: np.ndarray) -> None:
         """Set the held action (and command) to those of joint positions `q` (this system's context)."""
-        context.get_mutable_discrete_state(0).SetFromVector(np.clip(self.actions.normalise(q), -1.0, 1.0))
+        context.get_mutable_discrete_state(0).SetFromVector(np.clip(self.actions.normalise(q, q), -1.0, 1.0))
         context.get_mutable_discrete_state(1).SetFromVector(q)

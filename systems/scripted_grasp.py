@@ -45,6 +45,8 @@ class GraspScript:
     orientation_weight: float = 0.01  # IK weight of palm rotation error (m per unit)
     ik_damping: float = 1e-3  # damping of `ArmIK.step`'s least-squares steps (m)
     round_footprint: float = 0.15  # footprint widths within this fraction of each other: round, yaw kept
+    max_yaw: float | None = None  # the palm turns at most this far about the vertical from its pre-grasp
+    # rotation (rad; None: up to the footprint's symmetry, a quarter or half turn)
     closed_hold: float | None = None  # settled fingers closed this far hold the object (closure fraction;
     # None: the hand's `ReactiveRules.closed_hold`; a pinch whose fingers sweep far before they reach a
     # thin object holds it only when the thumb and a finger touch it: above 1)
@@ -118,10 +120,13 @@ class GraspPlan:
 def plan_grasp(script: GraspScript, info: ObjectInfo, X_obj: RigidTransform, R_start: np.ndarray) -> GraspPlan:
     """The grasp for an object at pose X_obj, from its shape (extents, footprint) and pose
     only: the palm turned from rotation R_start across the footprint's shorter axis, the
-    grasp centre below the object's top (deeper on tall objects)."""
+    grasp centre below the object's top (deeper on tall objects); the turn is clipped to the
+    script's `max_yaw`, so a palm that cannot turn across the short axis grasps it obliquely."""
     widths = info.footprint_widths()
     is_round = widths.max() - widths.min() < script.round_footprint * widths.max()
     yaw = 0.0 if is_round else _grasp_yaw(R_start, X_obj.rotation().matrix(), info.extents)
+    if script.max_yaw is not None:
+        yaw = float(np.clip(yaw, -script.max_yaw, script.max_yaw))
     R = _rot_z(yaw) @ R_start
     fingers_dir = R[:, 2].copy()
     fingers_dir[2] = 0.0

@@ -66,7 +66,7 @@ def test_a_non_finite_palm_action_is_held_and_a_hand_without_the_box_is_refused(
     a[2] = np.nan
     q = actions.command(a, allegro_z1.pregrasp_vector())
     assert np.isnan(q[:6]).all() and np.isfinite(q[6:]).all()  # the command guard holds the arm
-    with pytest.raises(DexdrakeError, match="has no palm-pose arm action"):
+    with pytest.raises(DexdrakeError, match="has no palm_pose arm action"):
         ActionMap(load_hand("adroit"), "palm_pose")
     with pytest.raises(DexdrakeError, match="unknown arm action 'cartesian'"):
         ActionMap(allegro_z1, "cartesian")
@@ -126,3 +126,38 @@ def test_a_residual_arm_needs_joint_actions(allegro_z1, tmp_path):
     assert not (tmp_path / "d").exists()
     with pytest.raises(DexdrakeError, match="leads the arm's joints"):
         arm_action_map(PolicyConfig.from_blocks({"hand": 4}, 22, hand="allegro_z1", arm_action="palm_pose"))
+
+
+def test_palm_step_actions_move_the_palm_from_where_it_is_measured(allegro_z1):
+    """normalise(q, measured) -> command(., measured) returns q; an action of 0 holds the measured
+    palm; an action moves the grasp centre by action * step and turns the palm by action * step_rotation."""
+    actions = ActionMap(allegro_z1, "palm_step")
+    n, box = len(allegro_z1.arm_joints), allegro_z1.palm_pose_action
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        measured = _near_pregrasp(allegro_z1, rng)
+        q = measured + np.concatenate([rng.normal(0.0, 0.03, n), np.zeros(len(measured) - n)])
+        a = actions.normalise(q, measured)
+        assert np.all(np.abs(a[:n]) < 1)
+        assert np.allclose(actions.command(a, measured)[:n], q[:n], atol=5e-4)
+        assert np.allclose(actions.normalise(measured, measured)[:n], 0.0, atol=1e-9)
+        assert np.allclose(actions.command(np.zeros(len(q)), measured)[:n], measured[:n], atol=1e-4)
+    measured = allegro_z1.pregrasp_vector()
+    centre, R = actions.ik.palm_pose(measured[:n])
+    a = np.zeros(len(measured))
+    a[:3], a[5] = [0.4, -0.6, 0.2], 0.8
+    moved, turned = actions.ik.palm_pose(actions.command(a, measured)[:n])
+    assert np.allclose(moved, centre + a[:3] * box.step, atol=1e-4)
+    angle = np.arccos(np.clip((np.trace(R.T @ turned) - 1) / 2, -1, 1))
+    assert angle == pytest.approx(0.8 * box.step_rotation, abs=1e-3)
+    with pytest.raises(ValueError, match="q_measured"):
+        actions.normalise(measured)
+
+
+def test_palm_step_needs_a_step_in_the_description(allegro_z1):
+    no_step = replace(allegro_z1, palm_pose_action=replace(allegro_z1.palm_pose_action, step=0.0, step_rotation=0.0))
+    with pytest.raises(DexdrakeError, match="palm_step"):
+        ActionMap(no_step, "palm_step")
+    with pytest.raises(DexdrakeError, match="step"):
+        _palm_pose_action({"name": "h", "palm_pose_action": {"lower": [0, 0, 0], "upper": [1, 1, 1], "rotation": 1,
+                                                             "step": 0.05}})

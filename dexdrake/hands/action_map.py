@@ -8,11 +8,16 @@ joint set-points, for each way of commanding the arm (ARM_ACTIONS):
   the pre-grasp pose). Their set-points are the arm's inverse kinematics of that pose
   (ArmIK.step, to convergence) from the measured arm positions, so the map is the same wherever the arm is
   measured (simulation, hardware). The fingers' actions map as in "joints".
+- "palm_step" (a `palm_pose_action` with `step` and `step_rotation`): the arm's six actions move
+  the palm from its measured pose (forward kinematics of the measured arm): the grasp centre by
+  action * step, kept in the box, and its rotation to R = exp(action * step_rotation) R_measured
+  (a world-frame rotation vector); set-points by the same inverse kinematics. An action of 0
+  holds the palm where it is measured.
 
 A joint's action outside [-1, 1] maps beyond its limits and a non-finite one to a non-finite
 set-point: the command guard clips the one and holds the other, counting both
-(dexdrake/command_guard.py). Palm-pose actions are clipped to [-1, 1] (the box) before the IK;
-non-finite ones leave the arm's set-points non-finite."""
+(dexdrake/command_guard.py). Palm actions are clipped to [-1, 1] before the IK; non-finite ones
+leave the arm's set-points non-finite."""
 
 from __future__ import annotations
 
@@ -25,7 +30,7 @@ from dexdrake.hands.description import HandDescription
 from dexdrake.hands.kinematics import hand_kinematics
 from dexdrake.perceived_pose import rotation_from_vector
 
-ARM_ACTIONS = ("joints", "palm_pose")
+ARM_ACTIONS = ("joints", "palm_pose", "palm_step")
 IK_STEPS, IK_TOLERANCE = 30, 1e-6  # the palm pose's IK: at most this many steps, to this weighted error (m)
 
 
@@ -39,21 +44,24 @@ class ActionMap:
         lo, hi = hand.joint_limits()
         self.hand, self.arm_action = hand, arm_action
         self.mid, self.half = (hi + lo) / 2, (hi - lo) / 2
-        self.n_arm = len(hand.arm_joints) if arm_action == "palm_pose" else 0
+        self.n_arm = len(hand.arm_joints) if arm_action != "joints" else 0
+        self.steps = arm_action == "palm_step"
         if self.n_arm:
             box = hand.palm_pose_action
-            if box is None or self.n_arm != 6:
-                raise DexdrakeError(f"hand {hand.name!r} has no palm-pose arm action (a six-joint arm and "
-                                    "`palm_pose_action` in its description)")
+            if box is None or self.n_arm != 6 or (self.steps and not box.step):
+                raise DexdrakeError(f"hand {hand.name!r} has no {arm_action} arm action (a six-joint arm and "
+                                    f"`palm_pose_action`{' with step and step_rotation' if self.steps else ''} "
+                                    "in its description)")
             self.ik = ArmIK(hand_kinematics(hand))
-            lower, upper = np.array(box.lower), np.array(box.upper)
-            self._centre_mid, self._centre_half = (upper + lower) / 2, (upper - lower) / 2
+            self._lower, self._upper = np.array(box.lower), np.array(box.upper)
+            self._centre_mid, self._centre_half = (self._upper + self._lower) / 2, (self._upper - self._lower) / 2
             self._rotation = box.rotation
+            self._step, self._step_rotation = box.step, box.step_rotation
             self._R_ref = self.ik.palm_pose(hand.pregrasp_vector()[: self.n_arm])[1]
 
     def command(self, action: np.ndarray, q_measured: np.ndarray) -> np.ndarray:
         """The joint set-points of `action`, the arm's solved from the measured positions
-        `q_measured` (policy order; read by "palm_pose" only)."""
+        `q_measured` (policy order; not read by "joints")."""
         a = np.asarray(action, dtype=float)
         q = self.mid + a * self.half
         if self.n_arm:
@@ -62,20 +70,34 @@ class ActionMap:
             if not np.isfinite(a[:n]).all():
                 q[:n] = np.nan
                 return q
-            centre = self._centre_mid + a[:3] * self._centre_half
-            R = self._R_ref @ rotation_from_vector(a[3:n] * self._rotation)
-            q[:n] = self.ik.step(centre, R, np.asarray(q_measured, dtype=float)[:n], IK_STEPS, IK_TOLERANCE)
+            q_arm = np.asarray(q_measured, dtype=float)[:n]
+            if self.steps:
+                centre, R = self.ik.palm_pose(q_arm)
+                centre = np.clip(centre + a[:3] * self._step, self._lower, self._upper)
+                R = rotation_from_vector(a[3:n] * self._step_rotation) @ R
+            else:
+                centre = self._centre_mid + a[:3] * self._centre_half
+                R = self._R_ref @ rotation_from_vector(a[3:n] * self._rotation)
+            q[:n] = self.ik.step(centre, R, q_arm, IK_STEPS, IK_TOLERANCE)
         return q
 
-    def normalise(self, q_command: np.ndarray) -> np.ndarray:
-        """The action (unclipped) whose set-points are `q_command`: the inverse of `command`
-        (for "palm_pose", up to the inverse kinematics' branch, the one nearest the arm)."""
+    def normalise(self, q_command: np.ndarray, q_measured: np.ndarray | None = None) -> np.ndarray:
+        """The action (unclipped) whose set-points are `q_command` from the measured positions
+        `q_measured` (needed by "palm_step" only): the inverse of `command` (for the palm's
+        actions, up to the inverse kinematics' branch, the one nearest the arm)."""
         q = np.asarray(q_command, dtype=float)
         a = (q - self.mid) / self.half
         if self.n_arm:
             centre, R = self.ik.palm_pose(q[: self.n_arm])
-            a[:3] = (centre - self._centre_mid) / self._centre_half
-            a[3: self.n_arm] = _log(self._R_ref.T @ R) / self._rotation
+            if self.steps:
+                if q_measured is None:
+                    raise ValueError("palm_step actions are relative to the measured arm: pass q_measured")
+                measured, R_measured = self.ik.palm_pose(np.asarray(q_measured, dtype=float)[: self.n_arm])
+                a[:3] = (centre - measured) / self._step
+                a[3: self.n_arm] = _log(R @ R_measured.T) / self._step_rotation
+            else:
+                a[:3] = (centre - self._centre_mid) / self._centre_half
+                a[3: self.n_arm] = _log(self._R_ref.T @ R) / self._rotation
         return a
 
 

@@ -25,10 +25,12 @@ Schema (YAML):
                                      # thumb posture or a fingertip pinch
     grasp_script: {FIELD: value}     # optional: overrides of systems.scripted_grasp.GraspScript
     grasp_expert: {FIELD: value}     # optional: overrides of systems.reactive_grasp.ReactiveRules
-    palm_pose_action: {lower: [x, y, z], upper: [x, y, z], rotation: rad}
+    palm_pose_action: {lower: [x, y, z], upper: [x, y, z], rotation: rad, step: m, step_rotation: rad}
                                      # optional (six-joint arms): the box (m, world) of the palm's
                                      # grasp centre and the rotation (rad) that actions of +-1
-                                     # span when the arm is commanded by palm pose
+                                     # span when the arm is commanded by palm pose; optional step
+                                     # and step_rotation: the move and turn from the measured palm
+                                     # per action of 1 when commanded by palm steps
                                      # (dexdrake/hands/action_map.py)
     include: FILE                    # optional: a part shared by several descriptions (beside
                                      # this file, not itself a hand); this file's keys are laid
@@ -69,6 +71,8 @@ class PalmPoseAction:
     lower: tuple[float, float, float]  # grasp-centre box (m, world frame)
     upper: tuple[float, float, float]
     rotation: float  # rad: the rotation-vector length of an action of 1
+    step: float = 0.0  # m: the palm's move from its measured pose per action of 1 ("palm_step"; 0: none)
+    step_rotation: float = 0.0  # rad: ... and its turn
 
 
 @dataclass(frozen=True)
@@ -141,10 +145,12 @@ def _palm_pose_action(d: dict) -> PalmPoseAction | None:
     if box is None:
         return None
     lower, upper = (tuple(float(x) for x in box[k]) for k in ("lower", "upper"))
-    if len(lower) != 3 or len(upper) != 3 or any(a >= b for a, b in zip(lower, upper)) or not box["rotation"] > 0:
-        raise DexdrakeError(f"hand {d['name']!r}: palm_pose_action needs lower < upper (3 values each) "
-                            f"and a positive rotation, got {box}")
-    return PalmPoseAction(lower, upper, float(box["rotation"]))
+    step, step_rotation = float(box.get("step", 0.0)), float(box.get("step_rotation", 0.0))
+    if (len(lower) != 3 or len(upper) != 3 or any(a >= b for a, b in zip(lower, upper)) or not box["rotation"] > 0
+            or not (step >= 0 and step_rotation >= 0) or (step > 0) != (step_rotation > 0)):
+        raise DexdrakeError(f"hand {d['name']!r}: palm_pose_action needs lower < upper (3 values each), "
+                            f"a positive rotation and, when given, a positive step and step_rotation, got {box}")
+    return PalmPoseAction(lower, upper, float(box["rotation"]), step, step_rotation)
 
 
 def _from_dict(d: dict) -> HandDescription:

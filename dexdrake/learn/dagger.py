@@ -96,8 +96,8 @@ class DaggerConfig:
     residual_arm: bool = field(default=False, metadata={
         "help": "a new network's arm actions are added to the arm's current position (it learns the lead)"})
     arm_action: str = field(default="joints", metadata={
-        "choices": ARM_ACTIONS, "help": "how a new network's actions command the arm: its joints, or the palm's "
-                                        "pose (dexdrake/hands/action_map.py)"})
+        "choices": ARM_ACTIONS, "help": "how a new network's actions command the arm: its joints, the palm's pose, "
+                                        "or the palm's step from where it is (dexdrake/hands/action_map.py)"})
 
 
 @dataclass
@@ -532,7 +532,7 @@ def hold_still_loss(dataset: DemoDataset, idx: np.ndarray, actions: ActionMap) -
     (set-point = current position, read from the hand block's joint positions): a policy whose
     held-out loss is not well below this has learnt little beyond copying its own state."""
     q = dataset.observations[idx, : len(actions.mid)]
-    hold = np.array([actions.normalise(row) for row in q])
+    hold = np.array([actions.normalise(row, row) for row in q])
     return float(np.mean(np.sum((dataset.actions[idx] - hold) ** 2, axis=1)))
 
 

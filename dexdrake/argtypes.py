@@ -97,6 +97,18 @@ def output_folder(text: str) -> Path:
 output_folder.output = "folder"
 
 
+def pose_noise(text: str) -> tuple[float, float]:
+    """"POS,ROT": the object pose's noise sigmas, position (m) and rotation (rad), each finite and >= 0."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(x) for x in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected POS,ROT (two finite numbers >= 0: m, rad), got {text!r}")
+    return values
+
+
 def label(text: str) -> str:
     """A label used as a file or folder name: letters, digits, '_', '-', '.'; no slashes."""
     if not _LABEL.match(text):

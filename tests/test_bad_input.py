@@ -233,6 +233,8 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
     (["demo", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
     (["eval", "--policy", "policy.pt", "--episodes-per-object", "100000000"], "argument --episodes-per-object: must be at most 10000"),
     (["eval", "--policy", "policy.pt", "--horizon", "10001"], "argument --horizon: must be at most 10000"),
+    (["eval", "--policy", "policy.pt", "--pose-noise", "0.02"], "argument --pose-noise: expected POS,ROT"),
+    (["eval", "--policy", "policy.pt", "--pose-noise", "0.02,-1"], "argument --pose-noise: expected POS,ROT"),
     (["train", "dagger", "--out", "run", "--horizon", "99999"], "argument --horizon: must be at most 10000"),
     (["train", "dagger", "--out", "run", "--episodes-per-object", "99999"], "argument --episodes-per-object: must be at most 10000"),
     (["train", "dapg", "--init", "policy.pt", "--demos", "data.npz", "--out", "run", "--horizon", "99999"],
@@ -245,7 +247,7 @@ def test_a_changed_setting_on_an_existing_dagger_run_is_refused(world, capsys):
     (["expert", "choose", "--episodes-per-object", "99999"], "argument --episodes-per-object: must be at most 10000"),
 ], ids=["bc-nan", "eval-nan", "dagger-init-nan", "dapg-init-nan", "encoder-nan", "augment-copies",
         "augment-shapes", "novelty-copies", "sim-time-step", "features-horizon", "sim-horizon", "features-horizon-bound", "demo-horizon",
-        "eval-episodes-per-object", "eval-horizon", "dagger-horizon", "dagger-episodes-per-object", "dapg-horizon",
+        "eval-episodes-per-object", "eval-horizon", "eval-pose-noise-count", "eval-pose-noise-negative", "dagger-horizon", "dagger-episodes-per-object", "dapg-horizon",
         "replay-horizon", "synth-demos-per-object", "expert-table-horizon", "expert-choose-episodes-per-object"])
 def test_numbers_that_would_lose_work_or_never_finish(world, capsys, argv, message, one_torch_thread):
     err = _fails(argv, capsys, world, log="run/bc/bc_log.csv")  # BC's log keeps the epochs it ran

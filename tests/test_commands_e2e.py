@@ -76,6 +76,22 @@ def test_eval_with_two_workers_matches_one(tmp_path, capsys):
         assert (tmp_path / d / "eval_selected.csv").is_file()
 
 
+def test_eval_sees_the_object_pose_as_the_policy_was_trained_to(tmp_path, capsys):
+    """The shipped Allegro-on-Z1 policy records its training perception model: eval applies it,
+    and --pose-noise replaces its sigmas (the frames' period and latency stay)."""
+    trained = load_policy(_shipped("allegro_z1"))[1]["scenario"]["perception"]
+    common = ["eval", "--policy", str(_shipped("allegro_z1")), "--objects", "can_soda", "--episodes-per-object", "1",
+              "--seed", str(SEED), "--horizon", "6"]
+    assert main([*common, "--out", str(tmp_path / "trained")]) == 0
+    assert f"pose_noise_position_m {trained['pose_noise_position_m']:g}" in capsys.readouterr().out
+    assert main([*common, "--pose-noise", "0,0", "--out", str(tmp_path / "exact")]) == 0
+    out = capsys.readouterr().out
+    assert "pose_noise_position_m 0, pose_noise_rotation_rad 0, " in out and "(--pose-noise)" in out
+    rewards = [json.loads((tmp_path / d / "eval_selected.json").read_text())["episodes"][0]["total_reward"]
+               for d in ("trained", "exact")]
+    assert rewards[0] != rewards[1]
+
+
 def test_sim_with_allegro_on_z1_lifts_the_sphere(tmp_path, capsys):
     rrd = tmp_path / "sim.rrd"
     assert main(["sim", "--hand", "allegro_z1", "--object", "sphere_medium", "--horizon", "150", "--rrd", str(rrd)]) == 0

@@ -400,3 +400,29 @@ def test_expert_choose_writes_the_grasp_table_and_re_chooses_objects_on_its_seed
     again = json.loads(out.read_text())
     assert list(again["objects"]) == ["sphere_small", "can_soda"] and again["command"] == table["command"]
     assert again["objects"]["sphere_small"] == entry and again["objects"]["can_soda"]["command"].endswith(str(out))
+
+
+def test_max_yaw_clips_the_palms_turn_toward_the_short_axis():
+    """An elongated object lying across the fingers: the grasp turns the palm a quarter turn,
+    or at most `max_yaw` about the vertical."""
+    from dataclasses import replace
+
+    from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+
+    from dexdrake.objects.library import get_object
+    from dexdrake.systems.scripted_grasp import GraspScript
+
+    info = get_object("box_bar")
+    R_start = RotationMatrix(RollPitchYaw(np.pi, 0.0, 0.0)).matrix()  # palm down, fingers along world z
+    long_axis = 0 if info.extents[0] >= info.extents[1] else 1
+
+    def turn(script, yaw_obj):
+        X_obj = RigidTransform(RotationMatrix.MakeZRotation(yaw_obj), [0.0, 0.0, info.rest_height])
+        plan = plan_grasp(script, info, X_obj, R_start)
+        return RotationMatrix(R_start.T @ plan.R).ToAngleAxis().angle()
+
+    free = [turn(GraspScript(), y + (np.pi / 2 if long_axis else 0.0)) for y in (0.2, 1.3)]
+    clipped = [turn(GraspScript(max_yaw=1.0), y + (np.pi / 2 if long_axis else 0.0)) for y in (0.2, 1.3)]
+    assert clipped[0] == pytest.approx(free[0], abs=1e-9) and free[0] < 1.0  # within the limit: unchanged
+    assert free[1] > 1.0 and clipped[1] == pytest.approx(1.0, abs=1e-9)
+    assert turn(replace(GraspScript(), max_yaw=0.0), 1.3) == pytest.approx(0.0, abs=1e-9)

@@ -459,16 +459,13 @@ class DriverProcess(SafeStopContext):
 
 # ----------------------------------------------------------------------------- factories
 def allegro_on_bus(bus: dict, device_id: int, config, stack: contextlib.ExitStack):
-    """An AllegroHand on the python-can bus of `bus` (can.Bus keyword arguments), opened in
-    the calling process (a `DriverProcess` factory through functools.partial)."""
-    import can
-
+    """An AllegroHand on the python-can bus of `bus` (can.Bus keyword arguments, opened by
+    `can_bus.open_can_bus`) in the calling process (a `DriverProcess` factory through
+    functools.partial)."""
     from dexdrake.hardware.allegro_can import AllegroHand
+    from dexdrake.hardware.can_bus import open_can_bus
 
-    try:
-        opened = can.Bus(**bus)
-    except (can.CanError, OSError, ValueError, ImportError) as err:
-        raise HardwareError(f"cannot open CAN bus {bus}: {err}") from None
+    opened = open_can_bus(bus)
     stack.callback(opened.shutdown)
     return AllegroHand(opened, device_id, config)
 

@@ -122,14 +122,13 @@ class EmulatorProcess:
 
 def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[None, Callable[[], dict]]:
     """The Allegro firmware emulator (EmulatorConfig `config`) on the python-can bus of
-    `bus` (can.Bus keyword arguments), started; reports nothing; at the end: "servo_on",
-    "max_abs_pwm" (the PWM it applies), "frame_errors" (the frames it dropped, by kind),
-    "running" (its thread had not died)."""
-    import can
-
+    `bus` (can.Bus keyword arguments, opened by `can_bus.open_can_bus`), started; reports
+    nothing; at the end: "servo_on", "max_abs_pwm" (the PWM it applies), "frame_errors" (the
+    frames it dropped, by kind), "running" (its thread had not died)."""
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.can_bus import open_can_bus
 
-    opened = can.Bus(**bus)
+    opened = open_can_bus(bus)
     stack.callback(opened.shutdown)
     emulator = stack.enter_context(AllegroEmulator(opened, config=config))
     return None, functools.partial(allegro_final, emulator)

@@ -18,12 +18,12 @@ import textwrap
 import time
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
 from dexdrake.hardware.allegro_can import AllegroConfig, default_joint_limits
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.can_bus import open_can_bus
 from dexdrake.hardware.driver_process import (
     DriverProcess, ProcessConfig, StateCodec, allegro_on_bus, z1_client,
 )
@@ -66,7 +66,7 @@ def z1_emulator():
 @pytest.fixture
 def allegro_emulator():
     args = _multicast_bus_args()
-    bus = can.Bus(**args)
+    bus = open_can_bus(args)
     try:
         with AllegroEmulator(bus, config=EmulatorConfig()) as emu:
             yield emu, args

@@ -8,7 +8,9 @@ the emulated device's last state (`final`: the hand's servo and PWM, the arm's F
 read before the emulator stops: what the device was left in. The child ignores SIGINT (a
 terminal's Ctrl-C is the parent's to handle) and stops on SIGTERM. With `realtime_priority`
 its threads run SCHED_FIFO: a device has CPUs of its own, so the host's load must not slow
-the device side of a measurement.
+the device side of a measurement. Once built, the child freezes its heap (as a driver's
+process does: `driver_process.freeze_heap`), so that the garbage collector does not stop
+the emulator longer than a device would ever pause.
 
 Factories: `allegro_emulator` (the firmware emulator on a python-can bus that crosses
 processes, e.g. `udp_multicast`), `z1_emulator` (the controller emulator on a UDP port).
@@ -24,7 +26,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from dexdrake.hardware.driver_process import set_realtime_priority
+from dexdrake.hardware.driver_process import freeze_heap, set_realtime_priority
 from dexdrake.hardware.safety import HardwareError
 
 # builds and starts an emulator; returns (what to report, a function of the device's state at the end)
@@ -40,6 +42,7 @@ def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
             if realtime_priority:
                 set_realtime_priority(realtime_priority)
             report, final = factory(stack)
+            freeze_heap()
         except Exception as err:  # the parent raises it as a HardwareError
             conn.send(("error", f"{type(err).__name__}: {err}"))
             return
@@ -119,14 +122,13 @@ class EmulatorProcess:
 
 def allegro_emulator(bus: dict, config, stack: contextlib.ExitStack) -> tuple[None, Callable[[], dict]]:
     """The Allegro firmware emulator (EmulatorConfig `config`) on the python-can bus of
-    `bus` (can.Bus keyword arguments), started; reports nothing; at the end: "servo_on",
-    "max_abs_pwm" (the PWM it applies), "frame_errors" (the frames it dropped, by kind),
-    "running" (its thread had not died)."""
-    import can
-
+    `bus` (can.Bus keyword arguments, opened by `can_bus.open_can_bus`), started; reports
+    nothing; at the end: "servo_on", "max_abs_pwm" (the PWM it applies), "frame_errors" (the
+    frames it dropped, by kind), "running" (its thread had not died)."""
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.can_bus import open_can_bus
 
-    opened = can.Bus(**bus)
+    opened = open_can_bus(bus)
     stack.callback(opened.shutdown)
     emulator = stack.enter_context(AllegroEmulator(opened, config=config))
     return None, functools.partial(allegro_final, emulator)

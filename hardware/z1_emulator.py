@@ -194,7 +194,10 @@ class Z1Emulator:
         self.rejected_transitions: collections.Counter[str] = collections.Counter()
         self.packet_errors: collections.Counter[str] = collections.Counter()
         self.commands_received = 0
-        self.log: collections.deque[SendCmd] = collections.deque(maxlen=10000)  # valid commands
+        # the last valid commands as received: bytes, which the garbage collector never walks
+        # (decoded, 10000 commands are ~90k objects; one full collection over them stops the
+        # process for tens of ms, longer than a client's watchdog); `commands()` decodes them
+        self.log: collections.deque[bytes] = collections.deque(maxlen=10000)
         self.motor_temperature_c = 25  # what every motor reports (int8)
         self.stall_until = -math.inf
         self.passive_until = -math.inf
@@ -269,6 +272,10 @@ class Z1Emulator:
         with self._lock:
             self.fsm = ArmFSMState.PASSIVE
             self.passive_until = self._clock() + seconds
+
+    def commands(self, start: int = 0) -> list[SendCmd]:
+        """The logged commands from index `start` of `log` on, decoded."""
+        return [SendCmd.unpack(data) for data in list(self.log)[start:]]
 
     def stall(self, seconds: float) -> None:
         """Send no replies for `seconds` (commands are still read and obeyed)."""
@@ -380,7 +387,7 @@ class Z1Emulator:
                 self.packet_errors["head"] += 1
                 continue
             self.commands_received += 1
-            self.log.append(cmd)
+            self.log.append(data)
             self._apply(cmd, now)
             if now < self.stall_until:
                 continue

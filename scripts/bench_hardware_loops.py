@@ -1,8 +1,8 @@
 """Loop timing of the hardware drivers in the policy's process vs in their own processes.
 
 The devices are emulators in processes of their own (the Allegro firmware emulator on
-python-can's `udp_multicast` interface, the Z1 controller emulator over UDP on loopback,
-free ports). The bench process plays the policy's process: it commands a slow sine to both
+python-can's `udp_multicast` interface, kept on loopback by hardware/can_bus.py; the Z1
+controller emulator over UDP on loopback; free ports). The bench process plays the policy's process: it commands a slow sine to both
 drivers every 20 ms (the control period) while a CPU-bound Python thread runs in it. Each
 mode runs both drivers together for `--seconds`:
 
@@ -38,12 +38,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-import can
 import numpy as np
 
 from dexdrake.hardware.allegro_can import AllegroConfig, AllegroHand
 from dexdrake.hardware.allegro_emulator import EmulatorConfig
 from dexdrake.hardware.allegro_can import default_joint_limits as hand_limits
+from dexdrake.hardware.can_bus import open_can_bus
 from dexdrake.hardware.driver_process import (
     DriverProcess, ProcessConfig, allegro_on_bus, set_realtime_priority, z1_client,
 )
@@ -94,7 +94,7 @@ def _listen_main(bus_args: dict, priority: int, seconds: float, conn) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if priority:
         set_realtime_priority(priority)
-    bus = can.Bus(**bus_args)
+    bus = open_can_bus(bus_args)
     try:
         bus.send(encode(SetPeriod(3, 0, 0)))
         times, end = [], time.monotonic() + seconds
@@ -128,7 +128,7 @@ def _drivers(mode: str, priority: int, bus_args: dict, z1_ports: tuple[int, int]
         hand = DriverProcess(functools.partial(allegro_on_bus, bus_args, 0, AllegroConfig()), cfg, "Allegro hand")
         arm = DriverProcess(functools.partial(z1_client, z1_cfg), cfg, "Z1 arm")
     else:
-        bus = can.Bus(**bus_args)
+        bus = open_can_bus(bus_args)
         stack.callback(bus.shutdown)
         hand, arm = AllegroHand(bus, 0, AllegroConfig()), Z1Arm(z1_cfg)
     stack.enter_context(hand)

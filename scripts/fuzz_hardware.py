@@ -67,6 +67,7 @@ from dexdrake.hardware.allegro_can import (
     encode,
 )
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.can_bus import open_can_bus, send_on_loopback
 from dexdrake.hardware.driver_process import DriverProcess, ProcessConfig, allegro_on_bus, z1_client
 from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_emulator, z1_emulator
 from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
@@ -454,9 +455,10 @@ def fuzz_can_processes(frames: int, seed: int, batch: int = 50) -> dict:
     bus = dict(interface="udp_multicast", channel=UdpMulticastBus.DEFAULT_GROUP_IPv4, port=_free_port(),
                receive_own_messages=False)
     cfg = AllegroConfig(watchdog_timeout_s=0.5, temperature_timeout_s=2.0, reply_timeout_s=1.0)  # a loaded host
-    fuzz = can.Bus(**bus)
+    fuzz = open_can_bus(bus)
     raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+    send_on_loopback(raw)
     emulator = EmulatorProcess(functools.partial(allegro_emulator, bus, EmulatorConfig()),
                                start_timeout_s=START_TIMEOUT_S, name="allegro-emulator")
     hand = DriverProcess(functools.partial(allegro_on_bus, bus, 0, cfg), PROCESS, "Allegro hand")

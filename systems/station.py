@@ -644,16 +644,11 @@ def can_bus_args(scenario: Scenario) -> dict:
 
 
 def open_can_bus(scenario: Scenario):
-    """The python-can bus of the hand driver entry; HardwareError when it cannot open."""
-    import can
+    """The python-can bus of the hand driver entry (hardware/can_bus.open_can_bus);
+    HardwareError when it cannot open."""
+    from dexdrake.hardware import can_bus
 
-    from dexdrake.hardware.safety import HardwareError
-
-    h = scenario.drivers.hand
-    try:
-        return can.Bus(**can_bus_args(scenario))
-    except (can.CanError, OSError, ValueError, ImportError) as err:
-        raise HardwareError(f"cannot open CAN bus {h.interface}:{h.channel}: {err}") from None
+    return can_bus.open_can_bus(can_bus_args(scenario))
 
 
 def hil_drive(scenario: Scenario, hand: HandDescription):

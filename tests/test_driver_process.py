@@ -8,6 +8,7 @@ emulator keeps its servo on and its last PWM when the host goes silent (the spec
 servo found off proves the child's safe stop ran."""
 
 import functools
+import gc
 import os
 import signal
 import socket
@@ -17,12 +18,12 @@ import textwrap
 import time
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
 from dexdrake.hardware.allegro_can import AllegroConfig, default_joint_limits
 from dexdrake.hardware.allegro_emulator import AllegroEmulator, EmulatorConfig
+from dexdrake.hardware.can_bus import open_can_bus
 from dexdrake.hardware.driver_process import (
     DriverProcess, ProcessConfig, StateCodec, allegro_on_bus, z1_client,
 )
@@ -65,7 +66,7 @@ def z1_emulator():
 @pytest.fixture
 def allegro_emulator():
     args = _multicast_bus_args()
-    bus = can.Bus(**args)
+    bus = open_can_bus(args)
     try:
         with AllegroEmulator(bus, config=EmulatorConfig()) as emu:
             yield emu, args
@@ -333,6 +334,28 @@ def test_a_failing_supervision_ends_in_the_safe_stop_and_is_reported(tmp_path):
         assert wait_for(lambda: not proxy.running, 10.0)
         assert "driver process failed: RuntimeError('command path broken')" in proxy.state().fault
     assert marker.read_text() == "stopped"
+
+
+class _HeapReporter(_BrokenDriver):
+    """A driver whose stats() tell how many objects were frozen when it started."""
+
+    def start(self) -> None:
+        super().start()
+        self.frozen_at_start = gc.get_freeze_count()
+
+    def stats(self) -> dict:
+        return {"frozen_at_start": self.frozen_at_start}
+
+
+def _heap_reporter(marker: str, stack) -> _HeapReporter:
+    return _HeapReporter(marker)
+
+
+def test_the_child_freezes_its_heap_before_the_driver_starts(tmp_path):
+    """A full garbage collection stops the driver's loop threads while it walks the tracked
+    objects: those of the imports (tens of thousands) are frozen out of its reach first."""
+    with DriverProcess(functools.partial(_heap_reporter, str(tmp_path / "stopped")), PROC, "heap") as proxy:
+        assert proxy.stats()["frozen_at_start"] > 10_000
 
 
 def test_a_killed_driver_process_is_a_fault_and_stop_still_cleans_up(z1_emulator):

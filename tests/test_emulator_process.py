@@ -2,7 +2,9 @@
 transports: drivers in processes of their own follow targets against them, and a factory
 that fails is reported to the parent."""
 
+import contextlib
 import functools
+import gc
 
 import numpy as np
 import pytest
@@ -39,6 +41,19 @@ def test_drivers_in_their_processes_follow_targets_against_emulator_processes():
             assert wait_for(lambda: np.allclose(hand.state().q, hand_target, atol=0.05), 20.0)
             assert wait_for(lambda: np.allclose(arm.state().q, arm_target, atol=0.02), 20.0)
             assert hand.state().fault is None and arm.state().fault is None
+
+
+def _heap_report(stack: contextlib.ExitStack) -> tuple[None, object]:
+    """A factory whose device reports, at the end, how many objects its process froze."""
+    return None, lambda: {"frozen": gc.get_freeze_count()}
+
+
+def test_the_emulators_process_freezes_its_heap_once_built():
+    """A full garbage collection stops the emulator while it walks the tracked objects:
+    those of the imports and of the emulator built are frozen out of its reach."""
+    with EmulatorProcess(_heap_report) as emulator:
+        pass
+    assert emulator.final["frozen"] > 10_000
 
 
 def test_an_emulator_that_cannot_start_is_reported():

@@ -1065,11 +1065,11 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
     proxies and holds the hand; leaving the station safe-stops both and ends their processes."""
     import socket
 
-    import can
     from can.interfaces.udp_multicast import UdpMulticastBus
     from pydrake.systems.analysis import Simulator
 
     from dexdrake.hardware.allegro_emulator import AllegroEmulator
+    from dexdrake.hardware.can_bus import open_can_bus
     from dexdrake.hardware.driver_process import DriverProcess
     from dexdrake.hardware.z1_emulator import Z1Emulator, Z1EmulatorConfig
     from dexdrake.hardware.z1_udp import free_udp_port
@@ -1079,7 +1079,7 @@ def test_a_real_station_runs_its_drivers_in_their_own_processes(tmp_path):
         free.bind(("", 0))
         port = free.getsockname()[1]
     group = UdpMulticastBus.DEFAULT_GROUP_IPv4
-    bus = can.Bus(interface="udp_multicast", channel=group, port=port, receive_own_messages=False)
+    bus = open_can_bus(dict(interface="udp_multicast", channel=group, port=port, receive_own_messages=False))
     try:
         client = free_udp_port()
         with AllegroEmulator(bus) as hand, Z1Emulator(Z1EmulatorConfig(port=0, client_port=client)) as arm:

@@ -1,6 +1,7 @@
 """The emulated Z1 controller driven tick by tick (`open()` / `poll(now)`, an injected clock):
 its torque law, joint dynamics, state machine timings, replies and fault injection."""
 
+import gc
 import socket
 
 import numpy as np
@@ -254,6 +255,20 @@ def test_a_stall_keeps_obeying():
         assert RecvState.unpack(listener.recv(4096)).state == ArmFSMState.PASSIVE
     finally:
         link.close()
+
+
+def test_the_command_log_gives_the_garbage_collector_nothing_to_walk(link):
+    """A full collection stops the emulator while it walks every tracked object: however
+    many commands the log keeps, it adds none (they are decoded when asked for)."""
+    cmd = SendCmd(ArmFSMState.LOWCMD, (JointCmd(1.0, 2.0, 0.5, 20.0, 2000.0),) * 7)
+    link.send(cmd, at=0.001)
+    gc.collect()
+    tracked = len(gc.get_objects())
+    for k in range(2, 502):
+        link.send(cmd, at=0.001 * k)
+    gc.collect()
+    assert len(gc.get_objects()) - tracked < 100
+    assert len(link.emu.log) == 501 and link.emu.commands(500) == [cmd]
 
 
 def test_fault_injection_corrupts_replies_and_reports_motor_errors(link):

@@ -801,7 +801,7 @@ def test_spontaneous_passive_is_a_fault_never_re_armed(emulator):
         n = len(emulator.log)
         time.sleep(0.5)  # the forced PASSIVE is over: still PASSIVE, nothing asked otherwise
         assert emulator.fsm == ArmFSMState.PASSIVE
-        assert all(c.state == ArmFSMState.PASSIVE for c in list(emulator.log)[n:])
+        assert all(c.state == ArmFSMState.PASSIVE for c in emulator.commands(n))
 
 
 @pytest.mark.parametrize("inject, fault", [
@@ -861,7 +861,7 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(sigint_storm):
         sigint_storm.join()
         assert not arm.running
         assert wait_for(lambda: emu.fsm == ArmFSMState.PASSIVE, 1.0)
-        after = list(emu.log)[n:]
+        after = emu.commands(n)
         hold = next(i for i, c in enumerate(after) if c.state == ArmFSMState.LOWCMD
                     and all(j.W == 0.0 for j in c.joints))
         assert after[hold + 1:] and all(c.state == ArmFSMState.PASSIVE for c in after[hold + 1:])
@@ -873,7 +873,7 @@ def test_a_storm_of_ctrl_c_never_aborts_the_safe_stop(sigint_storm):
 
 def _lowcmd_after(emu: Z1Emulator, n: int) -> list[SendCmd]:
     """The LOWCMD commands the emulator obeyed after its first `n` logged commands."""
-    return [c for c in list(emu.log)[n:] if c.state == ArmFSMState.LOWCMD]
+    return [c for c in emu.commands(n) if c.state == ArmFSMState.LOWCMD]
 
 
 def test_a_reset_before_the_controller_is_heard_again_re_arms_at_the_measured_position(emulator):

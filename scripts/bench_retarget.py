@@ -18,12 +18,17 @@ Data (`dexdrake/demos/captures.py`): the synthetic adult hand moving between gra
 demos), in an arbitrary capture frame, with 2 mm white noise (--noise gaussian) or the
 seeded errors of a monocular MediaPipe capture (--noise mediapipe: another hand's bone
 lengths, slow depth-heavy drift, jitter, glitches); --save writes them for --keypoints. Or a
-user's keypoint file (--keypoints FILE, read as `dexdrake demos import` reads it).
+keypoint file (--keypoints FILE, read as `dexdrake demos import` reads it), e.g. a real
+capture: MediaPipe Holistic fingerspelling of real signers, which
+`scripts/pose_to_keypoints.py --lexicon LANG` writes into the cache from the `captures` extra
+(it prints the path).
 
 Needs the `bench` extra: pip install -e '.[bench]'. Without it only our row is printed.
 
     OMP_NUM_THREADS=1 python scripts/bench_retarget.py [--frames 600] [--seed 0]
         [--motion grasps|demos] [--noise gaussian|mediapipe] [--save F.npy] [--keypoints F]
+    OMP_NUM_THREADS=1 python scripts/bench_retarget.py \
+        --keypoints "$(python scripts/pose_to_keypoints.py --lexicon ase)"
 """
 
 from __future__ import annotations

@@ -110,22 +110,25 @@ def test_checkpoints_record_the_perception_model_and_a_mismatch_is_warned():
     trained = scenario_record(training_scenario("allegro_z1", perception=PAPER))
     assert trained["perception"] == {"pose_noise_position_m": 0.02, "pose_noise_rotation_rad": 0.1,
                                      "period_s": 0.04, "latency_s": 0.04}
-    for name in ("hil", "real"):  # the deployed scenarios name the model the recipe trains under
-        assert load_scenario(name).perception == PAPER
-        assert not any("perception" in w for w in check_policy_scenario(trained, load_scenario(name), "p.pt"))
-    exact = scenario_record(training_scenario("allegro_z1"))
-    (warning,) = [w for w in check_policy_scenario(exact, load_scenario("hil"), "p.pt") if "perception" in w]
-    assert warning.startswith("warning: p.pt was trained under another perception model")
+    deployed = scenario_record(load_scenario("hil"))
+    for name in ("hil", "real"):  # the deployed scenarios name one model
+        assert load_scenario(name).perception == load_scenario("hil").perception != PAPER
+        assert not any("perception" in w for w in check_policy_scenario(deployed, load_scenario(name), "p.pt"))
+    for other in (trained, scenario_record(training_scenario("allegro_z1"))):  # the paper's noise, the true pose
+        (warning,) = [w for w in check_policy_scenario(other, load_scenario("hil"), "p.pt") if "perception" in w]
+        assert warning.startswith("warning: p.pt was trained under another perception model")
 
 
 def test_the_allegro_recipe_trains_as_deployed_and_the_adroit_one_on_the_true_pose():
     from pathlib import Path
 
     from dexdrake.learn.recipe import load_recipe, recipe_dict, stage_plan
+    from dexdrake.systems.scenario import load_scenario
 
     recipes = Path(__file__).resolve().parents[1] / "configs" / "recipes"
     allegro = load_recipe(recipes / "allegro_z1.yaml")
-    assert allegro.perception == PAPER and recipe_dict(allegro)["perception"]["latency_s"] == 0.04
+    assert allegro.perception == load_scenario("hil").perception  # the model the station deploys
+    assert recipe_dict(allegro)["perception"]["latency_s"] == 0.04
     assert load_recipe(recipes / "adroit.yaml").perception.is_exact
     dapg = [f"dapg{k + 1}" for k in range(len(allegro.dapg))]
     assert [s.name for s in stage_plan(allegro) if "perception" in s.reads] == ["dagger", *dapg, "choose", "test"]

@@ -25,7 +25,8 @@ where it was, then re-raises the interrupt; a child that does not exit in
 `stop_timeout_s` gets SIGTERM (its safe stop), then SIGKILL.
 
 With `realtime_priority` the child's threads run SCHED_FIFO: its loops then wait for no
-normal process on the machine (the host's load), only for the devices. Before the driver
+normal process on the machine (the host's load), only for the devices; and its memory is
+locked (`lock_memory`), so no page the loops touch is reclaimed and faulted back in. Before the driver
 starts, the child freezes its heap (`freeze_heap`): the garbage collector's full passes,
 which stop every thread of the process, then walk only what the loops create, not the
 imports.
@@ -38,6 +39,8 @@ each float64 with one aligned 8-byte store, and x86-64 keeps stores in order (TS
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import dataclasses
 import enum
 import gc
@@ -56,6 +59,8 @@ from typing import Any
 import numpy as np
 
 from dexdrake.hardware.safety import HardwareError, SafeStopContext
+
+MCL_CURRENT, MCL_FUTURE = 1, 2  # mlockall flags (<sys/mman.h>, Linux)
 
 Factory = Callable[[contextlib.ExitStack], Any]  # builds a driver with start/stop/state/...
 
@@ -97,6 +102,17 @@ def set_realtime_priority(priority: int) -> None:
     except OSError as err:
         raise HardwareError(f"cannot run at SCHED_FIFO priority {priority}: {err.strerror} (needs "
                             f"CAP_SYS_NICE or `ulimit -r` >= {priority})") from None
+
+
+def lock_memory() -> None:
+    """Lock every page of the calling process in RAM, now and later (mlockall MCL_CURRENT |
+    MCL_FUTURE): the kernel's reclaim then never drops a page the loops touch (a code page
+    faulted back in from disk stops a loop for tens of ms); HardwareError when refused."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        raise HardwareError(f"cannot lock the driver's memory: {os.strerror(err)} (needs CAP_IPC_LOCK or "
+                            "`ulimit -l unlimited`)")
 
 
 def freeze_heap() -> None:
@@ -190,6 +206,7 @@ def _run_driver(factory: Factory, conn, buf: np.ndarray, config: ProcessConfig,
         try:
             if config.realtime_priority:
                 set_realtime_priority(config.realtime_priority)
+                lock_memory()
             driver = factory(stack)
             stack.callback(driver.stop)
             freeze_heap()

@@ -7,6 +7,7 @@ python-can's udp_multicast interface (a free port), which crosses processes. An 
 emulator keeps its servo on and its last PWM when the host goes silent (the spec), so a
 servo found off proves the child's safe stop ran."""
 
+import dataclasses
 import functools
 import gc
 import os
@@ -356,6 +357,32 @@ def test_the_child_freezes_its_heap_before_the_driver_starts(tmp_path):
     objects: those of the imports (tens of thousands) are frozen out of its reach first."""
     with DriverProcess(functools.partial(_heap_reporter, str(tmp_path / "stopped")), PROC, "heap") as proxy:
         assert proxy.stats()["frozen_at_start"] > 10_000
+
+
+class _LockReporter(_BrokenDriver):
+    """A driver whose stats() tell how much of its process's memory was locked when it started (kB)."""
+
+    def start(self) -> None:
+        super().start()
+        status = dict(line.split(":", 1) for line in open("/proc/self/status").read().splitlines())
+        self.locked_kb = int(status["VmLck"].split()[0])
+
+    def stats(self) -> dict:
+        return {"locked_kb": self.locked_kb}
+
+
+def _lock_reporter(marker: str, stack) -> _LockReporter:
+    return _LockReporter(marker)
+
+
+def test_a_realtime_child_locks_its_memory(tmp_path):
+    """With a realtime priority the child's pages are locked in RAM (none reclaimed and faulted
+    back in under its loops); without, nothing is locked."""
+    factory = functools.partial(_lock_reporter, str(tmp_path / "stopped"))
+    with DriverProcess(factory, dataclasses.replace(PROC, realtime_priority=10), "locked") as proxy:
+        assert proxy.stats()["locked_kb"] > 10_000
+    with DriverProcess(factory, PROC, "unlocked") as proxy:
+        assert proxy.stats()["locked_kb"] == 0
 
 
 def test_a_killed_driver_process_is_a_fault_and_stop_still_cleans_up(z1_emulator):

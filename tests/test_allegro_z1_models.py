@@ -273,7 +273,8 @@ def test_allegro_descriptions_write_the_hand_once():
     for name, arm_joint in arms.items():
         own = yaml.safe_load((models_dir() / "allegro" / f"{name}.hand.yaml").read_text())
         assert own["include"] == "allegro_v4_hand.yaml"
-        assert set(own) & set(shared) == {"pregrasp"}  # nothing repeated but the merged pose
+        assert set(own) & set(shared) <= {"pregrasp", "grasp_script"}  # nothing repeated but merged entries
+        assert not set(own.get("grasp_script", {})) & set(shared["grasp_script"])
         assert not set(own["pregrasp"]) & set(shared["pregrasp"])
         hand = load_hand(name)
         assert hand.pregrasp == {**shared["pregrasp"], **own["pregrasp"]} and arm_joint in hand.pregrasp

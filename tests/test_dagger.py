@@ -269,7 +269,7 @@ def test_hand_descriptions_override_the_grasp_geometry_and_expert_rules():
     from dexdrake.systems.scripted_grasp import GraspScript, script_for, with_overrides
 
     allegro, adroit = load_hand("allegro_z1"), load_hand("adroit")
-    assert script_for(adroit) == GraspScript() and script_for(allegro) == GraspScript(palm_depth=0.02)
+    assert script_for(adroit) == GraspScript() and script_for(allegro) == GraspScript(palm_depth=0.02, max_yaw=1.15)
     assert with_overrides(ReactiveRules, allegro.grasp_expert, allegro, "grasp_expert") == ReactiveRules(
         descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1, stopped_speed=0.05, touch=0.02,
         in_hand=0.03)

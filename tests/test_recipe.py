@@ -35,7 +35,7 @@ def test_shipped_recipes_load(name):
     ("dagger: {config: {workers: 4}}", "dagger.config.workers is set by the pipeline (--workers)"),
     ("dapg: [{config: {reward: best}}]", "dapg.0.config.reward: 'best' is not one of"),
     ("dagger: {config: {hand: shadow}}", "dagger.config.hand: 'shadow' is not one of"),
-    ("dagger: {config: {arm_action: palm_pose}}", "dagger.config.arm_action: hand 'adroit' has no palm-pose"),
+    ("dagger: {config: {arm_action: palm_pose}}", "dagger.config.arm_action: hand 'adroit' has no palm_pose arm action"),
     ("dagger: {config: {arm_action: ik}}", "dagger.config.arm_action: unknown arm action 'ik'"),
     ("test: {episodes_per_object: 0}", "test.episodes_per_object: need >= 1"),
     ("test: {episodes: 10}", "test.episodes is now test.episodes_per_object"),

@@ -684,7 +684,7 @@ def test_scripted_grasp_only_when_the_scenario_names_no_policy(tmp_path):
     assert "lift 0.17 m" in description  # the hand's GraspScript, not a fixed plan text
     controller, description = make_controller(hil_scenario())
     assert controller.get_name() == "policy" and controller.HasSubsystemNamed("policy_system")
-    assert "allegro_z1_dexrep_policy.pt" in description and "2473 observations -> 22 actions, arm by palm_pose" in description
+    assert "allegro_z1_dexrep_policy.pt" in description and "2473 observations -> 22 actions, arm by palm_step" in description
     with pytest.raises(ScenarioError, match="policy.checkpoint must name"):
         parse_scenario("policy: {checkpoint: ''}")
 

@@ -52,6 +52,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     label = args.label or label
     part = check_evaluation_seeds(args.seed, args.episodes_per_object)
     print(f"seeds {args.seed}..{args.seed + args.episodes_per_object - 1}: {part} range {describe(SEED_RANGES[part])}", flush=True)
+    if args.rrd and args.workers > 1:
+        raise DexdrakeError("--rrd records in one process: use --workers 1")
     perception = PerceptionModel(**load_policy(args.policy)[1]["scenario"].get("perception", {}))
     if args.pose_noise is not None:
         perception = replace(perception, pose_noise_position_m=args.pose_noise[0],
@@ -60,8 +62,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
           + (" (as trained)" if args.pose_noise is None else " (--pose-noise)"), flush=True)
     logger = None
     if args.rrd:
-        if args.workers > 1:
-            raise DexdrakeError("--rrd records in one process: use --workers 1")
         from dexdrake.systems.rerun_logger import RerunLogger
 
         logger = RerunLogger(args.rrd, "eval")

@@ -25,8 +25,8 @@ where it was, then re-raises the interrupt; a child that does not exit in
 `stop_timeout_s` gets SIGTERM (its safe stop), then SIGKILL.
 
 With `realtime_priority` the child's threads run SCHED_FIFO: its loops then wait for no
-normal process on the machine (the host's load), only for the devices; and its memory is
-locked (`lock_memory`), so no page the loops touch is reclaimed and faulted back in. Before the driver
+normal process on the machine (the host's load), only for the devices, and its memory is
+locked (`run_realtime`), so no page the loops touch is reclaimed and faulted back in. Before the driver
 starts, the child freezes its heap (`freeze_heap`): the garbage collector's full passes,
 which stop every thread of the process, then walk only what the loops create, not the
 imports.
@@ -94,25 +94,21 @@ class ProcessConfig:
                                 f"period ({self.heartbeat_period_s} s), got {self.heartbeat_timeout_s}")
 
 
-def set_realtime_priority(priority: int) -> None:
+def run_realtime(priority: int) -> None:
     """Run the calling thread, and the threads it starts later, SCHED_FIFO at `priority`
-    (1..99); HardwareError saying what is missing when the system refuses."""
+    (1..99), with every page of the process locked in RAM now and later (mlockall MCL_CURRENT |
+    MCL_FUTURE: the kernel's reclaim never drops a page the loops touch, which a fault would
+    bring back from disk while a loop waits); HardwareError saying what is missing when the
+    system refuses either."""
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except OSError as err:
         raise HardwareError(f"cannot run at SCHED_FIFO priority {priority}: {err.strerror} (needs "
                             f"CAP_SYS_NICE or `ulimit -r` >= {priority})") from None
-
-
-def lock_memory() -> None:
-    """Lock every page of the calling process in RAM, now and later (mlockall MCL_CURRENT |
-    MCL_FUTURE): the kernel's reclaim then never drops a page the loops touch (a code page
-    faulted back in from disk stops a loop for tens of ms); HardwareError when refused."""
     libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
     if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
-        err = ctypes.get_errno()
-        raise HardwareError(f"cannot lock the driver's memory: {os.strerror(err)} (needs CAP_IPC_LOCK or "
-                            "`ulimit -l unlimited`)")
+        raise HardwareError(f"cannot lock the process's memory: {os.strerror(ctypes.get_errno())} (needs "
+                            "CAP_IPC_LOCK or `ulimit -l unlimited`)")
 
 
 def freeze_heap() -> None:
@@ -205,8 +201,7 @@ def _run_driver(factory: Factory, conn, buf: np.ndarray, config: ProcessConfig,
     with contextlib.ExitStack() as stack:
         try:
             if config.realtime_priority:
-                set_realtime_priority(config.realtime_priority)
-                lock_memory()
+                run_realtime(config.realtime_priority)
             driver = factory(stack)
             stack.callback(driver.stop)
             freeze_heap()

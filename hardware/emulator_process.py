@@ -7,7 +7,7 @@ until `stop()` or until the parent is gone (its pipe closes). On `stop()` the ch
 the emulated device's last state (`final`: the hand's servo and PWM, the arm's FSM state),
 read before the emulator stops: what the device was left in. The child ignores SIGINT (a
 terminal's Ctrl-C is the parent's to handle) and stops on SIGTERM. With `realtime_priority`
-its threads run SCHED_FIFO and its memory is locked (`driver_process.lock_memory`): a device
+its threads run SCHED_FIFO and its memory is locked (`driver_process.run_realtime`): a device
 has CPUs and memory of its own, so the host's load must not slow the device side of a measurement. Once built, the child freezes its heap (as a driver's
 process does: `driver_process.freeze_heap`), so that the garbage collector does not stop
 the emulator longer than a device would ever pause.
@@ -26,7 +26,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from dexdrake.hardware.driver_process import freeze_heap, lock_memory, set_realtime_priority
+from dexdrake.hardware.driver_process import freeze_heap, run_realtime
 from dexdrake.hardware.safety import HardwareError
 
 # builds and starts an emulator; returns (what to report, a function of the device's state at the end)
@@ -40,8 +40,7 @@ def _child_main(factory: Factory, conn, realtime_priority: int) -> None:
     with contextlib.ExitStack() as stack:
         try:
             if realtime_priority:
-                set_realtime_priority(realtime_priority)
-                lock_memory()
+                run_realtime(realtime_priority)
             report, final = factory(stack)
             freeze_heap()
         except Exception as err:  # the parent raises it as a HardwareError

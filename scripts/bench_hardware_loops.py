@@ -45,7 +45,7 @@ from dexdrake.hardware.allegro_emulator import EmulatorConfig
 from dexdrake.hardware.allegro_can import default_joint_limits as hand_limits
 from dexdrake.hardware.can_bus import open_can_bus
 from dexdrake.hardware.driver_process import (
-    DriverProcess, ProcessConfig, allegro_on_bus, set_realtime_priority, z1_client,
+    DriverProcess, ProcessConfig, allegro_on_bus, run_realtime, z1_client,
 )
 from dexdrake.hardware.emulator_process import EmulatorProcess, allegro_emulator, z1_emulator
 from dexdrake.hardware.z1_emulator import Z1EmulatorConfig
@@ -87,13 +87,13 @@ MODES = {"in": "in-process", "out": "out-of-process", "rt": "own process, RT", "
 
 def _listen_main(bus_args: dict, priority: int, seconds: float, conn) -> None:
     """Ask the emulator for its 3 ms position stream and time the last finger's frames
-    (SCHED_FIFO at `priority`, no driver): the device side's own jitter."""
+    (SCHED_FIFO at `priority` with its memory locked, no driver): the device side's own jitter."""
     from dexdrake.hardware.allegro_can import Msg, SetPeriod, can_id, encode
     from dexdrake.hardware.safety import period_stats
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if priority:
-        set_realtime_priority(priority)
+        run_realtime(priority)
     bus = open_can_bus(bus_args)
     try:
         bus.send(encode(SetPeriod(3, 0, 0)))

@@ -17,7 +17,9 @@ any state a learning policy visits (DAgger) and re-tries when a grasp fails:
 - fingers closed but not on the object (missed or dropped, beyond that radius): open them;
 - otherwise reach through a funnel: above the grasp point the target is the grasp point,
   and the farther off horizontally, the closer the target is to the approach way-point
-  above it (continuous in the state, so a cloned policy can follow it).
+  above it (continuous in the state, so a cloned policy can follow it); hands whose finger
+  set-points are rate-limited start closing them in the last centimetres of the descent
+  (`preclose`).
 
 Arm set-points lead the measured arm joints by at most `max_lead` (normalised action units)
 toward the phase's way-point, so the label always says which way to move. The label is a
@@ -73,6 +75,11 @@ class ReactiveRules:
     in_hand: float = float("inf")  # ... with a fingertip within this of its surface (m; inf: its height alone)
     replan_shift: float = 0.003  # re-plan when the grasp point moved this far (m) ...
     replan_turn: float = 0.03  # ... or the palm's grasp rotation turned this far (rad), until the fingers close
+    follow_closing: bool = True  # re-plan while the close rule holds (False: the grasp stays where it was
+    # when the fingers began closing, so a palm that nudges the object does not chase it)
+    preclose: float = 0.0  # descending fingers close this far already (closure fraction) ...
+    preclose_height: float = 0.0  # ... once the grasp centre is within this above the grasp point and
+    # `keep_xy` beside it (m): rate-limited fingers then reach the object sooner
     lift_steps: int = 3  # IK steps of the lift set-point
 
 
@@ -164,14 +171,14 @@ class ReactiveGrasp(ScriptedGrasp):
         arm_stopped = float(np.abs(v[: self.n_arm]).max()) < r.stopped_speed
         holding = (closure > r.started and settled and (thumb_and_fingers or closure > self.closed_hold)
                    and reach < r.hold_reach)
-        if not holding and not lifted and closure < r.closed:
+        closing = reach < r.at_grasp or above < r.blocked_height and (
+            aside < r.above_xy and arm_stopped or aside < r.keep_xy and closure > r.started)
+        if not holding and not lifted and closure < r.closed and (r.follow_closing or not closing):
             self._follow(env)
         fingers = self.q_open
         if holding or (lifted and closure > r.started):
             self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj, lifted), self.q_closed
-        elif reach < r.at_grasp or above < r.blocked_height and (
-            aside < r.above_xy and arm_stopped or aside < r.keep_xy and closure > r.started
-        ):
+        elif closing:
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed
         elif closure > r.missed or (closure > r.closed and not aside < r.keep_xy):
             self.phase, arm = "open", q[: self.n_arm]
@@ -180,6 +187,8 @@ class ReactiveGrasp(ScriptedGrasp):
             s = min(max((aside - tolerance) / r.funnel, 0.0), 1.0)
             self.phase = "approach" if s >= 1.0 else "descend"
             arm = self.q_grasp + s * (self.q_above - self.q_grasp)
+            if s < 1.0 and above < r.preclose_height and aside < r.keep_xy:
+                fingers = self.q_open + r.preclose * self._span
         out = np.array(fingers, dtype=float)
         lead = r.lift_lead if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)

@@ -86,6 +86,17 @@ def test_validation_and_test_blocks_are_reserved_and_apart():
     assert FIRST_VALIDATION_SEED + 10**6 < FIRST_TEST_SEED
 
 
+def test_until_names_a_stage_and_a_shipped_run_has_every_stage(tmp_path, capsys):
+    out = tmp_path / "run"
+    for extra, message in ((["--until", "train"], "--until 'train' is not a stage of this recipe; its stages: expert, "
+                                                  "dagger, dapg1, choose, test"),
+                           (["--until", "choose", "--ship"], "--ship needs every stage (its test tables)")):
+        assert main(["train", "recipe", str(TINY), "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
 def _files(folder: Path) -> dict[str, int]:
     return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
 
@@ -97,6 +108,9 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     def stop(*args):
         raise DexdrakeError("stopped")
 
+    assert main([*argv, "--until", "expert"]) == 0  # a candidate run stops where it is told
+    assert "stopped after expert (--until)" in capsys.readouterr().out
+    assert (out / "expert" / "done.json").is_file() and not (out / "dagger").exists()
     with monkeypatch.context() as patch:  # stopped in the choice of iterate
         patch.setitem(pipeline.STAGES, "choose", stop)
         assert main(argv) == 2

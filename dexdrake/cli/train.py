@@ -75,6 +75,9 @@ def add_parser(subparsers) -> None:
                                               "on validation seeds, test evaluation (see configs/recipes/); re-run to resume.")
     recipe.add_argument("recipe", type=Path, help="recipe YAML (dexdrake.learn.recipe.Recipe)")
     recipe.add_argument("--out", required=True, type=Path, help="run folder (one subfolder per stage; re-run to resume)")
+    recipe.add_argument("--until", metavar="STAGE",
+                        help="stop after this stage (e.g. choose: a candidate run that may not ship leaves the test "
+                             "seeds unused; re-run without it to go on)")
     recipe.add_argument("--ship", action="store_true", help="copy the policy, manifest, tables and curves to --weights")
     recipe.add_argument("--weights", type=Path, help="where --ship writes (default: the installed models/weights)")
     recipe.add_argument("--workers", type=argtypes.count, default=2, help="rollout worker processes")
@@ -226,12 +229,17 @@ def cmd_train_recipe(args: argparse.Namespace) -> int:
     from dexdrake.systems.reactive_grasp import ReactiveGrasp
 
     recipe = load_recipe(args.recipe)
+    if args.ship and args.until is not None:
+        raise DexdrakeError("--ship needs every stage (its test tables): leave out --until")
     torch.set_num_threads(args.threads)
     command = command_line(["train", "recipe", str(args.recipe)], args, args.recorded_options)
     runtime = Runtime(partial(GraspEnvFactory, perception=recipe.perception),
                       partial(env_factory_for_policy, perception=recipe.perception), ReactiveGrasp, args.workers,
                       args.backend, args.address, command, scenario=_scenario_record(recipe.hand, recipe.perception, "recipe field"))
-    chosen = run_recipe(recipe, args.recipe, args.out, runtime)
+    chosen = run_recipe(recipe, args.recipe, args.out, runtime, args.until)
+    if args.until is not None:
+        print(f"stopped after {args.until} (--until); re-run without it to go on")
+        return 0
     print(f"recipe done: {chosen}; tables in {args.out / 'test'}")
     if args.ship:
         manifest = ship_run(recipe, args.out, args.weights or models_dir() / "weights", command)

@@ -97,13 +97,20 @@ def open_run(recipe: Recipe, source: Path, out: Path) -> None:
     _write_json(record, {"source": str(source), "sha256": recipe_sha256(recipe), "recipe": now})
 
 
-def run_recipe(recipe: Recipe, source: Path, out: Path, runtime: Runtime) -> Path:
-    """Run (or resume) every stage of `recipe` in `out`; returns the chosen policy (choose/chosen.pt)."""
+def run_recipe(recipe: Recipe, source: Path, out: Path, runtime: Runtime, until: str | None = None) -> Path:
+    """Run (or resume) every stage of `recipe` in `out`, or those up to the stage named `until`
+    (e.g. "choose": the test seeds stay unused until the run is to be shipped); returns the
+    chosen policy (choose/chosen.pt)."""
     from dexdrake.learn.samplers import check_backend
 
+    plan = stage_plan(recipe)
+    names = [stage.name for stage in plan]
+    if until is not None and until not in names:
+        raise DexdrakeError(f"--until {until!r} is not a stage of this recipe; its stages: {', '.join(names)}")
     check_backend(runtime.backend, runtime.address)
     open_run(recipe, source, out)
-    plan = stage_plan(recipe)
+    if until is not None:
+        plan = plan[: names.index(until) + 1]
     for k, stage in enumerate(plan):
         folder = out / stage.name
         if (folder / DONE_FILE).is_file():

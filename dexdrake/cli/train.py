@@ -94,7 +94,7 @@ def add_parser(subparsers) -> None:
     retest.add_argument("--episodes-per-object", type=argtypes.episodes, metavar="N",
                         help=argtypes.episodes_per_object_help("seeds from the first test seed")
                         + " (default: as the shipped tables were made)")
-    retest.add_argument("--workers", type=argtypes.count, default=2, help="evaluation worker processes")
+    retest.add_argument("--workers", type=argtypes.count, default=2, help="evaluation worker processes (default: 2)")
     add_envs_per_worker(retest, "objects (one environment each)")
     retest.set_defaults(func=cmd_train_retest, recorded_options=option_names(retest))
 

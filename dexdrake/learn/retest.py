@@ -89,7 +89,7 @@ def retest(shipped: Shipped, env_for_policy: Callable[..., EnvFactory], workers:
         metrics = ship_test_tables(Path(work), shipped.policy, shipped.tables, shipped.manifest["policy"])
     manifest = dict(shipped.manifest)
     kept = [c for c in manifest["commands"] if not c["command"].startswith(RETEST_COMMANDS)]
-    note = "re-evaluated the shipped policy on the test seeds with the code of then: its tables and metrics"
+    note = "re-evaluated the shipped policy on the test seeds; wrote its tables and metrics"
     manifest.update(commands=kept + [{"command": command, "note": note}], metrics=metrics)
     write_atomic(shipped.manifest_path, (json.dumps(manifest, indent=1) + "\n").encode())
     return metrics

@@ -71,6 +71,8 @@ def world(tmp_path, monkeypatch):
     (tmp_path / "trunc.npz").write_bytes((tmp_path / "data.npz").read_bytes()[:300])
     policy = DexRepNetPolicy(PolicyConfig.from_blocks(blocks, HAND_ACTIONS, feature_set="Hand2obj", hand="adroit"))
     save_policy(tmp_path / "policy.pt", policy)
+    save_policy(tmp_path / "changed.pt", policy)  # not the file its manifest records
+    (tmp_path / "changed.json").write_text(json.dumps({"sha256": "0" * 64, "hand": "adroit", "metrics": {}}))
     state = torch.load(tmp_path / "policy.pt", weights_only=True)
     next(v for v in state["state_dict"].values() if v.is_floating_point()).fill_(float("nan"))
     torch.save(state, tmp_path / "nan.pt")
@@ -92,6 +94,7 @@ OUTPUTS = [
     (["features", "show", "--object", "apple"], "--rrd", ".rrd"),
     (["demo"], "--rrd", ".rrd"),
     (["hil"], "--rrd", ".rrd"),
+    (["parity"], "--out", ".md"),
     (["eval", "--policy", "policy.pt"], "--rrd", ".rrd"),
     (["eval", "--policy", "policy.pt"], "--out", "/"),
     (["demos", "import", "zero.npy"], "--out", ".npz"),
@@ -338,10 +341,15 @@ def test_no_non_finite_policy_is_saved_and_the_bc_loss_check_stops_early(world):
     (["train", "bc", "--data", "folder", "--out", "run"], "folder is a folder; give a .npz file"),
     (["train", "dagger", "--out", "run", "--objects", "sphere_small", "--init", "folder"], "is a folder; give the .pt"),
     (["eval", "--policy", "folder"], "is a folder; give the .pt"),
+    (["train", "retest", "folder"], "is a folder; give the .pt"),
+    (["train", "retest", "policy.pt"], "policy.pt has no manifest policy.json beside it"),
+    (["train", "retest", "changed.pt"], "changed.pt is not the file its manifest changed.json records"),
     (["hil", "--config", "folder"], "is a folder; give a .yaml file"),
     (["hil", "--config", "time_step.yaml"], "field time_step must be a number, got 'fast'"),
     (["hil", "--config", "empty.yaml"], "empty.yaml: the file holds nothing"),
     (["hil", "--config", "seed.yaml"], "seed must be at least 0, got -1"),
+    (["parity", "--config", "sim"], "sim is a sim scenario; `parity` needs emulated drivers"),
+    (["parity", "--objects", "bogus"], "unknown object 'bogus'"),
     (["train", "bc", "--data", "trunc.npz", "--out", "run"], "trunc.npz is not a readable .npz file, damaged"),
     (["train", "dapg", "--init", "policy.pt", "--demos", "trunc.npz", "--out", "run"], "trunc.npz is not a readable"),
     (["train", "dagger", "--out", "run", "--objects", "sphere_small", "--feature-set", "bogus"],

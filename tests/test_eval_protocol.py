@@ -171,38 +171,3 @@ def test_train_dapg_from_dagger_data_resumes_where_it_stopped(tmp_path, env_bloc
     assert [sum(int(r["successes"]) for r in per_object if int(r["iteration"]) == k) for k in (0, 1)] == \
         [round(len(TRAIN_OBJECTS) * float(r["success_rate"])) for r in rows]
     assert (out / "dapg_objects.png").stat().st_size > 0
-
-
-def test_shipping_a_second_dapg_run_keeps_the_first_ones_record_and_curves(tmp_path, load_script, monkeypatch):
-    build = load_script("build_default_policy")
-    meta = {"dapg_config": {"seed": 22}, "init": "p.pt", "init_sha256": "s1", "updates": 5, "mean_return": 1.0}
-    monkeypatch.setattr("dexdrake.learn.policy.load_policy", lambda path: (None, meta))
-    runs = {}
-    for name in ("dapg_a", "dapg_b"):
-        runs[name] = tmp_path / name
-        runs[name].mkdir()
-        run = {"iterations_done": 6, "env_steps": 60, "cpu_hours": 0.1, "cpu_note": "", "seeds": "",
-               "sessions": [{"command": f"dexdrake train dapg --out {name}", "from_iteration": 0}]}
-        (runs[name] / "dapg_manifest.json").write_text(json.dumps(run))
-        for suffix in (".csv", ".png"):
-            (runs[name] / f"dapg_log{suffix}").write_text(name)
-    target = tmp_path / "weights" / "adroit_dexrep_policy.pt"
-    target.parent.mkdir()
-    target.write_bytes(b"policy")
-    stem = target.with_suffix("")
-    manifest = {"sha256": "s0", "training": {"stages": "DAgger; no DAPG"}}
-    build.add_dapg_stage(manifest, runs["dapg_a"], target, stem)
-    assert build.shipped_dapg_entry(manifest, runs["dapg_a"])["init_sha256"] == "s1"
-    # the second run starts from the shipped first one, on augmented objects
-    meta.update(init_sha256=manifest["sha256"], objects=["cup_short", "cup_short_s1", "cup_short_s4", "shape_100"])
-    for _ in range(2):  # a later iterate of the same run replaces its record
-        sessions = build.add_dapg_stage(manifest, runs["dapg_b"], target, stem)
-    stages = manifest["training"]["dapg"]
-    assert [s["folder"] for s in stages] == [str(runs["dapg_a"]), str(runs["dapg_b"])]
-    assert stages[1]["curves"] == ["models/weights/adroit_dexrep_policy_dapg2.csv", "models/weights/adroit_dexrep_policy_dapg2.png"]
-    assert (stem.parent / "adroit_dexrep_policy_dapg.csv").read_text() == "dapg_a"
-    assert (stem.parent / "adroit_dexrep_policy_dapg2.png").read_text() == "dapg_b"
-    assert manifest["training"]["stages"] == "DAgger; then DAPG (natural policy gradient with the DAgger data as its demonstration term); then DAPG again from that policy"
-    assert sessions == [{"command": "dexdrake objects augment --copies 4 --shapes 100", "note": "makes the augmented objects the DAPG run trains on"},
-                        {"command": "dexdrake train dapg --out dapg_b", "note": "DAPG session from iteration 0"}]
-    assert build.shipped_dapg_entry(manifest, runs["dapg_a"]) is None  # only the last stage's run may re-ship

@@ -159,3 +159,50 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     later.write_text(TINY.read_text().replace("tables: eval_tiny", "tables: eval_later"))
     assert main([*argv[:2], str(later), *argv[3:]]) == 0
     assert "no started stage reads it: ship.tables" in capsys.readouterr().out
+
+
+def _shipped(weights: Path, manifest: dict) -> Path:
+    """A tiny Adroit policy in `weights` with `manifest` beside it (its sha256 and hand filled in)."""
+    from dexdrake.dexrep.feature_sets import observation_blocks
+    from dexdrake.hands.description import load_hand
+    from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, save_policy
+    from dexdrake.learn.ship import sha256
+
+    hand = load_hand("adroit")
+    config = PolicyConfig.from_blocks(observation_blocks(hand, "Hand2obj"), len(hand.policy_joints),
+                                      feature_set="Hand2obj", hand="adroit")
+    weights.mkdir()
+    path = save_policy(weights / "tiny_policy.pt", DexRepNetPolicy(config))
+    manifest = {"policy": "models/weights/tiny_policy.pt", "sha256": sha256(path), "hand": "adroit", **manifest}
+    path.with_suffix(".json").write_text(json.dumps(manifest))
+    return path
+
+
+def test_retest_rewrites_a_shipped_policys_tables_and_metrics_and_keeps_its_record(tmp_path, capsys):
+    weights = tmp_path / "weights"
+    trained = {"command": f"dexdrake train recipe {TINY} --ship", "note": "ran every stage"}
+    policy = _shipped(weights, {"recipe": {"settings": recipe_dict(load_recipe(TINY))}, "stages": ["kept"],
+                                "commands": [trained], "metrics": {"seen": {"average_pct": -1.0}}})
+    for episodes in (1, 2):  # a second re-evaluation replaces the first one's command
+        assert main(["train", "retest", str(policy), "--workers", "1", "--episodes-per-object", str(episodes)]) == 0
+        assert "re-tested" in capsys.readouterr().out
+        manifest = json.loads(policy.with_suffix(".json").read_text())
+        assert manifest["stages"] == ["kept"] and manifest["commands"][0] == trained and len(manifest["commands"]) == 2
+        assert manifest["commands"][1]["command"].startswith(f"dexdrake train retest {policy} --episodes-per-object "
+                                                             f"{episodes}")
+        seen, unseen = manifest["metrics"]["seen"], manifest["metrics"]["unseen"]
+        assert seen["per_object"].keys() == {"sphere_small", "can_soda"} and unseen["per_object"].keys() == {"star"}
+        assert seen["seed"] == unseen["seed"] == FIRST_TEST_SEED and seen["horizon"] == 4
+        assert seen["episodes_per_object"] == episodes and seen["command"] == manifest["commands"][1]["command"]
+    table = (weights / "eval_tiny_seen.md").read_text()
+    assert "models/weights/tiny_policy.pt" in table and str(policy) not in table
+    assert (weights / "eval_tiny_unseen.csv").stat().st_size > 0
+
+
+def test_a_policy_shipped_before_recipes_is_retested_as_its_tables_were_made(tmp_path):
+    from dexdrake.learn.recipe import TestStage
+    from dexdrake.learn.retest import read_shipped
+
+    made = {"episodes_per_object": 7, "horizon": 90}
+    shipped = read_shipped(_shipped(tmp_path / "weights", {"commands": [], "metrics": {"seen": made, "unseen": made}}))
+    assert shipped.test == TestStage("seen", "unseen", 7, 90) and shipped.tables == tmp_path / "weights" / "eval"

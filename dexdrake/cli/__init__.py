@@ -24,7 +24,7 @@ COMMAND_MODULES = [
     "dexdrake.cli.objects",
     "dexdrake.cli.demos", "dexdrake.cli.retarget",
     "dexdrake.cli.features", "dexdrake.cli.encoder",
-    "dexdrake.cli.hil", "dexdrake.cli.real",
+    "dexdrake.cli.hil", "dexdrake.cli.parity", "dexdrake.cli.real",
     "dexdrake.cli.train", "dexdrake.cli.eval", "dexdrake.cli.demo",
     "dexdrake.cli.expert", "dexdrake.cli.ablations",
 ]

@@ -93,7 +93,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     policy_path = args.policy or default_policy_path()
     if not Path(policy_path).is_file():
         hint = ("the shipped default policy is missing from this install; train one with "
-                "`python scripts/build_default_policy.py` (or `dexdrake train bc`) or pass --policy")
+                "`dexdrake train recipe configs/recipes/adroit.yaml --ship` or pass --policy")
         raise DexdrakeError(f"policy file {policy_path} not found: {hint}")
     import torch
 

@@ -1,4 +1,4 @@
-"""CLI: `dexdrake train bc|dagger|dapg|recipe`.
+"""CLI: `dexdrake train bc|dagger|dapg|recipe|retest`.
 
 The flags of `bc`, `dagger` and `dapg` are made from the training code's settings
 dataclasses (BCConfig, DaggerConfig, DAPGConfig and the recipe stages' fields the command
@@ -84,6 +84,19 @@ def add_parser(subparsers) -> None:
     add_backend_options(recipe)
     recipe.add_argument("--threads", type=argtypes.count, default=2, help="torch CPU threads for the BC fits")
     recipe.set_defaults(func=cmd_train_recipe, recorded_options=option_names(recipe))
+
+    retest = train_sub.add_parser(
+        "retest", help="re-evaluate a shipped policy with the current code (its test tables and manifest metrics)",
+        description="Re-evaluate a shipped policy on the test seeds as its tables were made (objects, horizon, "
+                    "episodes), seeing the object pose as it was trained to; rewrite its seen/unseen tables and its "
+                    "manifest's metrics and record the command in the manifest.")
+    retest.add_argument("policy", type=Path, help="a shipped policy (.pt) with its manifest (.json) beside it")
+    retest.add_argument("--episodes-per-object", type=argtypes.episodes, metavar="N",
+                        help=argtypes.episodes_per_object_help("seeds from the first test seed")
+                        + " (default: as the shipped tables were made)")
+    retest.add_argument("--workers", type=argtypes.count, default=2, help="evaluation worker processes (default: 2)")
+    add_envs_per_worker(retest, "objects (one environment each)")
+    retest.set_defaults(func=cmd_train_retest, recorded_options=option_names(retest))
 
 
 def policy_config_from_metadata(metadata: dict[str, Any], action_dim: int, obs_dim: int):
@@ -244,4 +257,20 @@ def cmd_train_recipe(args: argparse.Namespace) -> int:
     if args.ship:
         manifest = ship_run(recipe, args.out, args.weights or models_dir() / "weights", command)
         print(f"shipped {manifest.with_suffix('.pt')} and its manifest {manifest}")
+    return 0
+
+
+def cmd_train_retest(args: argparse.Namespace) -> int:
+    from dexdrake.learn.retest import read_shipped, retest
+    from dexdrake.perceived_pose import PerceptionModel
+    from dexdrake.systems.env_factory import env_factory_for_policy
+
+    shipped = read_shipped(args.policy)
+    perception = PerceptionModel(**shipped.scenario.get("perception", {}))
+    command = command_line(["train", "retest", str(args.policy)], args, args.recorded_options)
+    metrics = retest(shipped, partial(env_factory_for_policy, perception=perception), args.workers, command,
+                     args.episodes_per_object, envs_per_worker(args))
+    print(f"re-tested {args.policy}: seen {metrics['seen']['average_pct']:.1f} %, unseen "
+          f"{metrics['unseen']['average_pct']:.1f} %; rewrote {shipped.tables}_seen.md/_unseen.md (.csv) and "
+          f"{shipped.manifest_path}")
     return 0

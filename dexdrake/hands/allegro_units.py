@@ -28,7 +28,7 @@ PWM_SCALE_12V = 1200.0
 #: not document the PWM -> N*m mapping (max motor torque 0.70 N*m, gearing 1:369); full PWM
 #: 1200 is taken as 6 N*m. The simulated hand's PD gains are the vendor gains times this
 #: (scripts/build_allegro_models.py) and the HIL world turns PWM into joint torque with it
-#: (systems/scenario.HilWorldConfig.pwm_torque_scale multiplies it; scripts/parity_hil.py
+#: (systems/scenario.HilWorldConfig.pwm_torque_scale multiplies it; `dexdrake parity`
 #: reports HIL success at 0.5x, 1x and 2x).
 NM_PER_PWM = 6.0 / PWM_SCALE_12V
 

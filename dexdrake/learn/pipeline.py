@@ -36,9 +36,9 @@ from dexdrake.errors import DexdrakeError
 from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED
 from dexdrake.learn.dagger import MakeExpert
 from dexdrake.learn.env_protocol import EnvFactory, MakeEnvFactory
-from dexdrake.learn.recipe import (Recipe, StagePlan, changed_fields, from_dict, reads, recipe_dict, recipe_sha256,
-                                   stage_plan)
-from dexdrake.learn.ship import sha256, ship_eval_table
+from dexdrake.learn.recipe import (Recipe, StagePlan, TestStage, changed_fields, from_dict, reads, recipe_dict,
+                                   recipe_sha256, stage_plan)
+from dexdrake.learn.ship import sha256, ship_test_tables
 from dexdrake.objects.meshfile import write_atomic
 
 RECIPE_FILE = "recipe.json"
@@ -229,17 +229,32 @@ def candidates(recipe: Recipe, out: Path) -> list[tuple[int, Path]]:
 
 
 def _evaluate(path: Path, objects: list[str], episodes: int, seed: int, horizon: int, label: str, folder: Path,
-              rt: Runtime) -> dict[str, Any]:
+              env_for_policy: Callable[..., EnvFactory], workers: int, command: str, progress: bool = True,
+              envs_per_worker: int = 1) -> dict[str, Any]:
     """evaluate_policy into folder/eval_<label>.* unless that evaluation is there; its report dict."""
     from dexdrake.eval.evaluate import evaluate_policy
     from dexdrake.eval.tables import write_report
 
     report_path = folder / f"eval_{label}.json"
     if not report_path.is_file():
-        report = evaluate_policy(path, rt.env_for_policy, objects, episodes, seed, rt.eval_workers, horizon,
-                                 label=label, command=rt.command, progress=rt.progress)
+        report = evaluate_policy(path, env_for_policy, objects, episodes, seed, workers, horizon, label=label,
+                                 command=command, progress=progress, envs_per_worker=envs_per_worker)
         write_report(report, folder)
     return json.loads(report_path.read_text())
+
+
+def evaluate_test(policy: Path, test: TestStage, folder: Path, env_for_policy: Callable[..., EnvFactory], workers: int,
+                  command: str, progress: bool = True, envs_per_worker: int = 1) -> dict[str, float]:
+    """`policy` on `test.seen` and `test.unseen` at the test seeds into folder/eval_seen|unseen.md/.csv/.json
+    (an evaluation already there is kept); the average success (%) per label."""
+    from dexdrake.objects.library import resolve_objects
+
+    averages = {}
+    for label, objects in (("seen", test.seen), ("unseen", test.unseen)):
+        report = _evaluate(policy, resolve_objects(objects)[1], test.episodes_per_object, FIRST_TEST_SEED,
+                           test.horizon, label, folder, env_for_policy, workers, command, progress, envs_per_worker)
+        averages[label] = round(report["average_pct"], 2)
+    return averages
 
 
 SELECTION = ("the candidate iterate with the highest average success on the validation seeds (ties: the later one); "
@@ -258,7 +273,8 @@ def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
     rows = []
     for iteration, path in candidates(recipe, out):
         report = _evaluate(path, objects, n, FIRST_VALIDATION_SEED, spec.horizon, "validation",
-                           folder / f"{path.parent.name}_{iteration:04d}", rt)
+                           folder / f"{path.parent.name}_{iteration:04d}", rt.env_for_policy, rt.eval_workers,
+                           rt.command, rt.progress)
         low, high = report["average_ci95_pct"]
         rows.append({"iteration": iteration, "candidate": str(path.relative_to(out)),
                      "average_pct": round(report["average_pct"], 2), "ci95_low": round(low, 2),
@@ -283,15 +299,10 @@ def run_choose(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
 
 def run_test(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict[str, Any]:
     """The chosen policy on the seen and unseen objects at the test seeds."""
-    from dexdrake.objects.library import resolve_objects
-
-    spec, chosen = recipe.test, out / "choose" / "chosen.pt"
-    metrics = {}
-    for label, objects in (("seen", spec.seen), ("unseen", spec.unseen)):
-        report = _evaluate(chosen, resolve_objects(objects)[1], spec.episodes_per_object, FIRST_TEST_SEED,
-                           spec.horizon, label, out / stage.name, rt)
-        metrics[label] = round(report["average_pct"], 2)
-    return {"average_pct": metrics, "policy_sha256": sha256(chosen)}
+    chosen = out / "choose" / "chosen.pt"
+    averages = evaluate_test(chosen, recipe.test, out / stage.name, rt.env_for_policy, rt.eval_workers, rt.command,
+                             rt.progress)
+    return {"average_pct": averages, "policy_sha256": sha256(chosen)}
 
 
 STAGES: dict[str, Callable[[Recipe, StagePlan, Path, Runtime], dict[str, Any]]] = {
@@ -324,8 +335,7 @@ def ship_run(recipe: Recipe, out: Path, weights: Path, command: str) -> Path:
     write_atomic(target, chosen.read_bytes())
     shown = f"models/weights/{target.name}"
     note = f"The evaluated file was {chosen}, copied byte for byte to {shown}."
-    metrics = {label: ship_eval_table(out / "test", label, chosen, weights / f"{recipe.tables_name}_{label}.md", shown,
-                                      note) for label in ("seen", "unseen")}
+    metrics = ship_test_tables(out / "test", chosen, weights / recipe.tables_name, shown, note)
     copies = {"expert": ["expert/expert_table.md", "expert/expert_table.csv"],
               "dagger": ["dagger/dagger_log.csv", "dagger/dagger_log.png"],
               "choose": ["choose/choice.md", "choose/choice.csv", "choose/choice.png"]}

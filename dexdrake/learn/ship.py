@@ -4,6 +4,7 @@
 `eval.tables.write_report`) beside the shipped policy, naming the shipped file instead of
 the evaluated one, with its CSV; it returns the metrics a manifest keeps of it (averages,
 intervals, per object, seeds and the successful ones, the command that measured it).
+`ship_test_tables` does so for the seen and unseen test tables (TABLES_seen.md, TABLES_unseen.md).
 """
 
 from __future__ import annotations
@@ -40,3 +41,14 @@ def ship_eval_table(eval_dir: Path, label: str, evaluated: Path | str, table: Pa
     write_atomic(table, (text + (f"\n{note}\n" if note else "")).encode())
     write_csv_beside(table)
     return eval_metrics(json.loads((eval_dir / f"eval_{label}.json").read_text()))
+
+
+TEST_LABELS = ("seen", "unseen")
+
+
+def ship_test_tables(eval_dir: Path, evaluated: Path | str, tables: Path, shipped: str,
+                     note: str = "") -> dict[str, dict[str, Any]]:
+    """`ship_eval_table` of eval_dir's seen and unseen evaluations to TABLES_seen.md and
+    TABLES_unseen.md (`tables` is the path without the suffix); the metrics per label."""
+    return {label: ship_eval_table(eval_dir, label, evaluated, tables.with_name(f"{tables.name}_{label}.md"), shipped,
+                                   note) for label in TEST_LABELS}

@@ -1,33 +1,23 @@
-"""Sim-to-HIL parity of the shipped Allegro-on-Z1 policy: the same controller, episode loop
-and success rule (dexdrake.systems.diagram.run_station_episode, dexdrake.task) on the same objects
-and seeds, once in simulation and once hardware-in-the-loop at each PWM -> N*m scale
-(`--scales`, multiples of allegro_units.NM_PER_PWM, the one place that assumption lives).
+"""Sim-to-HIL parity (`dexdrake parity`): one episode of the scenario's controller in
+simulation or hardware-in-the-loop (`run_parity_episode`, the same episode loop and success
+rule: systems/diagram.run_station_episode, dexdrake.task) and the markdown table of such
+episodes (`parity_table`), HIL at each PWM -> N*m scale (multiples of
+allegro_units.NM_PER_PWM, the one place that assumption lives) beside simulation on the same
+objects and seeds.
 
 Both sides see the same set-point path: in HIL the drivers clamp and rate-limit the
-set-points (Allegro `max_target_rate`, Z1 `max_velocity` of `--config`); the simulated
+set-points (Allegro `max_target_rate`, Z1 `max_velocity` of the scenario); the simulated
 station models the same limits (systems/target_limits.py). HIL uses rendered perception
-(`--camera rendered`, the default: a pose one camera period after its frame, on the
-simulated clock) or the world's pose (`sim`); simulation uses the true pose.
-
-Episodes run in simulation first, then in HIL at the first scale, then at the other scales
-(the sensitivity to the PWM assumption) interleaved episode by episode; the table is
-rewritten after every episode, so a run stopped early leaves a consistent table whose
-"sim, same episodes" column compares each row with simulation on exactly its episodes.
-
-    .venv/bin/python scripts/parity_hil.py --objects can_soda lightbulb --seeds 0 1 \
-        --horizon 150 --scales 1 0.5 2 [--out models/weights/parity_hil.md]
+(camera `rendered`: a pose one camera period after its frame, on the simulated clock) or the
+world's pose (`sim`); simulation uses the true pose.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import time
 
 import numpy as np
-
-from dexdrake import argtypes
 
 
 class PoseError:
@@ -49,7 +39,10 @@ class PoseError:
         pass
 
 
-def run(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
+def run_parity_episode(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
+    """One episode of `config`'s controller on `obj` at `seed` for `steps` control steps, in
+    simulation (`mode` "sim") or HIL at PWM scale `scale` with camera `camera`: its row of the
+    table (success, max lift, fault, wall and CPU time; in HIL the pose error and perception cost)."""
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario, simulated
@@ -97,7 +90,7 @@ def perception_table(rows: list[dict], modes: list[tuple[str, float]]) -> str:
     return "\n".join(lines) if len(lines) > 2 else ""
 
 
-def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
+def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
     """The parity table (markdown) of the episodes in `rows`."""
     from dexdrake.hands.allegro_units import NM_PER_PWM
     from dexdrake.systems.scenario import load_scenario
@@ -134,46 +127,3 @@ def table(rows: list[dict], modes: list[tuple[str, float]], command: str, config
         lines += ["", "Perception in the loop (the perception worker's CPU per frame: segmentation, "
                   "back-projection, registration; not the rendering):", "", perception]
     return "\n".join(lines)
-
-
-def write_atomic(path: str, text: str) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        f.write(text + "\n")
-    os.replace(tmp, path)
-
-
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="hil")
-    parser.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"])
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--horizon", type=argtypes.steps, default=150, help=argtypes.horizon_help())
-    parser.add_argument("--scales", nargs="+", type=float, default=[1.0, 0.5, 2.0])
-    parser.add_argument("--camera", choices=["rendered", "sim"], default="rendered")
-    parser.add_argument("--out", help="write the table (markdown) here as well, after every episode")
-    args = parser.parse_args()
-    command = ("python scripts/parity_hil.py --config " + args.config + " --objects " + " ".join(args.objects)
-               + " --seeds " + " ".join(map(str, args.seeds)) + f" --horizon {args.horizon} --scales "
-               + " ".join(f"{s:g}" for s in args.scales) + f" --camera {args.camera}")
-    modes = [("sim", 1.0)] + [("hil", s) for s in args.scales]
-    episodes = [(obj, seed) for seed in args.seeds for obj in args.objects]
-    order = [(mode, scale, obj, seed) for mode, scale in modes[:2] for obj, seed in episodes]
-    order += [(mode, scale, obj, seed) for obj, seed in episodes for mode, scale in modes[2:]]
-    rows: list[dict] = []
-    for mode, scale, obj, seed in order:
-        row = run(args.config, obj, seed, args.horizon, mode, scale, args.camera)
-        rows.append(row)
-        print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
-              f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
-              f"{row['cpu_s']:.0f} s CPU)"
-              + (f"; pose error max {1e3 * max(row['pose_error'], default=np.nan):.0f} mm, tracking lost "
-                 f"{row['losses']}" if "pose_error" in row else ""), flush=True)
-        if args.out:
-            write_atomic(args.out, table(rows, modes, command, args.config))
-    print(table(rows, modes, command, args.config))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -491,6 +491,16 @@ def occupancy_anchor(fingers: tuple[str, ...]) -> tuple[str, Vec3]:
     return "ffproximal", (float(shift[0]), OCCUPANCY_NORMAL_OFFSET, float(shift[2]))
 
 
+# The grasp expert's geometry for hands without the ring and little fingers (GraspScript
+# overrides): the grasp centre moves across the palm toward the index finger (`side`, m), so
+# that the object lies between the thumb and the fingers left, and up toward the object's top
+# (`palm_depth`, m), where the fewer fingertips hold it.
+GRASP_SCRIPT: dict[str, dict[str, float]] = {
+    "adroit_3f": {"side": -0.03, "palm_depth": 0.02, "tall_palm_depth": 0.02},
+    "adroit_2f": {"side": -0.035, "palm_depth": 0.02, "tall_palm_depth": 0.02},
+}
+
+
 def _flow(items) -> str:
     return "[" + ", ".join(items) + "]"
 
@@ -566,6 +576,12 @@ def build_hand_yaml(name: str, fingers: tuple[str, ...]) -> str:
             "# swings the thumb tip under the palm against the object's near side instead of across",
             "# the palm (found by simulated grasp trials, `dexdrake expert choose`).",
             "grasp_poses: {oppose: {" + ", ".join(f"{k}: {_f(v)}" for k, v in THUMB_OPPOSE.items()) + "}}",
+        ]
+    if name in GRASP_SCRIPT:
+        lines += [
+            "# The grasp expert's geometry (GraspScript): the grasp centre toward the index finger and",
+            "# the object's top, between the thumb and the fingers left.",
+            "grasp_script: {" + ", ".join(f"{k}: {_f(v)}" for k, v in GRASP_SCRIPT[name].items()) + "}",
         ]
     return "\n".join(lines + [""])
 

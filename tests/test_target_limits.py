@@ -68,10 +68,13 @@ def test_limits_and_rates_are_the_drivers():
     lo, hi = hand.joint_limits()
     np.testing.assert_allclose(lower, lo)
     np.testing.assert_allclose(upper, hi)
-    # the Z1 config's velocity feed-forward (configs/hil.yaml: off, as the policy was trained)
-    assert not feedforward.any() and scenario.drivers.arm.velocity_feedforward is False
+    # the Z1 config's velocity feed-forward (configs/hil.yaml: on, as in training's scenario)
+    on = [True] * n_arm + [False] * (hand.num_actuators - n_arm)
+    assert feedforward.tolist() == on and scenario.drivers.arm.velocity_feedforward is True
+    scenario.drivers.arm.velocity_feedforward = False
+    assert not target_limits(scenario, hand)[3].any()
     scenario.drivers.arm.velocity_feedforward = None  # the driver's default: on
-    assert target_limits(scenario, hand)[3].tolist() == [True] * n_arm + [False] * (hand.num_actuators - n_arm)
+    assert target_limits(scenario, hand)[3].tolist() == on
     scenario.drivers.hand.max_target_rate = 1.5
     assert np.all(target_limits(scenario, hand)[2][n_arm:] == 1.5)
     adroit = load_hand("adroit")  # no drivers: the model's joint limits, no rate limit

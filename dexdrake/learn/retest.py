@@ -27,9 +27,9 @@ from dexdrake.learn.ship import sha256, ship_test_tables
 from dexdrake.objects.meshfile import write_atomic
 from dexdrake.outputs import check_writable
 
-# Commands of an earlier re-evaluation in a manifest (this command's, and those of the
-# evaluations and script that re-evaluated policies shipped before it): replaced by this one's.
-RETEST_COMMANDS = ("dexdrake train retest ", "dexdrake eval ", "python scripts/build_default_policy.py")
+# Commands of an earlier re-evaluation in a manifest (this command's, and the evaluations that
+# made a shipped policy's tables): replaced by this one's.
+RETEST_COMMANDS = ("dexdrake train retest ", "dexdrake eval ")
 
 
 @dataclass(frozen=True)

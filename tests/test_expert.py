@@ -426,3 +426,38 @@ def test_max_yaw_clips_the_palms_turn_toward_the_short_axis():
     assert clipped[0] == pytest.approx(free[0], abs=1e-9) and free[0] < 1.0  # within the limit: unchanged
     assert free[1] > 1.0 and clipped[1] == pytest.approx(1.0, abs=1e-9)
     assert turn(replace(GraspScript(), max_yaw=0.0), 1.3) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_allegro_z1_fingers_pre_close_near_the_grasp_and_the_grasp_stays_put_while_they_close():
+    # Its drivers follow finger set-points at 3 rad/s: the label closes the fingers `preclose`
+    # already in the last `preclose_height` of the descent, and once the close rule holds the
+    # grasp no longer follows an object the palm nudges (`follow_closing`).
+    from dataclasses import replace
+
+    env = GraspEnv(training_scenario("allegro_z1", "can_soda"), horizon=5)
+    env.reset(0)
+    expert = ReactiveGrasp(env)
+    r, plant, ctx = expert.rules, env.scene.plant, env.plant_context
+    assert not r.follow_closing and 0 < r.preclose < 1 and r.blocked_height < r.preclose_height
+
+    def hand_at(height: float) -> None:
+        q = plant.GetPositions(ctx)
+        arm = expert.ik.solve(expert.grasp_point + [0.0, 0.0, height], expert.q_grasp, expert.R_grasp)
+        q[env.scene.q_index] = np.r_[arm, expert.q_open[expert.n_arm:]]
+        plant.SetPositions(ctx, q)
+        plant.SetVelocities(ctx, np.zeros(plant.num_velocities()))
+
+    for height, closure in ((r.preclose_height + 0.03, 0.0), (r.preclose_height - 0.02, r.preclose)):
+        hand_at(height)
+        label = expert(env)
+        assert expert.phase == "descend" and expert.closure(label) == pytest.approx(closure, abs=1e-9)
+    following = ReactiveGrasp(env, rules=replace(r, follow_closing=True))
+    grasp = expert.grasp_point.copy()
+    assert np.array_equal(following.grasp_point, grasp)
+    hand_at(0.0)  # at the grasp point: close; the can then pushed 1 cm aside
+    X = plant.GetFreeBodyPose(ctx, env.scene.object_body)
+    plant.SetFreeBodyPose(ctx, env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0.01, 0.0, 0.0]))
+    for controller in (expert, following):
+        controller(env)
+        assert controller.phase == "close"
+    assert np.array_equal(expert.grasp_point, grasp) and np.linalg.norm(following.grasp_point - grasp) > 0.005

@@ -221,8 +221,8 @@ def test_hil_episode_driven_by_the_shipped_policy():
     """`dexdrake hil`'s controller: the shipped Allegro-on-Z1 policy commands the emulated
     Allegro over CAN and the emulated Z1 over UDP (ground-truth pose here; the slow test
     and `dexdrake hil` use perception on rendered images). In 0.6 s it brings the grasp
-    centre from about 17 cm to about 8 cm of the object (a mirrored command moves it
-    0.6 m away)."""
+    centre at least 5 cm nearer the object, wherever the object then is (a mirrored command
+    moves it 0.6 m away)."""
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.station import make_station
@@ -231,15 +231,14 @@ def test_hil_episode_driven_by_the_shipped_policy():
     controller, description = make_controller(scenario)
     assert controller.get_name() == "policy", description
     with make_station(scenario) as station:
-        q0 = station.world.robot_positions()
-        p_object = station.world.object_pose().translation()
+        q0, p0 = station.world.robot_positions(), station.world.object_pose().translation()
         result = run_station_episode(station, controller, steps=30)
-        q1 = station.world.robot_positions()
+        q1, p1 = station.world.robot_positions(), station.world.object_pose().translation()
     assert result.fault is None and result.steps == 30
     assert result.stats["policy"]["rate_hz"] == pytest.approx(50.0, rel=1e-6)
     assert result.stats["z1"]["packets_received"] > 50 and result.stats["can"]["rate_hz"] > 300
-    d0 = np.linalg.norm(_grasp_centre(station.hand, q0) - p_object)
-    d1 = np.linalg.norm(_grasp_centre(station.hand, q1) - p_object)
+    d0 = np.linalg.norm(_grasp_centre(station.hand, q0) - p0)
+    d1 = np.linalg.norm(_grasp_centre(station.hand, q1) - p1)
     assert d1 < d0 - 0.05, (d0, d1)  # the arm moved toward the object
 
 

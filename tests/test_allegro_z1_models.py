@@ -273,8 +273,9 @@ def test_allegro_descriptions_write_the_hand_once():
     for name, arm_joint in arms.items():
         own = yaml.safe_load((models_dir() / "allegro" / f"{name}.hand.yaml").read_text())
         assert own["include"] == "allegro_v4_hand.yaml"
-        assert set(own) & set(shared) <= {"pregrasp", "grasp_script"}  # nothing repeated but merged entries
-        assert not set(own.get("grasp_script", {})) & set(shared["grasp_script"])
+        assert set(own) & set(shared) <= {"pregrasp", "grasp_script", "grasp_expert"}  # only merged entries
+        for merged in ("grasp_script", "grasp_expert"):  # each key written once
+            assert not set(own.get(merged, {})) & set(shared[merged])
         assert not set(own["pregrasp"]) & set(shared["pregrasp"])
         hand = load_hand(name)
         assert hand.pregrasp == {**shared["pregrasp"], **own["pregrasp"]} and arm_joint in hand.pregrasp

@@ -16,6 +16,7 @@ import numpy as np
 
 from dexdrake import argtypes
 from dexdrake.cli.flags import add_horizon, command_line, option_names
+from dexdrake.eval.evaluate import EVAL_HORIZON
 
 
 def add_parser(subparsers) -> None:
@@ -27,7 +28,7 @@ def add_parser(subparsers) -> None:
     parity.add_argument("--config", default="hil", help="scenario (mode hil): a packaged name (hil) or a YAML path")
     parity.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"], help="object names")
     parity.add_argument("--seeds", nargs="+", type=argtypes.seed, default=[0], help="episode seeds, each on every object")
-    add_horizon(parity, 150)
+    add_horizon(parity, EVAL_HORIZON, "the evaluation's")
     parity.add_argument("--scales", nargs="+", type=argtypes.positive, default=[1.0, 0.5, 2.0],
                         help="HIL PWM -> N*m scales, multiples of allegro_units.NM_PER_PWM (the first runs first)")
     parity.add_argument("--camera", choices=["rendered", "sim"], default="rendered",

@@ -26,5 +26,10 @@ class NonFiniteError(DexdrakeError):
     checkpoint): nothing is written from them."""
 
 
+class StationFault(DexdrakeError):
+    """The station stopped itself: a driver fault (a modelled one in simulation), a
+    perception failure, no object pose."""
+
+
 class DexdrakeWarning(UserWarning):
     """Something a user should know that did not stop the work (the CLI prints one line)."""

@@ -33,11 +33,11 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 
 from dexdrake.dexrep.feature_sets import FeaturePath
 from dexdrake.episode import EpisodeResult, run_episode
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, StationFault
 from dexdrake.hardware.safety import HardwareError
 from dexdrake.systems.dexrep_system import DexRepSystem
 from dexdrake.systems.scene import SimulationDiverged
-from dexdrake.systems.station import ControllerSystem, LoopTimer, Station, StationFault
+from dexdrake.systems.station import ControllerSystem, LoopTimer, Station
 
 SLOT_INPUTS = ("features", "hand_state", "object_pose")
 

@@ -21,7 +21,7 @@ from pydrake.systems.analysis import Simulator
 
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.episode import EpisodeResult, run_episode
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, StationFault
 from dexdrake.hands.action_map import ActionMap
 from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
@@ -137,6 +137,8 @@ class GraspEnv:
             self.scene.advance(self.simulator, self.context.get_time() + self.scenario.control_period)
         except SimulationDiverged as err:
             return self._end_diverged(str(err))
+        except StationFault as err:  # the drivers' overspeed trip, modelled (systems/target_limits.py)
+            return self._end_fault(str(err))
         self._observation = self.observation()
         p_obj = self.object_position()
         terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
@@ -151,6 +153,13 @@ class GraspEnv:
         returned)."""
         fault = f"simulation diverged at step {self.steps} (seed {self.seed}): {why}"
         return self._observation, 0.0, True, {"success": False, "lift": float("nan"), "fault": fault}
+
+    def _end_fault(self, why: str) -> tuple[np.ndarray, float, bool, dict]:
+        """The step a driver's rule stopped the episode: failed, with the rule's message as its
+        fault (the state stays readable: the lift is the object's height gained so far)."""
+        fault = f"driver fault at step {self.steps} (seed {self.seed}): {why}"
+        lift = float(self.object_position()[2] - self.p_start[2])
+        return self._observation, 0.0, True, {"success": False, "lift": lift, "fault": fault}
 
     # -- state access -------------------------------------------------------------------
     def observation(self) -> np.ndarray:

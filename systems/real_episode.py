@@ -26,10 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dexdrake.errors import StationFault
 from dexdrake.episode import EpisodeResult
 from dexdrake.hardware.safety import HardwareError
 from dexdrake.systems.diagram import run_station_episode
-from dexdrake.systems.station import Station, StationFault
+from dexdrake.systems.station import Station
 
 PHASES = ("move to the start pose", "episode", "retreat")
 

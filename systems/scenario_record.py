@@ -10,21 +10,25 @@ from typing import Any
 from dexdrake.hands.description import load_hand
 from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.systems.scenario import Scenario, ScenarioError
-from dexdrake.systems.target_limits import target_limits
+from dexdrake.systems.target_limits import overspeed_limits, target_limits
 
 
 def scenario_record(s: Scenario) -> dict[str, Any]:
     """What a policy trained or run under `s` depends on, as plain data (stored in policy
     checkpoints): the plant step and control period (s), the plant's contact approximation,
     the drivers' target limits in policy order (systems/target_limits.py: lower, upper,
-    max_rate (inf: none), velocity_feedforward), the perception model the features see the
-    object pose through (dexdrake/perceived_pose.py) and the camera's depth noise (rendered
-    cameras only)."""
-    lower, upper, rate, feedforward = target_limits(s, load_hand(s.hand))
+    max_rate (inf: none), velocity_feedforward) and overspeed trip (speed, window; None
+    without drivers), the perception model the features see the object pose through
+    (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
+    hand = load_hand(s.hand)
+    lower, upper, rate, feedforward = target_limits(s, hand)
+    overspeed = overspeed_limits(s, hand)
     return {"time_step": s.time_step, "control_period": s.control_period,
             "contact_approximation": s.contact_approximation,
             "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),
                               "velocity_feedforward": feedforward.tolist()},
+            "overspeed": None if overspeed is None else {"speed": overspeed[0].tolist(),
+                                                         "window": overspeed[1].tolist()},
             "perception": dataclasses.asdict(s.perception),
             "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise}
 
@@ -35,7 +39,7 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     `scenario_record`) with `s`, the one it is about to run under. A different plant step or
     control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
     warning lines to print: those overridden mismatches, and a difference in the target
-    limits, the contact approximation (a record without one: "sap") or the perception model
+    limits, the overspeed trip (a record without one was trained without it), the contact approximation (a record without one: "sap") or the perception model
     (which the policy may tolerate; a record without one was trained on the exact pose)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
@@ -50,6 +54,12 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
                         "this scenario limits its set-points")
     elif trained["target_limits"] != run["target_limits"]:
         warnings.append(f"warning: {checkpoint} was trained under other target limits or rates "
+                        "than this scenario's drivers apply")
+    if trained.get("overspeed") is None and run["overspeed"] is not None:
+        warnings.append(f"warning: {checkpoint} was trained without the drivers' overspeed trip; "
+                        "this scenario's drivers stop on it")
+    elif trained.get("overspeed") != run["overspeed"]:
+        warnings.append(f"warning: {checkpoint} was trained under another overspeed trip "
                         "than this scenario's drivers apply")
     if trained.get("contact_approximation", "sap") != run["contact_approximation"]:
         warnings.append(f"warning: {checkpoint} was trained under the {trained.get('contact_approximation', 'sap')!r} "

@@ -6,8 +6,8 @@ Every mode exposes the same ports (PORTS; policy joint order of the hand descrip
   output "object_pose"  [x, y, z, qw, qx, qy, qz]
 and the sim station also "query_object" (see sim below).
 sim:  the Drake grasp scene (systems/scene.py); its set-points are clamped and
-      rate-limited as the drivers would (systems/target_limits.py), so that training, sim
-      and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
+      rate-limited, and its joints' speeds checked, as the drivers would (an overspeed is
+      a StationFault; systems/target_limits.py), so that training, sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for
       DexRepSystem's SceneGraph feature path).
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
@@ -72,16 +72,12 @@ from pydrake.systems.framework import (
 )
 from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, StationFault
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process, process_config
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
-
-
-class StationFault(DexdrakeError):
-    """The station stopped itself: a driver fault, a perception failure, no object pose."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -599,9 +595,10 @@ def make_station(scenario: Scenario, start: bool = True, world=None) -> Station:
 
 def sim_station(scenario: Scenario) -> Station:
     """The sim station of `scenario` around its grasp scene: the set-points pass the
-    drivers' joint limits and target rates (systems/target_limits.py), as in hil and real."""
+    drivers' joint limits and target rates, and their overspeed trip raises StationFault
+    (systems/target_limits.py), as in hil and real."""
     from dexdrake.systems.scene import build_grasp_scene
-    from dexdrake.systems.target_limits import TargetLimiter, target_limits
+    from dexdrake.systems.target_limits import OverspeedMonitor, TargetLimiter, overspeed_limits, target_limits
 
     scene = build_grasp_scene(scenario, desired_state=True)
     builder = DiagramBuilder()
@@ -612,6 +609,11 @@ def sim_station(scenario: Scenario) -> Station:
     builder.ExportInput(limiter.GetInputPort("command"), "command")
     builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
     builder.Connect(limiter.GetOutputPort("desired_state"), sub.GetInputPort("desired_state"))
+    overspeed = overspeed_limits(scenario, scene.hand)
+    if overspeed is not None:
+        monitor = builder.AddNamedSystem("driver_overspeed", OverspeedMonitor(
+            *overspeed, scenario.time_step, list(scene.hand.policy_joints)))
+        builder.Connect(sub.GetOutputPort("hand_state"), monitor.GetInputPort("hand_state"))
     for name in (*PORTS["outputs"], "query_object"):
         builder.ExportOutput(sub.GetOutputPort(name), name)
     return Station(scenario, builder.Build(), scene.hand, scene=scene)

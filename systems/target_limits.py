@@ -1,4 +1,4 @@
-"""The drivers' set-point path, modelled in simulation.
+"""The drivers' set-point path and overspeed trip, modelled in simulation.
 
 On the robot a joint set-point never reaches the PD loop as commanded: the Allegro and Z1
 drivers clamp it into the joint limits and then follow it at no more than a target rate
@@ -13,6 +13,13 @@ station, training's included, passes its commands through `TargetLimiter` with t
 limits, rates and velocity feed-forward, resolved from the scenario's driver entries exactly
 as the drivers resolve them (`target_limits`), so that training, simulation and
 hardware-in-the-loop agree.
+
+The drivers also stop on a joint that moves too fast (a hand striking the table): the Z1
+client on a reported joint velocity above its `max_measured_velocity` times
+(1 + OVERSPEED_TOLERANCE), the Allegro driver on a joint's mean speed over a
+`velocity_window_s` window above the same bound. `OverspeedMonitor` applies both rules to
+the simulated joints (`overspeed_limits`) and ends the episode with the drivers' fault, so
+that a policy trained in simulation meets the fault hardware would raise.
 """
 
 from __future__ import annotations
@@ -20,10 +27,23 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
 
+from dexdrake.errors import StationFault
 from dexdrake.hands.description import HandDescription
-from dexdrake.hardware.safety import rate_limited
+from dexdrake.hardware.safety import OVERSPEED_TOLERANCE, rate_limited
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 from dexdrake.systems.scenario import Scenario, driver_configs
+
+
+def _driver_settings(scenario: Scenario, hand: HandDescription):
+    """(Allegro config, its settings, Z1 config, its settings) of the scenario's drivers, or
+    None for a hand without the Allegro-on-Z1 layout (no drivers)."""
+    if hand.hardware_joints is None or len(hand.arm_joints) != NUM_ARM_JOINTS:
+        return None
+    from dexdrake.hardware.allegro_can import check_allegro_config
+    from dexdrake.hardware.z1_udp import check_z1_config
+
+    hand_cfg, arm_cfg = driver_configs(scenario)
+    return hand_cfg, check_allegro_config(hand_cfg), arm_cfg, check_z1_config(arm_cfg)
 
 
 def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -38,13 +58,10 @@ def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray
     lower, upper = hand.joint_limits()
     n_arm = len(hand.arm_joints)
     feedforward = np.zeros(hand.num_actuators, bool)
-    if hand.hardware_joints is None or n_arm != NUM_ARM_JOINTS:
+    drivers = _driver_settings(scenario, hand)
+    if drivers is None:
         return lower, upper, np.full(hand.num_actuators, np.inf), feedforward
-    from dexdrake.hardware.allegro_can import check_allegro_config
-    from dexdrake.hardware.z1_udp import check_z1_config
-
-    hand_cfg, arm_cfg = driver_configs(scenario)
-    hs, zs = check_allegro_config(hand_cfg), check_z1_config(arm_cfg)
+    hand_cfg, hs, arm_cfg, zs = drivers
     perm = hand.hardware_permutation()  # bus joint k is policy joint perm[k]
     lower, upper, rate = lower.copy(), upper.copy(), np.empty(hand.num_actuators)
     lower[:n_arm], upper[:n_arm], rate[:n_arm] = zs.lower, zs.upper, zs.max_velocity
@@ -88,3 +105,55 @@ class TargetLimiter(LeafSystem):
         q = rate_limited(previous, target, self.max_rate, self.period)
         v = np.where(self.feedforward, (q - previous) / self.period, 0.0) if self.feedforward.any() else self._at_rest
         state.set_value(0, np.concatenate([q, v]))
+
+
+def overspeed_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray] | None:
+    """(speed, window) per joint in policy order, as the drivers trip: a joint faster than
+    `speed` (rad/s: `max_measured_velocity` x (1 + OVERSPEED_TOLERANCE)) is a fault, its
+    velocity taken as measured (window 0: the Z1's reported velocity) or as the mean over
+    `window` seconds (the Allegro's `velocity_window_s`). None without drivers."""
+    drivers = _driver_settings(scenario, hand)
+    if drivers is None:
+        return None
+    hand_cfg, hs, _, zs = drivers
+    n_arm, perm = len(hand.arm_joints), hand.hardware_permutation()
+    speed, window = np.empty(hand.num_actuators), np.zeros(hand.num_actuators)
+    speed[:n_arm] = zs.max_measured_velocity
+    speed[perm], window[perm] = hs.max_measured_velocity, hand_cfg.velocity_window_s
+    return speed * (1 + OVERSPEED_TOLERANCE), window
+
+
+class OverspeedMonitor(LeafSystem):
+    """Input "hand_state" ([q; v], 2n), checked every `period`: StationFault when a joint of
+    window 0 has |v| above its `speed`, or a windowed joint's mean speed |q - q0| / (t - t0)
+    over its last window (at least `window` long; windows follow each other) is above it.
+    Its joint names and speeds are the drivers' (`overspeed_limits`)."""
+
+    def __init__(self, speed: np.ndarray, window: np.ndarray, period: float, names: list[str]):
+        super().__init__()
+        self.speed, self.window, self.names = np.asarray(speed, float), np.asarray(window, float), names
+        self._instant = self.window == 0
+        n = len(self.speed)
+        self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
+        self.DeclareDiscreteState(2 * n)  # [q at each joint's window start; that start's time]
+        self.DeclareInitializationDiscreteUpdateEvent(self._start)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _start(self, context: Context, state: DiscreteValues) -> None:
+        n = len(self.speed)
+        state.set_value(0, np.r_[self._hand.Eval(context)[:n], np.full(n, context.get_time())])
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        n, t = len(self.speed), context.get_time()
+        x = self._hand.Eval(context)
+        q, v = x[:n], x[n:]
+        q0, t0 = np.split(context.get_discrete_state(0).value(), 2)
+        span = t - t0
+        due = ~self._instant & (span >= self.window - 1e-9)
+        measured = np.where(self._instant, np.abs(v), np.where(due, np.abs(q - q0) / np.maximum(span, 1e-9), 0.0))
+        over = measured > self.speed
+        if over.any():
+            j = int(np.argmax(over))
+            raise StationFault(f"overspeed: {self.names[j]} at {measured[j]:.2f} rad/s (the driver trips above "
+                               f"{self.speed[j]:.2f} rad/s) at t = {t:.3f} s")
+        state.set_value(0, np.r_[np.where(due, q, q0), np.where(due, t, t0)])

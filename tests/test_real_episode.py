@@ -63,7 +63,7 @@ def test_the_workspace_box_refuses_set_points_whose_hand_leaves_it():
     from pydrake.systems.primitives import ConstantVectorSource
 
     from dexdrake.hands.description import load_hand
-    from dexdrake.systems.station import StationFault
+    from dexdrake.errors import StationFault
     from dexdrake.systems.workspace import WorkspaceBox, WorkspaceGuard
 
     hand = load_hand("allegro_z1")
@@ -97,7 +97,8 @@ def test_a_first_pose_older_than_the_age_limit_waits_for_a_fresh_one():
     a stale pose: the station waits for the tracking after it; once a fresh pose came, an
     old one is a fault as before."""
     from dexdrake.systems.scenario import CameraDriver
-    from dexdrake.systems.station import PerceptionSystem, StationFault
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.station import PerceptionSystem
 
     hang = threading.Event()
     calls = []

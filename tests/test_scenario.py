@@ -78,6 +78,17 @@ def test_a_policy_trained_under_another_step_or_period_is_refused_unless_allowed
     assert "without the drivers' target limits" in check_policy_scenario(UNRECORDED_SCENARIO, hil, "p.pt")[0]
 
 
+def test_a_policy_records_the_drivers_overspeed_trip_and_is_warned_without_it():
+    hil = load_scenario("hil")
+    trained = scenario_record(hil)
+    assert len(trained["overspeed"]["speed"]) == len(trained["overspeed"]["window"]) == 22
+    (warning,) = check_policy_scenario({**trained, "overspeed": None}, hil, "p.pt")
+    assert "p.pt was trained without the drivers' overspeed trip" in warning
+    slower = {**trained, "overspeed": {**trained["overspeed"], "window": [0.0] * 22}}
+    assert "under another overspeed trip" in check_policy_scenario(slower, hil, "p.pt")[0]
+    assert scenario_record(training_scenario("adroit"))["overspeed"] is None  # no drivers
+
+
 def test_the_plant_uses_the_scenarios_contact_approximation_and_a_policy_records_it():
     from pydrake.multibody.plant import DiscreteContactApproximation
 
@@ -121,7 +132,8 @@ def test_an_episode_starts_from_the_one_reset_of_its_seed():
 
 def test_station_faults_end_an_episode_by_type_and_other_errors_propagate():
     from dexdrake.systems.diagram import run_station_episode
-    from dexdrake.systems.station import StationFault, make_station
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.station import make_station
 
     scenario = replace(load_scenario("sim"), policy=None)
 

@@ -403,7 +403,7 @@ def test_perception_failure_holds_the_last_pose():
 
 
 def test_perception_failure_stops_when_configured_or_when_no_pose_ever_came():
-    from dexdrake.systems.station import StationFault
+    from dexdrake.errors import StationFault
 
     X = np.eye(4)
     with pytest.raises(StationFault, match="perception failed 2 times"):
@@ -418,7 +418,8 @@ def test_a_pose_older_than_its_limit_stops_the_station():
     import threading
 
     from dexdrake.systems.scenario import CameraDriver
-    from dexdrake.systems.station import PerceptionSystem, StationFault
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.station import PerceptionSystem
 
     hang = threading.Event()
 
@@ -457,7 +458,8 @@ def test_a_stale_pose_holds_the_devices_then_stops_the_station():
     from pydrake.systems.primitives import ConstantVectorSource
 
     from dexdrake.systems.scenario import CameraDriver
-    from dexdrake.systems.station import DriverSystem, PerceptionSystem, StationFault, add_pose_age_hold
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.station import DriverSystem, PerceptionSystem, add_pose_age_hold
 
     class Joints:  # a driver whose joints move a tenth of the way to each target
         running = True
@@ -566,7 +568,8 @@ def test_a_camera_that_delivers_no_frame_is_a_perception_failure():
     failure, held and then stopped by the camera's rules, not an exception out of the diagram."""
     from dexdrake.hardware.kinect import FrameError
     from dexdrake.systems.scenario import CameraDriver
-    from dexdrake.systems.station import PerceptionSystem, StationFault
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.station import PerceptionSystem
 
     frames = iter([_Frame()])
 

@@ -1,4 +1,4 @@
-"""The drivers' set-point limits modelled in simulation (systems/target_limits.py)."""
+"""The drivers' set-point limits and overspeed trip modelled in simulation (systems/target_limits.py)."""
 
 from pathlib import Path
 
@@ -106,3 +106,66 @@ def test_sim_station_moves_fingers_no_faster_than_the_hil_drivers_allow():
     speeds = np.diff(seen) / scenario.control_period
     assert speeds.max() <= rate * 1.1, f"finger moved at {speeds.max():.2f} rad/s"
     assert seen[-1] - seen[0] == pytest.approx(1.0, abs=0.05)  # and it gets there
+
+
+def test_overspeed_trips_on_a_fast_joint_or_a_fast_window_mean():
+    """A window-0 joint trips on its velocity at once; a windowed joint on its mean speed
+    over a full window only (a short burst inside a slow window does not trip)."""
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.target_limits import OverspeedMonitor
+
+    monitor = OverspeedMonitor(speed=[2.0, 2.0], window=[0.0, 0.1], period=0.01, names=["arm", "finger"])
+    simulator = Simulator(monitor)
+    context = simulator.get_mutable_context()
+    port = monitor.GetInputPort("hand_state")
+    port.FixValue(context, [0.0, 0.0, 1.9, 0.0])
+    simulator.Initialize()
+    simulator.AdvanceTo(0.05)
+    port.FixValue(context, [0.0, 0.1, 1.9, 50.0])  # 0.1 rad within the window: 1 rad/s mean
+    simulator.AdvanceTo(0.25)
+    port.FixValue(context, [0.0, 0.4, 1.9, 0.0])  # 0.3 rad more in the next window: 3 rad/s
+    with pytest.raises(StationFault, match="finger at 3.00 rad/s"):
+        simulator.AdvanceTo(0.5)
+    monitor2 = OverspeedMonitor(speed=[2.0, 2.0], window=[0.0, 0.1], period=0.01, names=["arm", "finger"])
+    simulator = Simulator(monitor2)
+    context = simulator.get_mutable_context()
+    monitor2.GetInputPort("hand_state").FixValue(context, [0.0, 0.0, -2.1, 0.0])
+    with pytest.raises(StationFault, match="arm at 2.10 rad/s"):
+        simulator.AdvanceTo(0.02)
+
+
+def test_overspeed_limits_are_the_drivers():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.hardware.allegro_can import AllegroConfig, check_allegro_config
+    from dexdrake.hardware.safety import OVERSPEED_TOLERANCE
+    from dexdrake.hardware.z1_model import z1_model
+    from dexdrake.systems.target_limits import overspeed_limits
+
+    scenario = load_scenario(CONFIGS / "hil.yaml")
+    hand = load_hand(scenario.hand)
+    speed, window = overspeed_limits(scenario, hand)
+    n_arm, perm = len(hand.arm_joints), hand.hardware_permutation()
+    np.testing.assert_allclose(speed[:n_arm], z1_model().limits.velocity * (1 + OVERSPEED_TOLERANCE))
+    assert np.all(window[:n_arm] == 0)
+    np.testing.assert_allclose(speed[perm], check_allegro_config(AllegroConfig()).max_measured_velocity
+                               * (1 + OVERSPEED_TOLERANCE))
+    assert np.all(window[perm] == AllegroConfig().velocity_window_s)
+    assert overspeed_limits(scenario, load_hand("adroit")) is None  # no drivers, no trip
+
+
+def test_an_overspeed_ends_the_training_env_episode_as_a_driver_fault():
+    from dexdrake.systems.env_factory import GraspEnvFactory
+
+    env = GraspEnvFactory("allegro_z1", None, ("can_soda",), 10)()
+    env.reset(0)
+    n, n_arm = env.action_dim, len(env.scene.hand.arm_joints)
+    state = env.hand_state()
+    state[n + n_arm - 1] = 10.0  # the last arm joint swinging at 10 rad/s
+    env.mirror(state, env.object_pose())
+    _, _, done, info = env.step_positions(state[:n])
+    assert done and not info["success"] and "overspeed: joint6" in info["fault"]
+    assert np.isfinite(info["lift"])
+    env.reset(1)  # the next episode runs
+    assert "fault" not in env.step_positions(env.hand_state()[:n])[3]

@@ -741,9 +741,17 @@ class Z1Arm(SafeStopContext):
 
     def _loop_body(self) -> None:
         period = 1.0 / self.config.rate_hz
-        next_tick = self.next_tick = self._clock()
+        # ticks on multiples of the period: on a simulated clock (HIL) the same phase against
+        # the world's steps in every run, so that the same episode sends the same commands
+        next_tick = self.next_tick = math.ceil(self._clock() / period - 1e-9) * period
         last_tick = next_tick
         while self._running.is_set():
+            # until due (to the clock's rounding), or stopped (a paused clock would not move)
+            while self._running.is_set() and (left := next_tick - self._clock()) > 1e-9:
+                select.select([self._sock], [], [], left)
+                self._receive()
+            if not self._running.is_set():
+                break
             now = self._clock()
             self._tick_times.append(now)
             if self._reset_request.is_set():
@@ -767,10 +775,6 @@ class Z1Arm(SafeStopContext):
             if next_tick < now - period:  # fell behind by more than a period: resync
                 next_tick = now + period
             self.next_tick = next_tick
-            # until due (to the clock's rounding), or stopped (a paused clock would not move)
-            while self._running.is_set() and (left := next_tick - self._clock()) > 1e-9:
-                select.select([self._sock], [], [], left)
-                self._receive()
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:

@@ -1052,9 +1052,7 @@ def test_hil_episode_is_repeatable():
             return q
 
         scenario = hil_scenario()
-        # the Z1 client's velocity feed-forward is sent on the tick that first sees a new set-point,
-        # which thread timing can move by one tick: repeatable bit for bit only without it (open)
-        scenario.drivers.arm.velocity_feedforward = False
+        assert scenario.drivers.arm.velocity_feedforward  # the Z1 client's ticks in phase with the world's
         with make_station(scenario) as station:
             result = run_station_episode(station, controller, 12)
         assert result.fault is None and result.stats["world"]["late_replies"] == 0

@@ -83,6 +83,13 @@ def test_table_gives_intervals_hand_and_the_seed_range():
     assert "95 % Wilson interval 11.2-46.9 %" in md
     assert "NOT in the range reserved" in markdown_table(_report(900))
     assert csv_table(_report(FIRST_TEST_SEED)).splitlines()[0].endswith(",ci95_pct")
+    assert "ended on a fault" not in md
+    report = _report(FIRST_TEST_SEED)
+    report.episodes[0].fault = "driver fault at step 7 (seed 1): overspeed: joint3 at 4.85 rad/s (...)"
+    report.episodes[1].fault = "simulation diverged at step 9 (seed 2): the solver failed"
+    report.episodes[2].fault = "driver fault at step 50 (seed 3): overspeed: joint4 at 5.00 rad/s (...)"
+    assert ("- 3 of 20 episodes ended on a fault, each a failure: 2 driver fault (overspeed), 1 simulation "
+            "diverged") in markdown_table(report)
     d = _report(1_000_000_100).to_dict()
     assert d["seeds_reserved_for_evaluation"] and d["seed_range"] == "custom" and d["per_object"]["pear"]["ci95_pct"][0] == 0.0
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -75,6 +76,25 @@ def paper_subset_average(report: EvalReport) -> tuple[float, float, int] | None:
     )
 
 
+def _fault_kind(fault: str) -> str:
+    """'driver fault (overspeed)', 'simulation diverged', ...: a fault's text before " at step",
+    with a driver fault's rule (systems/grasp_env.py words them)."""
+    head = fault.split(" at step", 1)[0]
+    if head == "driver fault" and "): " in fault:
+        return f"{head} ({fault.split('): ', 1)[1].split(':', 1)[0]})"
+    return head
+
+
+def fault_lines(episodes) -> list[str]:
+    """A header line counting the episodes a fault ended (each a failure) by kind; none
+    without faults."""
+    kinds = Counter(_fault_kind(e.fault) for e in episodes if e.fault)
+    if not kinds:
+        return []
+    named = ", ".join(f"{n} {kind}" for kind, n in kinds.most_common())
+    return [f"- {sum(kinds.values())} of {len(episodes)} episodes ended on a fault, each a failure: {named}"]
+
+
 def markdown_table(report: EvalReport) -> str:
     """The report as markdown: a header naming command, policy and seeds, then the table."""
     part = report.seed_range()
@@ -92,6 +112,7 @@ def markdown_table(report: EvalReport) -> str:
         f"- average {report.average_pct():.1f} % over {len(report.objects)} objects, 95 % Wilson interval "
         f"{low:.1f}-{high:.1f} % ({len(report.episodes)} episodes pooled)",
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s) x {report.envs_per_worker} env(s) in lockstep",
+        *fault_lines(report.episodes),
         "",
         "| " + " | ".join(header for _, header in COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),

@@ -772,8 +772,8 @@ class Z1Arm(SafeStopContext):
                 self.packet_errors["socket"] += 1
             last_tick = now
             next_tick += period
-            if next_tick < now - period:  # fell behind by more than a period: resync
-                next_tick = now + period
+            if next_tick < now - period:  # fell behind by more than a period: resync, on the grid
+                next_tick = (math.floor(now / period + 1e-9) + 1) * period
             self.next_tick = next_tick
 
 

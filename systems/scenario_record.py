@@ -39,8 +39,9 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     `scenario_record`) with `s`, the one it is about to run under. A different plant step or
     control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
     warning lines to print: those overridden mismatches, and a difference in the target
-    limits, the overspeed trip (a record without one was trained without it), the contact approximation (a record without one: "sap") or the perception model
-    (which the policy may tolerate; a record without one was trained on the exact pose)."""
+    limits, the overspeed trip (a record without one was trained without it), the contact
+    approximation (a record without one: "sap") or the perception model (which the policy
+    may tolerate; a record without one was trained on the exact pose)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
             for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]

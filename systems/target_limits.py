@@ -34,7 +34,7 @@ from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 from dexdrake.systems.scenario import Scenario, driver_configs
 
 
-def _driver_settings(scenario: Scenario, hand: HandDescription):
+def _driver_settings(scenario: Scenario, hand: HandDescription) -> tuple | None:
     """(Allegro config, its settings, Z1 config, its settings) of the scenario's drivers, or
     None for a hand without the Allegro-on-Z1 layout (no drivers)."""
     if hand.hardware_joints is None or len(hand.arm_joints) != NUM_ARM_JOINTS:

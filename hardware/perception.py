@@ -42,12 +42,8 @@ _reg = o3d.pipelines.registration
 @dataclass(frozen=True)
 class GreenScreenConfig:
     """Object = NOT green (OpenCV HSV, H in 0-179) within a depth range (mm); of the not-green
-    regions (8-connected) those under `min_component_px` pixels are specks and dropped.
-
-    Specks are dropped by their area, not by a morphological opening: an opening erases
-    every part narrower than its kernel, and a thin object's parts are that narrow at a low
-    resolution (a wrench's 18 mm bar is 3-4 px wide at 320x180 and 0.65 m, 12-16 px at
-    1280x720), while noise specks are a few pixels whatever the resolution."""
+    regions (8-connected) those under `min_component_px` pixels are specks and dropped; a
+    region's width does not count, so a thin part a few pixels wide is kept."""
 
     hsv_low: tuple[int, int, int] = (35, 60, 40)
     hsv_high: tuple[int, int, int] = (85, 255, 255)

@@ -135,10 +135,11 @@ class GraspEnv:
         self.steps += 1
         try:
             self.scene.advance(self.simulator, self.context.get_time() + self.scenario.control_period)
-        except SimulationDiverged as err:
-            return self._end_diverged(str(err))
+        except SimulationDiverged as err:  # the state is unusable until the next reset: no lift
+            return self._end(f"simulation diverged at step {self.steps} (seed {self.seed}): {err}", float("nan"))
         except StationFault as err:  # the drivers' overspeed trip, modelled (systems/target_limits.py)
-            return self._end_fault(str(err))
+            lift = float(self.object_position()[2] - self.p_start[2])
+            return self._end(f"driver fault at step {self.steps} (seed {self.seed}): {err}", lift)
         self._observation = self.observation()
         p_obj = self.object_position()
         terms = reward_terms(self.fingertip_distances(), p_obj, self.p_start, self.task)
@@ -147,18 +148,9 @@ class GraspEnv:
         info = {"success": success, "lift": float(p_obj[2] - self.p_start[2]), "terms": terms}
         return self._observation, terms.total, done, info
 
-    def _end_diverged(self, why: str) -> tuple[np.ndarray, float, bool, dict]:
-        """The step after the simulation diverged: the episode ends, failed, with the reason as
-        its fault (the state is unusable until the next reset; the last good observation is
-        returned)."""
-        fault = f"simulation diverged at step {self.steps} (seed {self.seed}): {why}"
-        return self._observation, 0.0, True, {"success": False, "lift": float("nan"), "fault": fault}
-
-    def _end_fault(self, why: str) -> tuple[np.ndarray, float, bool, dict]:
-        """The step a driver's rule stopped the episode: failed, with the rule's message as its
-        fault (the state stays readable: the lift is the object's height gained so far)."""
-        fault = f"driver fault at step {self.steps} (seed {self.seed}): {why}"
-        lift = float(self.object_position()[2] - self.p_start[2])
+    def _end(self, fault: str, lift: float) -> tuple[np.ndarray, float, bool, dict]:
+        """The step a fault ended the episode: failed, with `fault` and `lift` in its info (the
+        last good observation is returned)."""
         return self._observation, 0.0, True, {"success": False, "lift": lift, "fault": fault}
 
     # -- state access -------------------------------------------------------------------

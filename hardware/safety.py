@@ -137,14 +137,17 @@ class RateLimiter:
             raise HardwareError("rate limiter: reset value must be finite")
         self._out = q.copy()
 
-    def step(self, target: Sequence[float] | np.ndarray, dt: float) -> np.ndarray:
-        """Advance the output toward the finite `target` over `dt` seconds and return it."""
+    def step(self, target: Sequence[float] | np.ndarray, dt: float,
+             rate: np.ndarray | None = None) -> np.ndarray:
+        """Advance the output toward the finite `target` over `dt` seconds, at `rate` (per
+        element, at most `max_rate`; default `max_rate`), and return it."""
         target = _vector(target, self._out.size, "target")
         if not np.all(np.isfinite(target)):
             raise HardwareError("rate limiter: target must be finite (clamp it first)")
         if not (np.isfinite(dt) and dt >= 0):
             raise HardwareError(f"rate limiter: dt must be finite and >= 0, got {dt}")
-        self._out = rate_limited(self._out, target, self.max_rate, dt)
+        limit = self.max_rate if rate is None else np.minimum(rate, self.max_rate)
+        self._out = rate_limited(self._out, target, limit, dt)
         return self._out.copy()
 
 
@@ -154,6 +157,16 @@ def rate_limited(output: np.ndarray, target: np.ndarray, max_rate: np.ndarray | 
     (systems/target_limits.py)."""
     step = np.asarray(max_rate, dtype=float) * dt
     return output + np.minimum(np.maximum(target - output, -step), step)  # np.clip's value, a third of its cost
+
+
+def paced_rate(reference: np.ndarray, target: np.ndarray, max_rate: np.ndarray | float,
+               period: float) -> np.ndarray:
+    """The rate (per element) that takes `reference` to a new `target` in `period` seconds,
+    at most `max_rate`: a set-point that comes every `period` followed evenly over it rather
+    than at the limit and then held (a velocity that steps from 0 to the limit and back
+    within a period, which kicks a PD given that velocity). Used by the Z1 client and its
+    model in simulation (systems/target_limits.py)."""
+    return np.minimum(np.abs(np.asarray(target, float) - reference) / period, max_rate)
 
 
 class Watchdog:

@@ -47,6 +47,7 @@ from dexdrake.hardware.safety import (
     SafeStopContext,
     HardwareError,
     JointLimits,
+    paced_rate,
     RateLimiter,
     Watchdog,
     period_stats,
@@ -268,6 +269,9 @@ class Z1Config:
     # send the rate-limited reference's velocity as the desired velocity W (as the vendor's
     # LOWCMD example does); False: W = 0, the arm's PD damps towards rest and lags a ramp
     velocity_feedforward: bool = True
+    # the period (s) the caller sends targets at: each new target is followed evenly over it
+    # (hardware/safety.py paced_rate, at most max_velocity); None: at max_velocity, then held
+    command_period_s: float | None = None
     # state() waits up to this long (wall) for the reply to the last command sent, if it has
     # not come yet (hardware-in-the-loop: a sample in lockstep with the world; 0: never waits)
     reply_wait_s: float = 0.0
@@ -303,6 +307,8 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
             raise HardwareError(f"Z1 {name} must be > 0, got {value}")
     if not (math.isfinite(cfg.reply_wait_s) and cfg.reply_wait_s >= 0):
         raise HardwareError(f"Z1 reply_wait_s must be >= 0, got {cfg.reply_wait_s}")
+    if cfg.command_period_s is not None and not (math.isfinite(cfg.command_period_s) and cfg.command_period_s > 0):
+        raise HardwareError(f"Z1 command_period_s must be > 0, got {cfg.command_period_s}")
 
     def vec(values, default: np.ndarray, name: str) -> np.ndarray:
         arr = default.copy() if values is None else _vec6(values, name)
@@ -384,6 +390,7 @@ class Z1Arm(SafeStopContext):
         self.limits = JointLimits(st.target_lower, st.target_upper)
         self.kp, self.kd, self.effort = st.kp, st.kd, st.effort
         self._rate = RateLimiter(st.max_velocity, initial=self.limits.last_safe)
+        self._pace = np.full(NUM_ARM_JOINTS, st.max_velocity)  # the reference's rate toward the target
         self._watchdog = Watchdog(cfg.watchdog_timeout_s, clock)
         self.fault = FaultLatch(clock)
         self._lock = threading.Lock()
@@ -514,8 +521,9 @@ class Z1Arm(SafeStopContext):
         Without `dq`, the velocity of the rate-limited reference is fed forward (zero with
         `velocity_feedforward` off).
         The target is clamped into the joint limits (non-finite targets are rejected and
-        the last safe one is held) and followed at no more than `max_velocity`. `tau_ff`
-        adds to the gravity feed-forward; their sum is clamped to the effort limits.
+        the last safe one is held) and followed at no more than `max_velocity`, evenly over
+        `command_period_s` where set. `tau_ff` adds to the gravity feed-forward; their sum is
+        clamped to the effort limits.
         """
         dq_t = np.zeros(NUM_ARM_JOINTS) if dq is None else _vec6(dq, "dq")
         self._dq_given = dq is not None
@@ -524,6 +532,7 @@ class Z1Arm(SafeStopContext):
         dq_t = np.clip(dq_t, -vmax, vmax)
         with self._lock:
             self._target = self.limits.apply(q)
+            self._pace_to_target()
             self._dq_target, self._tau_ff = dq_t, tau
             self._has_command = True
             return self._target.copy()
@@ -543,6 +552,12 @@ class Z1Arm(SafeStopContext):
             self._reset_request.set()
         else:
             self.fault.reset()
+
+    def _pace_to_target(self) -> None:
+        """The reference's rate toward the target from where it is now (under `_lock`)."""
+        if self.config.command_period_s is not None:
+            self._pace = paced_rate(self._rate.output, self._target, self.settings.max_velocity,
+                                    self.config.command_period_s)
 
     def _forget_command(self) -> None:
         """No set-point and no feed-forward (under `_lock`): the loop holds the measured position."""
@@ -695,13 +710,14 @@ class Z1Arm(SafeStopContext):
                 if not self._has_command:
                     self._target = self._rate.output
                     self.limits.reset(self._target)
+                self._pace_to_target()
                 self._initialised = True
             if st.state != mode:  # request the mode, holding the measured position
                 q_ref = self._rate.output
                 dq_ref = np.zeros(NUM_ARM_JOINTS)
             else:
                 q_prev = self._rate.output
-                q_ref = self._rate.step(self._target, dt)
+                q_ref = self._rate.step(self._target, dt, self._pace)
                 # feed the reference's own velocity forward unless the caller gave one
                 if self._dq_given:
                     dq_ref = self._dq_target

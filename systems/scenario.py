@@ -358,7 +358,8 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None,
                    arm_local_port: int | None = None):
     """(AllegroConfig, Z1Config) of a hil/real scenario, checked against the limits (the
     drivers' `check_*_config`; HardwareError names the limit a value exceeds). Fields left
-    None keep the driver's default; the ports given replace the scenario's."""
+    None keep the driver's default; the ports given replace the scenario's; the Z1 client
+    follows each target over the control period (its `command_period_s`)."""
     from dexdrake.hardware.allegro_can import AllegroConfig, check_allegro_config
     from dexdrake.hardware.z1_udp import ArmFSMState, Z1Config, check_z1_config
 
@@ -375,7 +376,7 @@ def driver_configs(s: Scenario, arm_controller_port: int | None = None,
                            else arm_controller_port,
                            watchdog_timeout_s=a.watchdog_timeout_s, mode=ArmFSMState[a.mode],
                            kp=a.kp, kd=a.kd, max_velocity=a.max_velocity, limit_margin_rad=a.limit_margin_rad,
-                           velocity_feedforward=a.velocity_feedforward))
+                           velocity_feedforward=a.velocity_feedforward), command_period_s=s.control_period)
     check_allegro_config(hand)
     check_z1_config(arm)
     return hand, arm

@@ -16,17 +16,16 @@ from dexdrake.systems.target_limits import overspeed_limits, target_limits
 def scenario_record(s: Scenario) -> dict[str, Any]:
     """What a policy trained or run under `s` depends on, as plain data (stored in policy
     checkpoints): the plant step and control period (s), the plant's contact approximation,
-    the drivers' target limits in policy order (systems/target_limits.py: lower, upper,
-    max_rate (inf: none), velocity_feedforward) and overspeed trip (speed, window; None
+    the drivers' target limits in policy order (systems/target_limits.py TargetLimits: lower,
+    upper, max_rate (inf: none), velocity_feedforward, paced) and overspeed trip (speed, window; None
     without drivers), the perception model the features see the object pose through
     (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
     hand = load_hand(s.hand)
-    lower, upper, rate, feedforward = target_limits(s, hand)
+    limits = target_limits(s, hand)
     overspeed = overspeed_limits(s, hand)
     return {"time_step": s.time_step, "control_period": s.control_period,
             "contact_approximation": s.contact_approximation,
-            "target_limits": {"lower": lower.tolist(), "upper": upper.tolist(), "max_rate": rate.tolist(),
-                              "velocity_feedforward": feedforward.tolist()},
+            "target_limits": {key: value.tolist() for key, value in limits._asdict().items()},
             "overspeed": None if overspeed is None else {"speed": overspeed[0].tolist(),
                                                          "window": overspeed[1].tolist()},
             "perception": dataclasses.asdict(s.perception),

@@ -604,9 +604,8 @@ def sim_station(scenario: Scenario) -> Station:
     scene = build_grasp_scene(scenario, desired_state=True)
     builder = DiagramBuilder()
     sub = builder.AddNamedSystem("scene", scene.diagram)
-    lower, upper, rate, feedforward = target_limits(scenario, scene.hand)
     limiter = builder.AddNamedSystem("driver_target_limits", TargetLimiter(
-        lower, upper, rate, scenario.time_step, velocity_feedforward=feedforward))
+        target_limits(scenario, scene.hand), scenario.time_step, scenario.control_period))
     builder.ExportInput(limiter.GetInputPort("command"), "command")
     builder.Connect(sub.GetOutputPort("hand_state"), limiter.GetInputPort("hand_state"))
     builder.Connect(limiter.GetOutputPort("desired_state"), sub.GetInputPort("desired_state"))

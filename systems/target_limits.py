@@ -3,9 +3,10 @@
 On the robot a joint set-point never reaches the PD loop as commanded: the Allegro and Z1
 drivers clamp it into the joint limits and then follow it at no more than a target rate
 (Allegro `max_target_rate`, Z1 `max_velocity`; hardware/safety.py JointLimits and
-RateLimiter); the Z1 client sends the rate-limited reference's own velocity with it as the
-controller's desired velocity where its `velocity_feedforward` is on (hardware/z1_udp.py),
-while the Allegro driver's PD has no velocity set-point. A policy whose set-points jump
+RateLimiter); the Z1 client follows each new target evenly over the control period at no
+more than that (`command_period_s`, hardware/safety.py paced_rate) and sends the reference's
+own velocity with it as the controller's desired velocity where its `velocity_feedforward`
+is on (hardware/z1_udp.py), while the Allegro driver's PD has no velocity set-point. A policy whose set-points jump
 (closing the hand in one control step) meets a slower hand on hardware than in an
 unlimited simulation, and an arm PD given no desired velocity lags its ramp by kd/kp *
 velocity (0.1 rad at pi rad/s with the Z1's gains) where one given it does not. The sim
@@ -24,12 +25,14 @@ that a policy trained in simulation meets the fault hardware would raise.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
 
 from dexdrake.errors import StationFault
 from dexdrake.hands.description import HandDescription
-from dexdrake.hardware.safety import OVERSPEED_TOLERANCE, rate_limited
+from dexdrake.hardware.safety import OVERSPEED_TOLERANCE, paced_rate, rate_limited
 from dexdrake.hardware.z1_model import NUM_ARM_JOINTS
 from dexdrake.systems.scenario import Scenario, driver_configs
 
@@ -46,65 +49,84 @@ def _driver_settings(scenario: Scenario, hand: HandDescription) -> tuple | None:
     return hand_cfg, check_allegro_config(hand_cfg), arm_cfg, check_z1_config(arm_cfg)
 
 
-def target_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(lower, upper, max_rate, velocity_feedforward) per joint in policy order, as the
-    drivers apply them.
+class TargetLimits(NamedTuple):
+    """Per joint in policy order, as the drivers apply them: the target's limits, its rate
+    limit (units/s; inf: none), whether its velocity is fed forward, whether a new target is
+    followed evenly over the control period (`paced`; else at the limit)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    max_rate: np.ndarray
+    velocity_feedforward: np.ndarray
+    paced: np.ndarray
+
+
+def target_limits(scenario: Scenario, hand: HandDescription) -> TargetLimits:
+    """The drivers' TargetLimits of `scenario` for `hand`.
 
     For the Allegro-on-Z1 layout: the Z1 driver's limits and `max_velocity` on the arm
-    joints, with the reference's velocity where the Z1 config's `velocity_feedforward` is on, the
-    Allegro driver's limits and `max_target_rate` on the fingers (defaults and checks of
-    hardware/allegro_can.py and hardware/z1_udp.py). A hand without that layout has no
-    drivers: its model's joint limits, no rate limit (inf) and no velocity feed-forward."""
+    joints, paced where the Z1 config's `command_period_s` is set, with the reference's
+    velocity where its `velocity_feedforward` is on; the Allegro driver's limits and
+    `max_target_rate` on the fingers (defaults and checks of hardware/allegro_can.py and
+    hardware/z1_udp.py). A hand without that layout has no drivers: its model's joint
+    limits, no rate limit (inf), no velocity feed-forward, no pacing."""
     lower, upper = hand.joint_limits()
     n_arm = len(hand.arm_joints)
-    feedforward = np.zeros(hand.num_actuators, bool)
+    feedforward, paced = np.zeros(hand.num_actuators, bool), np.zeros(hand.num_actuators, bool)
     drivers = _driver_settings(scenario, hand)
     if drivers is None:
-        return lower, upper, np.full(hand.num_actuators, np.inf), feedforward
+        return TargetLimits(lower, upper, np.full(hand.num_actuators, np.inf), feedforward, paced)
     hand_cfg, hs, arm_cfg, zs = drivers
     perm = hand.hardware_permutation()  # bus joint k is policy joint perm[k]
     lower, upper, rate = lower.copy(), upper.copy(), np.empty(hand.num_actuators)
     lower[:n_arm], upper[:n_arm], rate[:n_arm] = zs.lower, zs.upper, zs.max_velocity
     lower[perm], upper[perm], rate[perm] = hs.lower, hs.upper, hand_cfg.max_target_rate
     feedforward[:n_arm] = arm_cfg.velocity_feedforward
-    return lower, upper, rate, feedforward
+    paced[:n_arm] = arm_cfg.command_period_s is not None
+    return TargetLimits(lower, upper, rate, feedforward, paced)
 
 
 class TargetLimiter(LeafSystem):
     """Inputs "command" (n set-points) and "hand_state" ([q; v], 2n); outputs "target" (n):
     the command clamped into [lower, upper] and followed at no more than `max_rate` (per
-    joint, units/s), updated every `period`; and "desired_state" ([target; v], 2n): v the
-    target's velocity over the last period on the joints of `velocity_feedforward`, else 0.
-    It starts at the measured position (clamped), at rest, as the drivers do when their
-    loops start."""
+    joint, units/s), updated every `period`; on the `paced` joints a new command is followed
+    at the rate that reaches it in `command_period` (paced_rate, at most `max_rate`); and
+    "desired_state" ([target; v], 2n): v the target's velocity over the last period on the
+    joints of `velocity_feedforward`, else 0. It starts at the measured position (clamped),
+    at rest, as the drivers do when their loops start."""
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, max_rate: np.ndarray, period: float,
-                 velocity_feedforward: np.ndarray | None = None):
+    def __init__(self, limits: TargetLimits, period: float, command_period: float):
         super().__init__()
-        self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
-        self.max_rate, self.period = np.asarray(max_rate, float), period
+        self.lower, self.upper = np.asarray(limits.lower, float), np.asarray(limits.upper, float)
+        self.max_rate, self.period, self.command_period = np.asarray(limits.max_rate, float), period, command_period
+        self.feedforward = np.asarray(limits.velocity_feedforward, bool)
+        self.paced = np.asarray(limits.paced, bool)
         n = len(self.lower)
-        self.feedforward = np.zeros(n, bool) if velocity_feedforward is None else np.asarray(velocity_feedforward, bool)
         self._at_rest = np.zeros(n)  # the desired velocity without feed-forward
         self._command = self.DeclareVectorInputPort("command", n)
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
-        state = self.DeclareDiscreteState(2 * n)  # [target; its velocity]
+        # [target; its velocity; the last command (clamped); the rate toward it]
+        self.DeclareDiscreteState(4 * n)
         self.DeclareVectorOutputPort("target", n, lambda c, out: out.SetFromVector(c.get_discrete_state(0).value()[:n]),
                                      {self.xd_ticket()})
-        self.DeclareStateOutputPort("desired_state", state)
+        self.DeclareVectorOutputPort("desired_state", 2 * n,
+                                     lambda c, out: out.SetFromVector(c.get_discrete_state(0).value()[: 2 * n]),
+                                     {self.xd_ticket()})
         self.DeclareInitializationDiscreteUpdateEvent(self._start)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
 
     def _start(self, context: Context, state: DiscreteValues) -> None:
-        q = self._hand.Eval(context)[: len(self.lower)]
-        state.set_value(0, np.r_[np.clip(q, self.lower, self.upper), np.zeros(len(q))])
+        q = np.clip(self._hand.Eval(context)[: len(self.lower)], self.lower, self.upper)
+        state.set_value(0, np.r_[q, np.zeros(len(q)), q, self.max_rate])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         target = np.minimum(np.maximum(self._command.Eval(context), self.lower), self.upper)
-        previous = context.get_discrete_state(0).value()[: len(self.lower)]
-        q = rate_limited(previous, target, self.max_rate, self.period)
+        previous, _, last, rate = np.split(context.get_discrete_state(0).value(), 4)
+        if self.paced.any() and not np.array_equal(target, last):
+            rate = np.where(self.paced, paced_rate(previous, target, self.max_rate, self.command_period), self.max_rate)
+        q = rate_limited(previous, target, rate, self.period)
         v = np.where(self.feedforward, (q - previous) / self.period, 0.0) if self.feedforward.any() else self._at_rest
-        state.set_value(0, np.concatenate([q, v]))
+        state.set_value(0, np.concatenate([q, v, target, rate]))
 
 
 def overspeed_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray] | None:

@@ -10,12 +10,19 @@ from dexdrake.systems.scenario import load_scenario
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
+def _limits(max_rate, feedforward=(False, False), paced=(False, False)):
+    from dexdrake.systems.target_limits import TargetLimits
+
+    return TargetLimits(np.array([-1.0, -1.0]), np.array([1.0, 1.0]), np.array(max_rate, float),
+                        np.array(feedforward), np.array(paced))
+
+
 def test_limiter_clamps_then_follows_at_the_rate_from_the_measured_start():
     from pydrake.systems.analysis import Simulator
 
     from dexdrake.systems.target_limits import TargetLimiter
 
-    limiter = TargetLimiter(lower=[-1.0, -1.0], upper=[1.0, 1.0], max_rate=[2.0, 0.5], period=0.01)
+    limiter = TargetLimiter(_limits([2.0, 0.5]), period=0.01, command_period=0.02)
     simulator = Simulator(limiter)
     context = simulator.get_mutable_context()
     limiter.GetInputPort("hand_state").FixValue(context, [0.2, -0.1, 0.0, 0.0])
@@ -39,8 +46,7 @@ def test_limiter_feeds_the_ramps_velocity_forward_where_the_driver_does():
 
     from dexdrake.systems.target_limits import TargetLimiter
 
-    limiter = TargetLimiter(lower=[-1.0, -1.0], upper=[1.0, 1.0], max_rate=[2.0, 2.0], period=0.01,
-                            velocity_feedforward=[True, False])
+    limiter = TargetLimiter(_limits([2.0, 2.0], feedforward=[True, False]), period=0.01, command_period=0.02)
     simulator = Simulator(limiter)
     context = simulator.get_mutable_context()
     limiter.GetInputPort("hand_state").FixValue(context, [0.0, 0.0, 0.0, 0.0])
@@ -54,6 +60,34 @@ def test_limiter_feeds_the_ramps_velocity_forward_where_the_driver_does():
     np.testing.assert_allclose(desired.Eval(context), [0.5, 0.5, 0.0, 0.0], atol=1e-9)
 
 
+def test_paced_joints_follow_each_command_evenly_over_the_command_period():
+    """A small step on a paced joint (the Z1 client with command_period_s) is spread over the
+    command period at a constant fed-forward velocity, not taken at the rate limit in one
+    tick; a step too large for the period still goes no faster than the limit."""
+    from pydrake.systems.analysis import Simulator
+
+    from dexdrake.systems.target_limits import TargetLimiter
+
+    limiter = TargetLimiter(_limits([2.0, 2.0], feedforward=[True, True], paced=[True, False]),
+                            period=0.005, command_period=0.02)
+    simulator = Simulator(limiter)
+    context = simulator.get_mutable_context()
+    limiter.GetInputPort("hand_state").FixValue(context, [0.0, 0.0, 0.0, 0.0])
+    limiter.GetInputPort("command").FixValue(context, [0.0, 0.0])
+    simulator.Initialize()
+    limiter.GetInputPort("command").FixValue(context, [0.01, 0.01])
+    desired = limiter.GetOutputPort("desired_state")
+    simulator.AdvanceTo(0.001)  # one tick (t = 0): paced 0.01 / 0.02 s = 0.5 rad/s; unpaced at the 2 rad/s limit, done
+    np.testing.assert_allclose(desired.Eval(context), [0.0025, 0.01, 0.5, 2.0], atol=1e-9)
+    simulator.AdvanceTo(0.011)  # three ticks: the paced joint still moving at the same rate
+    np.testing.assert_allclose(desired.Eval(context), [0.0075, 0.01, 0.5, 0.0], atol=1e-9)
+    simulator.AdvanceTo(0.021)  # arrived at the fourth tick, at rest from the fifth
+    np.testing.assert_allclose(desired.Eval(context), [0.01, 0.01, 0.0, 0.0], atol=1e-9)
+    limiter.GetInputPort("command").FixValue(context, [0.51, 0.51])  # 25 rad/s over the period: capped at 2
+    simulator.AdvanceTo(0.026)
+    np.testing.assert_allclose(desired.Eval(context), [0.02, 0.02, 2.0, 2.0], atol=1e-9)
+
+
 def test_limits_and_rates_are_the_drivers():
     from dexdrake.hands.description import load_hand
     from dexdrake.hardware.z1_model import z1_model
@@ -61,7 +95,7 @@ def test_limits_and_rates_are_the_drivers():
 
     scenario = load_scenario(CONFIGS / "hil.yaml")
     hand = load_hand(scenario.hand)
-    lower, upper, rate, feedforward = target_limits(scenario, hand)
+    lower, upper, rate, feedforward, paced = target_limits(scenario, hand)
     n_arm = len(hand.arm_joints)
     np.testing.assert_allclose(rate[n_arm:], scenario.drivers.hand.max_target_rate)
     assert np.all(rate[:n_arm] == rate[0]) and 0 < rate[0] <= z1_model().limits.velocity.min()
@@ -71,14 +105,16 @@ def test_limits_and_rates_are_the_drivers():
     # the Z1 config's velocity feed-forward (configs/hil.yaml: on, as in training's scenario)
     on = [True] * n_arm + [False] * (hand.num_actuators - n_arm)
     assert feedforward.tolist() == on and scenario.drivers.arm.velocity_feedforward is True
+    assert paced.tolist() == on  # the Z1 client follows each target over the control period
     scenario.drivers.arm.velocity_feedforward = False
-    assert not target_limits(scenario, hand)[3].any()
+    assert not target_limits(scenario, hand).velocity_feedforward.any()
     scenario.drivers.arm.velocity_feedforward = None  # the driver's default: on
-    assert target_limits(scenario, hand)[3].tolist() == on
+    assert target_limits(scenario, hand).velocity_feedforward.tolist() == on
     scenario.drivers.hand.max_target_rate = 1.5
-    assert np.all(target_limits(scenario, hand)[2][n_arm:] == 1.5)
-    adroit = load_hand("adroit")  # no drivers: the model's joint limits, no rate limit
-    assert np.all(np.isinf(target_limits(scenario, adroit)[2]))
+    assert np.all(target_limits(scenario, hand).max_rate[n_arm:] == 1.5)
+    adroit = load_hand("adroit")  # no drivers: the model's joint limits, no rate limit, no pacing
+    assert np.all(np.isinf(target_limits(scenario, adroit).max_rate))
+    assert not target_limits(scenario, adroit).paced.any()
 
 
 def test_sim_station_moves_fingers_no_faster_than_the_hil_drivers_allow():

@@ -497,6 +497,22 @@ def test_reference_velocity_is_sent_only_with_velocity_feedforward(emulator):
         assert (peak == pytest.approx(1.0, abs=1e-3)) if ff else peak == 0.0, (ff, peak)
 
 
+def test_a_command_period_spreads_each_target_over_it(emulator):
+    """With command_period_s the reference reaches a new target in that period, at a
+    constant velocity sent as W (0.05 rad over 0.2 s: 0.25 rad/s), not at max_velocity;
+    a target too far for the period still ramps at max_velocity."""
+    arm = make_arm(emulator, max_velocity=1.0, command_period_s=0.2)
+    with arm:
+        q = arm.state().q
+        toward_middle = np.sign((LOWER + UPPER) / 2 - q)
+        for step, rate in ((0.05, 0.25), (0.5, 1.0)):
+            sent, target = [], arm.state().q_target + step * toward_middle
+            arm.command_positions(target)
+            assert wait_for(lambda: sent.append(emulator.command().dq_d.copy())
+                            or np.abs(arm.state().q_target - target).max() < 1e-6, 5.0)
+            assert np.abs(sent).max() == pytest.approx(rate, abs=1e-3), (step, np.abs(sent).max())
+
+
 def test_start_without_controller_fails_cleanly():
     free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     free.bind(("127.0.0.1", 0))
@@ -753,6 +769,7 @@ def test_model_gives_limits_gains_and_payload():
     ({"kd": (2000,) * 5}, r"Z1 kd: need 6 finite values"),
     ({"kp": (-1, 30, 30, 20, 15, 10)}, r"Z1 kp must be >= 0"),
     ({"watchdog_timeout_s": 0.0}, "watchdog_timeout_s must be > 0"),
+    ({"command_period_s": 0.0}, "command_period_s must be > 0"),
 ])
 def test_config_beyond_the_model_limits_is_refused(kw, message):
     with pytest.raises(HardwareError, match=message):

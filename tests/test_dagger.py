@@ -326,12 +326,27 @@ def test_rollout_benchmark_runs_the_shipped_policy_in_an_env_of_its_features(loa
     policy, factory = bench.shipped_policy_env(["sphere_small"], 3)
     parts, steps, cpu, _ = bench.breakdown([("sphere_small", 1000), ("sphere_small", 1001)], 2, policy, factory)
     assert steps == 6 and cpu > 0 and parts["policy inference"] > 0 and parts["expert label"] > 0
+def test_every_dagger_episode_of_an_iteration_has_its_own_seed():
+    """A seed fixes the placement: no two episodes of an iteration (objects, probes) share one, and
+    an iteration too large for its seed block is refused."""
+    from dexdrake.learn.dagger import PROBE_SEEDS, episode_jobs
+
+    config = DaggerConfig(seed=3, episodes_per_object=2, probe_per_object=1)
+    train, probe = episode_jobs(config, 1, ["a", "b", "c"]), episode_jobs(config, 1, ["p", "q"], probe=True)
+    assert train == [("a", 3010000), ("b", 3010002), ("c", 3010004), ("a", 3010001), ("b", 3010003), ("c", 3010005)]
+    assert probe == [("p", 3010000 + PROBE_SEEDS), ("q", 3010001 + PROBE_SEEDS)]
+    assert not {s for _, s in train} & {s for _, s in episode_jobs(config, 2, ["a", "b", "c"])}
+    with pytest.raises(DexdrakeError, match="exceed the 5000 seeds"):
+        episode_jobs(config, 0, [f"o{i}" for i in range(2501)])
+
+
 def test_dagger_and_demo_seeds_that_would_reach_the_evaluation_seeds_are_refused_in_one_line(tmp_path, capsys):
     from dexdrake.eval.seeds import TRAINING_SEEDS
-    from dexdrake.learn.dagger import episode_seeds
+    from dexdrake.learn.dagger import episode_jobs
 
     config = DaggerConfig(seed=999, iterations=99, episodes_per_object=2, probe_per_object=3)
-    assert episode_seeds(config, 98, probe=True)[-1] == 999 * 10**6 + 98 * 10**4 + 5000 + 2 < TRAINING_SEEDS.stop
+    probes = episode_jobs(config, 98, ["a", "b"], probe=True)
+    assert probes[-1] == ("b", 999 * 10**6 + 98 * 10**4 + 5000 + 5) and probes[-1][1] < TRAINING_SEEDS.stop
     assert main(["train", "dagger", "--out", str(tmp_path / "d"), "--objects", OBJECT, "--seed", "1000"]) == 2
     err = capsys.readouterr().err
     assert "DAgger's episode seeds" in err and "below the validation" in err and len(err.strip().splitlines()) == 1

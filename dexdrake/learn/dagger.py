@@ -82,7 +82,8 @@ class DaggerConfig:
     envs_per_worker: int = ENVS_PER_WORKER  # a policy's episodes each worker steps in lockstep
     backend: str = "process"  # sampler backend (samplers.BACKENDS)
     seed: int = field(default=0, metadata={"type": argtypes.seed, "help": "episode seeds of iteration i: "
-                                           f"seed * 10**6 + i * 10**4 + k (probes: + {PROBE_SEEDS} + k)"})
+                                           "seed * 10**6 + i * 10**4 + j * episodes_per_object + k for "
+                                           f"episode k of object j (probes: + {PROBE_SEEDS})"})
     probe_per_object: int = field(default=0, metadata={
         "type": argtypes.int_at_least(0),
         "help": "episodes per validation object per iteration, labelled but never trained on: the log's "
@@ -369,11 +370,17 @@ def check_resume(out_dir: Path, config: DaggerConfig, objects: list[str], resume
                             f"{'; '.join(diff)}; use another --out or delete that folder")
 
 
-def episode_seeds(config: DaggerConfig, iteration: int, probe: bool = False) -> list[int]:
-    """Iteration `iteration`'s episode seeds: seed * 10**6 + iteration * 10**4 + k, the probes'
-    PROBE_SEEDS above (k < episodes_per_object, or < probe_per_object for the probes)."""
+def episode_jobs(config: DaggerConfig, iteration: int, objects: list[str], probe: bool = False) -> list[tuple[str, int]]:
+    """Iteration `iteration`'s episodes (object, seed), episode k of object j at seed
+    seed * 10**6 + iteration * 10**4 + j * n + k (n = episodes_per_object, or probe_per_object for
+    the probes, whose seeds start PROBE_SEEDS above): every episode has its own seed, so its own
+    placement (a seed fixes the placement), none shared across objects. Episode-major order."""
+    n = config.probe_per_object if probe else config.episodes_per_object
+    if len(objects) * n > PROBE_SEEDS:
+        raise DexdrakeError(f"{len(objects)} objects x {n} episodes per iteration exceed the {PROBE_SEEDS} "
+                            "seeds an iteration has for them")
     first = config.seed * 10**6 + iteration * 10**4 + (PROBE_SEEDS if probe else 0)
-    return [first + k for k in range(config.probe_per_object if probe else config.episodes_per_object)]
+    return [(name, first + j * n + k) for k in range(n) for j, name in enumerate(objects)]
 
 
 def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, make_expert: MakeExpert,
@@ -399,8 +406,10 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
         raise DexdrakeError("probe_per_object needs probe objects")
     if set(probes) & set(objects):
         raise DexdrakeError(f"probe objects {sorted(set(probes) & set(objects))} are also training objects")
-    check_training_seeds([episode_seeds(config, config.iterations - 1, probe=bool(probes))[-1]],
-                         f"DAgger's episode seeds (seed * 10**6 + iteration * 10**4 + k; --seed {config.seed})")
+    last = episode_jobs(config, config.iterations - 1, objects) + episode_jobs(config, config.iterations - 1, probes,
+                                                                                 probe=True)
+    check_training_seeds([max(s for _, s in last)],
+                         f"DAgger's episode seeds (seed * 10**6 + iteration * 10**4 + ...; --seed {config.seed})")
     check_backend(config.backend, address)
     check_resume(out_dir, config, objects, resume_changed)
     torch.manual_seed(config.seed)
@@ -449,8 +458,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
             if data_path.is_file():
                 data = DaggerData.load(data_path)
             else:
-                seeds = episode_seeds(config, it)
-                jobs = [(name, s) for s in seeds for name in objects]
+                jobs = episode_jobs(config, it, objects)
                 driver = _driver(config.init, it)
                 data = collect(sampler, policy, jobs, config.expert_noise if policy is None else 0.0,
                                f"DAgger {it} ({driver})", make_expert)
@@ -463,8 +471,7 @@ def train_dagger(objects: list[str], out_dir: Path, make_env: MakeEnvFactory, ma
                 if probe_path.is_file():
                     probe = DaggerData.load(probe_path)
                 else:
-                    seeds = episode_seeds(config, it, probe=True)
-                    probe = collect(sampler, policy, [(name, s) for s in seeds for name in probes], 0.0,
+                    probe = collect(sampler, policy, episode_jobs(config, it, probes, probe=True), 0.0,
                                     f"DAgger {it} (probe)", make_expert)
                     probe.save(probe_path, {"iteration": it, "probe": True, "config": asdict(config)})
             collect_s = time.perf_counter() - t0

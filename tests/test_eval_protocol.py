@@ -74,6 +74,22 @@ def _report(seed: int) -> EvalReport:
     return report
 
 
+def test_placement_interval_resamples_the_shared_placements():
+    """Successes that follow the placement (the same seeds win on every object) are not 20
+    independent trials: the interval over resampled seeds is wider than the pooled Wilson one,
+    and the table says so; one seed per object gives none."""
+    report = EvalReport("p.pt", "seen", ["mug", "pear"], 10, FIRST_TEST_SEED, 100)
+    for name in ("mug", "pear"):
+        report.episodes += [EpisodeResult(name, FIRST_TEST_SEED + i, i < 5, 0.1, 100, 1.0) for i in range(10)]
+    (low, high), (w_low, w_high) = report.placement_ci95_pct(), report.average_ci95_pct()
+    assert low < w_low and high > w_high and low < 50 < high
+    assert low == report.placement_ci95_pct()[0]  # a fixed generator
+    assert f"the average's 95 % interval is {low:.1f}-{high:.1f} %" in markdown_table(report)
+    one = EvalReport("p.pt", "seen", ["mug"], 1, FIRST_TEST_SEED, 100,
+                     episodes=[EpisodeResult("mug", FIRST_TEST_SEED, True, 0.1, 100, 1.0)])
+    assert one.placement_ci95_pct() is None and "resampling them" not in markdown_table(one)
+
+
 def test_table_gives_intervals_hand_and_the_seed_range():
     md = markdown_table(_report(FIRST_TEST_SEED))
     assert "| mug | 5/10 | 50.0 | 100.0 | 0.100 | 23.7-76.3 |" in md

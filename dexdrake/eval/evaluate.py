@@ -92,6 +92,18 @@ class EvalReport:
         low, high = wilson_interval(sum(e.success for e in self.episodes), len(self.episodes))
         return 100.0 * low, 100.0 * high
 
+    def placement_ci95_pct(self, draws: int = 2000) -> tuple[float, float] | None:
+        """95 % interval (%) of the average when the placements are resampled too: every object
+        runs the same seeds, so the same N placements (a seed fixes the placement), and the
+        pooled episodes are not independent. A percentile bootstrap over the N seeds (each draw
+        averages N seeds drawn with replacement; fixed generator). None with one seed."""
+        seeds = sorted({e.seed for e in self.episodes})
+        if len(seeds) < 2:
+            return None
+        rate = np.array([np.mean([e.success for e in self.episodes if e.seed == s]) for s in seeds])
+        means = rate[np.random.default_rng(0).integers(len(seeds), size=(draws, len(seeds)))].mean(axis=1)
+        return 100.0 * float(np.quantile(means, 0.025)), 100.0 * float(np.quantile(means, 0.975))
+
     def seeds_text(self) -> str:
         return f"{self.seed}..{self.seed + self.episodes_per_object - 1}"
 

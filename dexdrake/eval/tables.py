@@ -95,6 +95,14 @@ def fault_lines(episodes) -> list[str]:
     return [f"- {sum(kinds.values())} of {len(episodes)} episodes ended on a fault, each a failure: {named}"]
 
 
+def _placement_line(report: EvalReport) -> list[str]:
+    ci = report.placement_ci95_pct()
+    if ci is None:
+        return []
+    return [f"- every object runs the same {report.episodes_per_object} placements (a seed fixes the placement): "
+            f"resampling them too (bootstrap over the seeds), the average's 95 % interval is {ci[0]:.1f}-{ci[1]:.1f} %"]
+
+
 def markdown_table(report: EvalReport) -> str:
     """The report as markdown: a header naming command, policy and seeds, then the table."""
     part = report.seed_range()
@@ -111,6 +119,7 @@ def markdown_table(report: EvalReport) -> str:
         "- success: object within 10 cm of the target (15 cm above its start) for 50 consecutive steps",
         f"- average {report.average_pct():.1f} % over {len(report.objects)} objects, 95 % Wilson interval "
         f"{low:.1f}-{high:.1f} % ({len(report.episodes)} episodes pooled)",
+        *_placement_line(report),
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s) x {report.envs_per_worker} env(s) in lockstep",
         *fault_lines(report.episodes),
         "",

@@ -6,12 +6,12 @@ drivers clamp it into the joint limits and then follow it at no more than a targ
 RateLimiter); the Z1 client follows each new target evenly over the control period at no
 more than that (`command_period_s`, hardware/safety.py paced_rate) and sends the reference's
 own velocity with it as the controller's desired velocity where its `velocity_feedforward`
-is on (hardware/z1_udp.py), while the Allegro driver's PD has no velocity set-point. A policy whose set-points jump
-(closing the hand in one control step) meets a slower hand on hardware than in an
-unlimited simulation, and an arm PD given no desired velocity lags its ramp by kd/kp *
-velocity (0.1 rad at pi rad/s with the Z1's gains) where one given it does not. The sim
-station, training's included, passes its commands through `TargetLimiter` with the same
-limits, rates and velocity feed-forward, resolved from the scenario's driver entries exactly
+is on (hardware/z1_udp.py), while the Allegro driver's PD has no velocity set-point. A
+policy whose set-points jump (closing the hand in one control step) meets a slower hand on
+hardware than in an unlimited simulation, and an arm PD given no desired velocity lags its
+ramp by kd/kp * velocity (0.1 rad at pi rad/s with the Z1's gains) where one given it does
+not. The sim station, training's included, passes its commands through `TargetLimiter` with
+the same limits, rates, pacing and velocity feed-forward, resolved from the scenario's driver entries exactly
 as the drivers resolve them (`target_limits`), so that training, simulation and
 hardware-in-the-loop agree.
 

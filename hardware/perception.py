@@ -14,6 +14,9 @@ model: occluded, moved too far) as a failure, for the caller to fall back to `es
 Registration runs scene -> model (source = segmented scene cloud, target = model cloud), so
 `fitness` is the fraction of observed points that lie on the posed model: about 1 for a
 correct pose whatever the view, unlike a model -> scene fitness that a partial view caps.
+A twin that fits most observed points (a tilted or flipped L) puts model surface where the
+camera sees past it, so each try is also checked the other way round, model -> image
+(`contradicted_fraction`), and a contradicted one is not chosen.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,15 +63,20 @@ class GreenScreenConfig:
             raise DexdrakeError(f"min_component_px must be >= 0, got {self.min_component_px}")
 
 
+def green_pixels(frame: RgbdFrame, config: GreenScreenConfig = GreenScreenConfig()
+                 ) -> np.ndarray:
+    """Boolean HxW mask of the green (background) pixels."""
+    hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
+    return cv2.inRange(hsv, np.array(config.hsv_low, np.uint8),
+                       np.array(config.hsv_high, np.uint8)) > 0
+
+
 def segment_object(frame: RgbdFrame, config: GreenScreenConfig = GreenScreenConfig()
                    ) -> np.ndarray:
     """Boolean HxW mask of non-green pixels, in regions of at least `min_component_px`
     pixels, with valid depth inside the configured range."""
-    hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
-    green = cv2.inRange(hsv, np.array(config.hsv_low, np.uint8),
-                        np.array(config.hsv_high, np.uint8))
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(cv2.bitwise_not(green),
-                                                           connectivity=8)
+    not_green = (~green_pixels(frame, config)).astype(np.uint8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(not_green, connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= config.min_component_px
     keep[0] = False                     # label 0: the green pixels
     depth = frame.depth
@@ -125,6 +134,13 @@ class RegistrationConfig:
     fitness_distance_factor: float = 1.5
     min_points: int = 60
     min_fitness: float = 0.7
+    # A try is refused when more than `max_contradicted` of its camera-facing surface is
+    # contradicted (`contradicted_fraction`): at every pixel within `free_space_window_factor`
+    # voxels (at the object's median depth) of the point's pixel the frame shows green screen
+    # or a depth more than `free_space_margin_factor` voxels beyond the point.
+    free_space_margin_factor: float = 2.0
+    free_space_window_factor: float = 2.0
+    max_contradicted: float = 0.03
     model_samples_per_voxel_area: float = 4.0
     seed: int = 0
 
@@ -135,6 +151,10 @@ class RegistrationConfig:
             raise DexdrakeError("need ransac_runs >= 1, extra_runs >= 0 and ransac_n >= 3")
         if not 0 <= self.min_fitness <= 1:
             raise DexdrakeError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+        if not 0 <= self.max_contradicted <= 1:
+            raise DexdrakeError(f"max_contradicted must be in [0, 1], got {self.max_contradicted}")
+        if self.free_space_margin_factor < 0 or self.free_space_window_factor < 0:
+            raise DexdrakeError("free_space_margin_factor and free_space_window_factor must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -241,6 +261,41 @@ def _build_model_cloud(mesh_path: Path, config: RegistrationConfig, digest: str
                       np.asarray(fpfh.data).copy(), digest)
 
 
+# ---------------------------------------------------------------- depth-image check
+
+def free_space_depth(frame: RgbdFrame, background: np.ndarray, window_px: int) -> np.ndarray:
+    """HxW float32 (m): per pixel, the nearest depth seen within `window_px` pixels of it; a
+    background (green) pixel counts as infinitely far (the screen hides nothing), a pixel
+    without depth as 0 (anything may be there)."""
+    seen = np.where(background, np.inf, frame.depth * 1e-3).astype(np.float32)
+    size = 2 * window_px + 1
+    return cv2.erode(seen, np.ones((size, size), np.uint8))
+
+
+def contradicted_fraction(T_CO: np.ndarray, model: ModelCloud, near_depth: np.ndarray,
+                          intrinsics: CameraIntrinsics, margin: float) -> float:
+    """The fraction of the posed model's surface that the depth image contradicts.
+
+    Of the model points that face the camera (outward normal toward it) and project into
+    the image, a point is contradicted when `near_depth` (`free_space_depth`) at its pixel
+    lies more than `margin` (m) beyond it: the camera sees through to something farther, or
+    only green screen, where the model says there is surface. A point behind the observed
+    depth (hidden by a finger or by the object itself) or near a pixel without depth is not
+    contradicted. 1 when no model point faces the camera inside the image."""
+    R, t = T_CO[:3, :3], T_CO[:3, 3]
+    p = model.points @ R.T + t
+    facing = np.einsum("ij,ij->i", model.normals @ R.T, p) < 0
+    z = p[:, 2]
+    ahead = facing & (z > 1e-6)
+    u = np.rint(intrinsics.fx * p[ahead, 0] / z[ahead] + intrinsics.cx).astype(np.int64)
+    v = np.rint(intrinsics.fy * p[ahead, 1] / z[ahead] + intrinsics.cy).astype(np.int64)
+    inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    if not inside.any():
+        return 1.0
+    seen = near_depth[v[inside], u[inside]]
+    return float(np.mean(seen > z[ahead][inside] + margin))
+
+
 # ---------------------------------------------------------------- registration
 
 @dataclass(frozen=True)
@@ -257,6 +312,7 @@ class PoseEstimate:
     num_points: int = 0                    # scene points after voxel downsampling
     elapsed_s: float = 0.0
     run_fitness: tuple[float, ...] = field(default_factory=tuple)  # per ICP-refined try
+    contradicted: float = 0.0              # `contradicted_fraction` of the pose (global only)
 
 
 def _cube_axes() -> np.ndarray:
@@ -283,27 +339,43 @@ def _refine(scene: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: 
     return float(ev.fitness), float(ev.inlier_rmse), np.array(T)
 
 
-def _better(best: tuple[float, float, np.ndarray] | None,
-            candidate: tuple[float, float, np.ndarray]) -> tuple[float, float, np.ndarray]:
-    """The higher-fitness result (lower RMSE on ties)."""
+_Try = tuple[float, float, np.ndarray, float]   # (fitness, inlier_rmse, T_OC, contradicted)
+
+
+def _better(best: _Try | None, candidate: _Try) -> _Try:
+    """The higher-fitness try (lower RMSE on ties)."""
     if best is None or (candidate[0], -candidate[1]) > (best[0], -best[1]):
         return candidate
     return best
 
 
+@dataclass(frozen=True)
+class Registration:
+    """The pose `register_model` chose and how well it fits."""
+
+    T_CO: np.ndarray                 # 4x4, the model in the camera frame
+    fitness: float                   # fraction of scene points on the posed model
+    inlier_rmse: float               # m, over those inliers
+    contradicted: float              # fraction of its surface the frame contradicts (0: unchecked)
+    num_points: int                  # scene points after voxel downsampling
+    run_fitness: tuple[float, ...]   # fitness of each ICP-refined try
+
+
 def register_model(points_C: np.ndarray, model: ModelCloud,
-                   config: RegistrationConfig = RegistrationConfig()
-                   ) -> tuple[np.ndarray, float, float, int, tuple[float, ...]]:
+                   config: RegistrationConfig = RegistrationConfig(),
+                   contradicted: Callable[[np.ndarray], float] | None = None) -> Registration:
     """Register `model` to a partial cloud seen from the camera at the origin.
 
     Best of `ransac_runs` RANSAC + ICP tries by fitness; below `good_fitness`, half-turn
-    variants of the best and up to `extra_runs` more RANSAC runs are tried.
-    Returns (X_CO 4x4, fitness, inlier_rmse, scene points used, fitness of each try)."""
+    variants of the best-fitting try and up to `extra_runs` more RANSAC runs are tried.
+    `contradicted` (X_CO 4x4 -> the fraction of the posed model's surface the frame
+    contradicts, `contradicted_fraction`), if given, rules out tries above
+    `max_contradicted`; when every try is ruled out, the best-fitting one is returned."""
     v = config.voxel
     scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_C)).voxel_down_sample(v)
     n = len(scene.points)
     if n < config.min_points:
-        return np.eye(4), 0.0, float("nan"), n, ()
+        return Registration(np.eye(4), 0.0, float("nan"), 0.0, n, ())
     scene.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
         radius=config.normal_radius_factor * v, max_nn=30))
     scene.orient_normals_towards_camera_location(np.zeros(3))
@@ -315,48 +387,55 @@ def register_model(points_C: np.ndarray, model: ModelCloud,
                 _reg.CorrespondenceCheckerBasedOnDistance(ransac_d)]
     criteria = _reg.RANSACConvergenceCriteria(config.ransac_max_iterations,
                                               config.ransac_confidence)
-    best: tuple[float, float, np.ndarray] | None = None
+    best: _Try | None = None   # the best try the frame does not contradict
+    top: _Try | None = None    # the best-fitting try of all
     run_fitness: list[float] = []
 
-    def ransac_run(run: int) -> None:
-        nonlocal best
+    def consider(T: np.ndarray) -> _Try:
+        nonlocal best, top
+        fitness, rmse, T_OC = _refine(scene, target, T, config)
+        c = 0.0 if contradicted is None else contradicted(np.linalg.inv(T_OC))
+        candidate = (fitness, rmse, T_OC, c)
+        run_fitness.append(fitness)
+        top = _better(top, candidate)
+        if c <= config.max_contradicted:
+            best = _better(best, candidate)
+        return candidate
+
+    def ransac_run(run: int) -> _Try:
         o3d.utility.random.seed(config.seed + run)
         coarse = _reg.registration_ransac_based_on_feature_matching(
             scene, target, scene_fpfh, target_fpfh, config.mutual_filter, ransac_d,
             _reg.TransformationEstimationPointToPoint(False), config.ransac_n,
             checkers, criteria)
-        candidate = _refine(scene, target, coarse.transformation, config)
-        run_fitness.append(candidate[0])
-        best = _better(best, candidate)
+        return consider(coarse.transformation)
 
-    def half_turns() -> None:
+    def half_turns(start: np.ndarray) -> None:
         # Man-made shapes often lock onto a near-symmetric twin (a flipped plate, an L turned
-        # about its diagonal): try half turns of the best pose about the 13 symmetry axes
-        # of a cube in the model frame, through the observed centre (cheap: ICP only).
-        nonlocal best
-        start = best[2]
+        # about its diagonal): try half turns of a pose about the 13 symmetry axes of a
+        # cube in the model frame, through the observed centre (cheap: ICP only).
         c = (start @ np.append(np.asarray(scene.points).mean(axis=0), 1.0))[:3]
         for axis in _HALF_TURN_AXES:
             F = np.eye(4)
             F[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)   # rotation by pi
             F[:3, 3] = c - F[:3, :3] @ c
-            candidate = _refine(scene, target, F @ start, config)
-            run_fitness.append(candidate[0])
-            best = _better(best, candidate)
+            consider(F @ start)
+
+    def good() -> bool:
+        return best is not None and best[0] >= config.good_fitness
 
     for run in range(config.ransac_runs):
         ransac_run(run)
-    if config.try_flips and best[0] < config.good_fitness:
-        half_turns()
+    if config.try_flips and not good():
+        half_turns(top[2])
     for run in range(config.ransac_runs, config.ransac_runs + config.extra_runs):
-        if best[0] >= config.good_fitness:
+        if good():
             break
-        previous = best
-        ransac_run(run)
-        if config.try_flips and best is not previous and best[0] < config.good_fitness:
-            half_turns()
-    fitness, rmse, T_OC = best
-    return np.linalg.inv(T_OC), fitness, rmse, n, tuple(run_fitness)
+        candidate = ransac_run(run)
+        if config.try_flips and (candidate is top or candidate is best) and not good():
+            half_turns(candidate[2])
+    fitness, rmse, T_OC, c = best if best is not None else top
+    return Registration(np.linalg.inv(T_OC), fitness, rmse, c, n, tuple(run_fitness))
 
 
 def model_symmetries(points: np.ndarray, tolerance: float) -> np.ndarray:
@@ -453,34 +532,52 @@ class ObjectPoseEstimator:
         return PoseEstimate(ok, reason, X_CO, frame.X_WC @ X_CO, fitness, float(ev.inlier_rmse),
                             num_points=n, elapsed_s=time.perf_counter() - t0)
 
+    def depth_check(self, frame: RgbdFrame, mask: np.ndarray | None = None
+                    ) -> Callable[[np.ndarray], float]:
+        """X_CO (4x4) -> the fraction of the model's surface at that pose that `frame`
+        contradicts (`contradicted_fraction` with the `registration` settings; the window
+        in pixels at the median depth of `mask`, the frame's object pixels, segmented when
+        not given)."""
+        cfg = self.registration
+        if mask is None:
+            mask = segment_object(frame, self.segmentation)
+        z = float(np.median(frame.depth[mask])) * 1e-3 if mask.any() else np.inf
+        window_px = round(cfg.free_space_window_factor * cfg.voxel * frame.intrinsics.fx / z)
+        near = free_space_depth(frame, green_pixels(frame, self.segmentation), window_px)
+        margin = cfg.free_space_margin_factor * cfg.voxel
+        return lambda T_CO: contradicted_fraction(T_CO, self.model, near, frame.intrinsics, margin)
+
     def estimate(self, frame: RgbdFrame, prior: RigidTransform | None = None) -> PoseEstimate:
         """The object pose in `frame` (the twin nearest `prior`, a previous pose in the
-        world, or the upright one); invalid input or a poor fit gives success=False."""
-        t0 = time.perf_counter()
+        world, or the upright one); invalid input, a poor fit or a pose the depth image
+        contradicts (`contradicted_fraction`) gives success=False."""
+        t0, cfg = time.perf_counter(), self.registration
         try:
             mask, points_C = self.object_points(frame)
             n_mask = int(mask.sum())
-            if len(points_C) < self.registration.min_points:
+            if len(points_C) < cfg.min_points:
                 return PoseEstimate(False, f"too few object pixels ({n_mask}) after "
                                     "segmentation", num_mask_pixels=n_mask,
                                     elapsed_s=time.perf_counter() - t0)
-            T_CO, fitness, rmse, n, runs = register_model(points_C, self.model,
-                                                          self.registration)
+            reg = register_model(points_C, self.model, cfg, self.depth_check(frame, mask))
         except Exception as e:  # noqa: BLE001 - the contract: failures are results
             return PoseEstimate(False, f"perception error: {type(e).__name__}: {e}",
                                 elapsed_s=time.perf_counter() - t0)
         elapsed = time.perf_counter() - t0
-        if n < self.registration.min_points:
-            return PoseEstimate(False, f"too few points after downsampling ({n} < "
-                                f"{self.registration.min_points})", num_mask_pixels=n_mask,
-                                num_points=n, elapsed_s=elapsed)
-        X_CO = RigidTransform(T_CO)
+        if reg.num_points < cfg.min_points:
+            return PoseEstimate(False, f"too few points after downsampling ({reg.num_points} < "
+                                f"{cfg.min_points})", num_mask_pixels=n_mask,
+                                num_points=reg.num_points, elapsed_s=elapsed)
+        X_CO = RigidTransform(reg.T_CO)
         X_WO = None
         if frame.X_WC is not None:
             X_WO = nearest_twin(frame.X_WC @ X_CO, self.symmetries, prior)
             X_CO = frame.X_WC.inverse() @ X_WO
-        ok = fitness >= self.registration.min_fitness
-        reason = "" if ok else (f"low fitness {fitness:.2f} < "
-                                f"{self.registration.min_fitness:.2f}")
-        return PoseEstimate(ok, reason, X_CO, X_WO, fitness, rmse, n_mask, n, elapsed,
-                            runs)
+        reason = ""
+        if reg.fitness < cfg.min_fitness:
+            reason = f"low fitness {reg.fitness:.2f} < {cfg.min_fitness:.2f}"
+        elif reg.contradicted > cfg.max_contradicted:
+            reason = (f"the depth image contradicts the pose: {reg.contradicted:.0%} of its visible "
+                      f"surface where the camera sees past it (max {cfg.max_contradicted:.0%})")
+        return PoseEstimate(not reason, reason, X_CO, X_WO, reg.fitness, reg.inlier_rmse, n_mask,
+                            reg.num_points, elapsed, reg.run_fitness, reg.contradicted)

@@ -6,7 +6,8 @@ import types
 import numpy as np
 import pytest
 import trimesh
-from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.common.eigen_geometry import AngleAxis
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 
 from dexdrake.errors import DexdrakeError
 from dexdrake.hardware.kinect import (
@@ -86,6 +87,8 @@ def test_frame_validation_refuses_bad_frames(make, match):
 @pytest.mark.parametrize("make, match", [
     (lambda: RegistrationConfig(voxel=0.0), "voxel"),
     (lambda: RegistrationConfig(min_fitness=1.5), "min_fitness"),
+    (lambda: RegistrationConfig(max_contradicted=-0.1), "max_contradicted"),
+    (lambda: RegistrationConfig(free_space_window_factor=-1), "free_space_window_factor"),
     (lambda: GreenScreenConfig(min_depth_mm=900, max_depth_mm=500), "depth range"),
     (lambda: GreenScreenConfig(min_component_px=-1), "min_component_px"),
     (lambda: DepthNoiseModel(dropout=-0.1), "dropout"),
@@ -437,7 +440,8 @@ def test_tracking_follows_the_object_behind_an_occluding_finger(finger_scene, l_
     3 deg while a finger in front of it hides part of it and adds points of its own, at a
     small fraction of a global registration's cost. The track starts at the true pose: the
     global registration's accuracy is another test's subject (at 320x180 this object has a
-    tilted twin that fits 88 % of the points)."""
+    tilted twin that fits 88 % of the points and that the depth check does not always refute
+    from this view)."""
     camera, estimator = finger_scene
     rest = l_shape[1]
     X0 = RigidTransform(RollPitchYaw(0.0, 0.0, 0.4), [0.0, 0.0, rest])
@@ -461,6 +465,47 @@ def test_tracking_follows_the_object_behind_an_occluding_finger(finger_scene, l_
         prior = result.X_WO
     assert min(occluded_fitness) < 0.99  # the finger's own points are seen, and rejected
     assert np.median(costs) < first.elapsed_s / 10
+
+
+def _half_turn(X_WO: RigidTransform, axis_O: list[float]) -> RigidTransform:
+    """X_WO turned by pi about `axis_O` (object frame) through the object's origin."""
+    return X_WO @ RigidTransform(RotationMatrix(AngleAxis(np.pi, np.array(axis_O) / np.linalg.norm(axis_O))),
+                                 np.zeros(3))
+
+
+def test_depth_check_passes_the_true_pose_behind_a_finger_and_refuses_twins(finger_scene, l_shape):
+    """The depth image contradicts (`contradicted_fraction` above `max_contradicted`) the L
+    shape's pose tilted by 30 deg about its bar, and its flipped twins refined by ICP onto
+    the observed points (one fits most of them), but not its true pose while a finger in
+    front of it hides a good part of it: points behind the observed depth do not count."""
+    camera, estimator = finger_scene
+    X0 = RigidTransform(RollPitchYaw(0.0, 0.0, 0.4), [0.0, 0.0, l_shape[1]])
+    camera.hide_object("l_shape")
+    camera.hide_object("finger")
+    empty = camera.render_depth_m()
+    camera.set_object_pose("l_shape", X0)
+    bare = camera.render_depth_m()
+    camera.set_object_pose("finger", RigidTransform(X0.translation() + [0.04, -0.01, 0.02]))
+    occluded = camera.render_depth_m()
+    on_object = bare < empty - 0.005
+    assert (occluded[on_object] < bare[on_object] - 0.005).mean() > 0.15  # the finger hides > 15 %
+    frame = camera.read()
+    check, limit = estimator.depth_check(frame), estimator.registration.max_contradicted
+    X_CW = frame.X_WC.inverse()
+    assert check((X_CW @ X0).GetAsMatrix4()) < limit
+    camera.hide_object("finger")
+    frame = camera.read()
+    check = estimator.depth_check(frame)
+    for r in (0.5, -0.5):  # a tilt about the bar's axis lifts the side block off the table
+        tilted = X0 @ RigidTransform(RollPitchYaw(r, 0.0, 0.0), np.zeros(3))
+        assert check((X_CW @ tilted).GetAsMatrix4()) > limit, r
+    fits = []
+    for axis in ([1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]):
+        fitted = estimator.track(frame, _half_turn(X0, axis))  # ICP onto the observed points
+        assert _pose_error(X0, fitted.X_WO)[1] > 90.0, axis  # still a flipped twin
+        assert check((X_CW @ fitted.X_WO).GetAsMatrix4()) > limit, (axis, fitted.fitness)
+        fits.append(fitted.fitness)
+    assert max(fits) > 0.85
 
 
 def test_tracking_reports_a_lost_object(finger_scene, l_shape):

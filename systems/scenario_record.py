@@ -17,8 +17,8 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
     """What a policy trained or run under `s` depends on, as plain data (stored in policy
     checkpoints): the plant step and control period (s), the plant's contact approximation,
     the drivers' target limits in policy order (systems/target_limits.py TargetLimits: lower,
-    upper, max_rate (inf: none), velocity_feedforward, paced) and overspeed trip (speed, window; None
-    without drivers), the perception model the features see the object pose through
+    upper, max_rate (inf: none), velocity_feedforward, paced) and overspeed trip (speed,
+    window; None without drivers), the perception model the features see the object pose through
     (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
     hand = load_hand(s.hand)
     limits = target_limits(s, hand)

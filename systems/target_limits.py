@@ -101,8 +101,9 @@ class TargetLimiter(LeafSystem):
         self.max_rate, self.period, self.command_period = np.asarray(limits.max_rate, float), period, command_period
         self.feedforward = np.asarray(limits.velocity_feedforward, bool)
         self.paced = np.asarray(limits.paced, bool)
-        n = len(self.lower)
+        n = self._n = len(self.lower)
         self._at_rest = np.zeros(n)  # the desired velocity without feed-forward
+        self._any_paced, self._any_feedforward = bool(self.paced.any()), bool(self.feedforward.any())
         self._command = self.DeclareVectorInputPort("command", n)
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         # [target; its velocity; the last command (clamped); the rate toward it]
@@ -120,13 +121,15 @@ class TargetLimiter(LeafSystem):
         state.set_value(0, np.r_[q, np.zeros(len(q)), q, self.max_rate])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
+        n = self._n
         target = np.minimum(np.maximum(self._command.Eval(context), self.lower), self.upper)
-        previous, _, last, rate = np.split(context.get_discrete_state(0).value(), 4)
-        if self.paced.any() and not np.array_equal(target, last):
+        x = context.get_discrete_state(0).value()
+        previous, last, rate = x[:n], x[2 * n:3 * n], x[3 * n:]
+        if self._any_paced and not np.array_equal(target, last):
             rate = np.where(self.paced, paced_rate(previous, target, self.max_rate, self.command_period), self.max_rate)
         q = rate_limited(previous, target, rate, self.period)
-        v = np.where(self.feedforward, (q - previous) / self.period, 0.0) if self.feedforward.any() else self._at_rest
-        state.set_value(0, np.concatenate([q, v, target, rate]))
+        v = np.where(self.feedforward, (q - previous) / self.period, 0.0) if self._any_feedforward else self._at_rest
+        state.set_value(0, np.concatenate((q, v, target, rate)))
 
 
 def overspeed_limits(scenario: Scenario, hand: HandDescription) -> tuple[np.ndarray, np.ndarray] | None:
@@ -155,7 +158,7 @@ class OverspeedMonitor(LeafSystem):
         super().__init__()
         self.speed, self.window, self.names = np.asarray(speed, float), np.asarray(window, float), names
         self._instant = self.window == 0
-        n = len(self.speed)
+        n = self._n = len(self.speed)
         self._hand = self.DeclareVectorInputPort("hand_state", 2 * n)
         self.DeclareDiscreteState(2 * n)  # [q at each joint's window start; that start's time]
         self.DeclareInitializationDiscreteUpdateEvent(self._start)
@@ -166,10 +169,11 @@ class OverspeedMonitor(LeafSystem):
         state.set_value(0, np.r_[self._hand.Eval(context)[:n], np.full(n, context.get_time())])
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
-        n, t = len(self.speed), context.get_time()
+        n, t = self._n, context.get_time()
         x = self._hand.Eval(context)
         q, v = x[:n], x[n:]
-        q0, t0 = np.split(context.get_discrete_state(0).value(), 2)
+        s = context.get_discrete_state(0).value()
+        q0, t0 = s[:n], s[n:]
         span = t - t0
         due = ~self._instant & (span >= self.window - 1e-9)
         measured = np.where(self._instant, np.abs(v), np.where(due, np.abs(q - q0) / np.maximum(span, 1e-9), 0.0))
@@ -178,4 +182,4 @@ class OverspeedMonitor(LeafSystem):
             j = int(np.argmax(over))
             raise StationFault(f"overspeed: {self.names[j]} at {measured[j]:.2f} rad/s (the driver trips above "
                                f"{self.speed[j]:.2f} rad/s) at t = {t:.3f} s")
-        state.set_value(0, np.r_[np.where(due, q, q0), np.where(due, t, t0)])
+        state.set_value(0, np.concatenate((np.where(due, q, q0), np.where(due, t, t0))))

@@ -98,7 +98,7 @@ def test_table_gives_intervals_hand_and_the_seed_range():
     assert "validation seeds (range [1500000000, 2000000000)" in markdown_table(_report(FIRST_VALIDATION_SEED))
     assert "95 % Wilson interval 11.2-46.9 %" in md
     assert "NOT in the range reserved" in markdown_table(_report(900))
-    assert csv_table(_report(FIRST_TEST_SEED)).splitlines()[0].endswith(",ci95_pct")
+    assert csv_table(_report(FIRST_TEST_SEED)).splitlines()[0].endswith(",ci95_pct,category")
     assert "ended on a fault" not in md
     report = _report(FIRST_TEST_SEED)
     report.episodes[0].fault = "driver fault at step 7 (seed 1): overspeed: joint3 at 4.85 rad/s (...)"

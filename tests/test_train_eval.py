@@ -13,9 +13,9 @@ from rrd_content import logged_rows
 
 from dexdrake.cli import main
 from dexdrake.episode import EpisodeResult, run_episode
-from dexdrake.eval.evaluate import EvalReport, evaluate_policy
+from dexdrake.eval.evaluate import UNKNOWN_CATEGORY, EvalReport, evaluate_policy, object_categories, wilson_interval
 from dexdrake.eval.paper import PAPER_UNSEEN
-from dexdrake.eval.tables import csv_from_markdown, csv_table, markdown_table, table_rows, write_report
+from dexdrake.eval.tables import category_rows, csv_from_markdown, csv_table, markdown_table, table_rows, write_report
 from dexdrake.learn.curves import read_csv
 from dexdrake.learn.demo_dataset import save_demo_dataset
 from dexdrake.learn.policy import DexRepNetPolicy, PolicyConfig, load_policy, save_policy
@@ -209,7 +209,8 @@ def test_table_has_paper_column_and_average():
     assert "| mug | 3/3 | 100.0 | 100.0 |" in md
     assert "ours 50.0 %, paper 51.6 %" in md  # mug + pyramid_small, the objects with a paper number
     lines = csv_table(report).strip().splitlines()
-    assert lines[0] == "object,successes,ours_pct,paper_pct,mean_max_lift_m,ci95_pct" and lines[-1].startswith("average,4/9,44.4,83.9")
+    assert lines[0] == "object,successes,ours_pct,paper_pct,mean_max_lift_m,ci95_pct,category"
+    assert lines[4].startswith("average,4/9,44.4,83.9") and lines[5] == ",4/9,44.4,,,18.9-73.3,unknown"
 
 
 def test_seen_table_uses_the_seen_average_only(tmp_path):
@@ -221,10 +222,43 @@ def test_seen_table_uses_the_seen_average_only(tmp_path):
     assert json.loads(paths["json"].read_text())["average_pct"] == 75.0
     # the csv, made from the markdown, holds the rows exactly; nothing else is left in the folder
     with open(paths["csv"], newline="") as f:
-        assert list(csv.DictReader(f)) == table_rows(report)
+        assert list(csv.DictReader(f)) == ([{**r, "category": ""} for r in table_rows(report)]
+                                           + [{"object": "", "paper_pct": "", "mean_max_lift_m": "", **r}
+                                              for r in category_rows(report)])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_seen.csv", "eval_seen.json", "eval_seen.md"]
     with pytest.raises(ValueError, match="not an evaluation table"):
         csv_from_markdown("| feature set | obs dim |\n|---|---|\n| DexRep | 2601 |\n")
+
+
+def test_tables_pool_the_episodes_of_each_category(tmp_path):
+    """Objects of a category pool their episodes into one row (categories sorted), in the
+    markdown, the CSV made from it and the json; an object the library lacks is 'unknown'."""
+    objects = ["plate_dinner", "book_thin", "plate_side", "book_novel", "my_thing"]
+    report = _report("seen", objects, {"plate_dinner": 1, "book_thin": 3, "plate_side": 0, "book_novel": 2,
+                                       "my_thing": 3}, n=3)
+    report.categories = object_categories(objects)
+    assert report.categories == {"plate_dinner": "plate", "book_thin": "book", "plate_side": "plate",
+                                 "book_novel": "book", "my_thing": UNKNOWN_CATEGORY}
+    md = markdown_table(report)
+    body = md[md.index("| category |"):]
+    assert body.startswith("| category | successes | ours (%) | 95 % CI (%) |\n|---|---|---|---|\n"
+                           "| book | 5/6 | 83.3 | 43.6-97.0 |\n| plate | 1/6 | 16.7 | 3.0-56.4 |\n"
+                           "| unknown | 3/3 | 100.0 | 43.9-100.0 |\n")
+    assert md.index("| **average** |") < md.index("| category |")
+    paths = write_report(report, tmp_path)
+    with open(paths["csv"], newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["object"] for r in rows[:6]] == [*objects, "average"] and all(r["category"] == "" for r in rows[:6])
+    assert [(r["object"], r["category"], r["successes"], r["ours_pct"], r["ci95_pct"]) for r in rows[6:]] == [
+        ("", "book", "5/6", "83.3", "43.6-97.0"), ("", "plate", "1/6", "16.7", "3.0-56.4"),
+        ("", "unknown", "3/3", "100.0", "43.9-100.0")]
+    saved = json.loads(paths["json"].read_text())
+    assert saved["categories"] == report.categories
+    assert {c: (r["objects"], r["successes"], r["episodes"]) for c, r in saved["per_category"].items()} == {
+        "book": (["book_thin", "book_novel"], 5, 6), "plate": (["plate_dinner", "plate_side"], 1, 6),
+        "unknown": (["my_thing"], 3, 3)}
+    assert list(saved["per_category"]) == ["book", "plate", "unknown"]
+    assert saved["per_category"]["plate"]["ci95_pct"] == pytest.approx([100 * x for x in wilson_interval(1, 6)])
 
 
 def test_paper_numbers_cover_the_ten_namesakes_of_the_unseen_grab_objects():
@@ -250,6 +284,7 @@ def test_evaluate_policy_runs_seeded_episodes(tmp_path, env_blocks):
     report = evaluate_policy(path, env_factory_for_policy, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
     assert [(e.object, e.seed, e.steps) for e in report.episodes] == [(OBJECT, 5, 3), (OBJECT, 6, 3)]
     assert report.average_pct() == 0.0  # 3 steps cannot hold the object for 50
+    assert report.categories == {OBJECT: "sphere"} and list(report.per_category()) == ["sphere"]
     again = evaluate_policy(path, env_factory_for_policy, [OBJECT], episodes=2, seed=5, horizon=3, progress=False)
     assert [e.total_reward for e in again.episodes] == [e.total_reward for e in report.episodes]
 

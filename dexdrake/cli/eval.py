@@ -18,7 +18,7 @@ from dexdrake.eval.seeds import FIRST_TEST_SEED, FIRST_VALIDATION_SEED, SEED_RAN
 
 
 def add_parser(subparsers) -> None:
-    ev = subparsers.add_parser("eval", help="per-object success of a policy (the paper's Table I layout)")
+    ev = subparsers.add_parser("eval", help="per-object and per-category success of a policy (the paper's Table I layout)")
     ev.add_argument("--policy", required=True, type=Path, help="policy checkpoint (.pt)")
     ev.add_argument("--objects", default="unseen",
                     help="'seen', 'unseen' (test), 'validation' (choices), 'near' (the earlier unseen set) or object names")

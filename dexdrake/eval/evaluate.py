@@ -6,7 +6,8 @@ reserved for evaluation (`eval.seeds`: validation for choices, test for a shippe
 tables, custom for older blocks; the report names it, or says the seeds are not reserved),
 deterministic mean actions and the paper's evaluation length of
 100 control steps. The hand and feature set come from the policy. Rates carry 95 % Wilson
-intervals. Episodes run in worker processes (spawn/forkserver: a script calling
+intervals, per object and per object category (the library's; UNKNOWN_CATEGORY for an object
+it does not hold). Episodes run in worker processes (spawn/forkserver: a script calling
 `evaluate_policy` with workers > 1 needs a `if __name__ == "__main__":` guard), each stepping
 the episodes of up to `envs_per_worker` objects in lockstep with one policy call per step
 (one env per object, as with one episode at a time).
@@ -17,7 +18,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
@@ -28,13 +29,14 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from dexdrake.episode import EpisodeResult, run_episode, run_lockstep
-from dexdrake.errors import DexdrakeError
+from dexdrake.errors import DexdrakeError, UnknownNameError
 from dexdrake.eval.paper import PAPER_AVERAGE
 from dexdrake.eval.seeds import seed_range
 from dexdrake.learn.env_protocol import PolicyEnvFactory
 
 EVAL_HORIZON = 100  # control steps per evaluation episode (paper)
 Z_95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
+UNKNOWN_CATEGORY = "unknown"  # the category of an object the object library does not hold
 
 
 def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
@@ -46,6 +48,29 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     centre = (p + z * z / (2 * trials)) / denom
     half = z * ((p * (1 - p) / trials + z * z / (4 * trials * trials)) ** 0.5) / denom
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def pool_by_category(counts: Iterable[tuple[str, str, int, int]]) -> dict[str, tuple[list[str], int, int]]:
+    """Per category, sorted by name: (its objects, successes, episodes), summed over the
+    (object, category, successes, episodes) of each object."""
+    pooled: dict[str, tuple[list[str], int, int]] = {}
+    for name, category, wins, runs in counts:
+        objects, w, n = pooled.get(category, ([], 0, 0))
+        pooled[category] = ([*objects, name], w + wins, n + runs)
+    return dict(sorted(pooled.items()))
+
+
+def object_categories(objects: Iterable[str]) -> dict[str, str]:
+    """Object -> its category in the object library, UNKNOWN_CATEGORY where it holds no such object."""
+    from dexdrake.objects.library import get_object
+
+    def category(name: str) -> str:
+        try:
+            return get_object(name).category
+        except UnknownNameError:
+            return UNKNOWN_CATEGORY
+
+    return {name: category(name) for name in objects}
 
 
 @dataclass
@@ -65,6 +90,7 @@ class EvalReport:
     hand: str = ""  # from the policy
     feature_set: str = ""  # from the policy
     episodes: list[EpisodeResult] = field(default_factory=list)
+    categories: dict[str, str] = field(default_factory=dict)  # object -> category; absent: UNKNOWN_CATEGORY
 
     def per_object(self) -> dict[str, dict[str, float]]:
         """{object: {"successes", "episodes", "success_pct", "ci95_pct", "mean_max_lift"}} in object order."""
@@ -82,6 +108,16 @@ class EvalReport:
                 "mean_max_lift": float(np.mean([e.max_lift for e in eps])),
             }
         return out
+
+    def per_category(self) -> dict[str, dict[str, Any]]:
+        """{category: {"objects", "successes", "episodes", "success_pct", "ci95_pct"}}, sorted by
+        category: the episodes of its objects pooled."""
+        pooled = pool_by_category((name, self.categories.get(name, UNKNOWN_CATEGORY), int(r["successes"]),
+                                   int(r["episodes"])) for name, r in self.per_object().items())
+        return {category: {"objects": objects, "successes": wins, "episodes": runs,
+                           "success_pct": 100.0 * wins / runs,
+                           "ci95_pct": [100.0 * x for x in wilson_interval(wins, runs)]}
+                for category, (objects, wins, runs) in pooled.items()}
 
     def average_pct(self) -> float:
         """Mean over objects of the per-object success rate (%), as in the paper's tables."""
@@ -121,6 +157,7 @@ class EvalReport:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["per_object"] = self.per_object()
+        d["per_category"] = self.per_category()
         d["average_pct"] = self.average_pct()
         d["average_ci95_pct"] = list(self.average_ci95_pct())
         d["seeds_reserved_for_evaluation"] = self.seeds_reserved()
@@ -221,7 +258,8 @@ def evaluate_policy(
     by_seed = [(name, seed + i) for i in range(episodes) for name in objects]  # k in a row: distinct objects
     groups = [tuple(by_seed[i:i + k]) for i in range(0, len(by_seed), k)]
     report = EvalReport(str(policy_path), label, list(objects), episodes, seed, horizon, command, workers=workers,
-                        envs_per_worker=k, hand=policy.config.hand, feature_set=policy.config.feature_set)
+                        envs_per_worker=k, hand=policy.config.hand, feature_set=policy.config.feature_set,
+                        categories=object_categories(objects))
     bar = tqdm(total=len(jobs), desc=f"eval {label}", unit="episode", disable=not progress)
     start = time.perf_counter()
     try:  # the bar's line ends before any message that follows (an error, Ctrl-C)

@@ -21,7 +21,6 @@ line), so the core never imports the Drake systems.
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -30,6 +29,7 @@ from typing import Any
 
 from dexdrake.episode import EpisodeResult
 from dexdrake.errors import DexdrakeError
+from dexdrake.eval.evaluate import pool_by_category
 from dexdrake.hands.description import HandDescription
 from dexdrake.learn.samplers import Sampler
 from dexdrake.objects.meshfile import write_atomic
@@ -146,12 +146,9 @@ class ControllerTable:
 
     def category_rows(self) -> list[dict[str, Any]]:
         """Per category (sorted): successes, episodes, success %."""
-        counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
-        for row in self.object_rows():
-            counts[row["category"]][0] += row["successes"]
-            counts[row["category"]][1] += row["episodes"]
+        pooled = pool_by_category((r["object"], r["category"], r["successes"], r["episodes"]) for r in self.object_rows())
         return [{"category": c, "successes": w, "episodes": n, "success_pct": _pct(w, n)}
-                for c, (w, n) in sorted(counts.items())]
+                for c, (_, w, n) in pooled.items()]
 
     def success_pct(self) -> float:
         """Success % over every episode."""

@@ -2,10 +2,14 @@
 
 One row per object (successes, our rate, the paper's DexRep rate on the GRAB object our
 procedural stand-in is named after, where it has one, mean lift, 95 % Wilson interval) and
-an average row; the markdown header names the command that made the table, runnable as
-written, and the seed range. The CSV is made from the markdown table
-(`csv_from_markdown`), so the two never disagree, and a shipped markdown table gets its CSV
-without evaluating again.
+an average row; then a table with one row per object category (sorted; its objects' episodes
+pooled, `EvalReport.per_category`; an object the library does not hold is in category
+"unknown"). The markdown header names the command that made the tables, runnable as written,
+and the seed range. The CSV is made from the markdown (`csv_from_markdown`), so the two never
+disagree, and a shipped markdown table gets its CSV without evaluating again: the object rows
+and the average in the object table's columns, then the category rows, their category in a
+last column "category" and the object cell empty (a markdown without a category table gives
+the CSV without that column).
 """
 
 from __future__ import annotations
@@ -25,9 +29,11 @@ if TYPE_CHECKING:
     from dexdrake.eval.evaluate import EvalReport
 
 
-# (CSV column, markdown header) of the table, in order
+# (CSV column, markdown header) of the object table and of the category table, in order
 COLUMNS = (("object", "object"), ("successes", "successes"), ("ours_pct", "ours (%)"),
            ("paper_pct", "paper DexRep, GRAB namesake (%)"), ("mean_max_lift_m", "mean max lift (m)"), ("ci95_pct", "95 % CI (%)"))
+CATEGORY_COLUMNS = (("category", "category"), ("successes", "successes"), ("ours_pct", "ours (%)"),
+                    ("ci95_pct", "95 % CI (%)"))
 
 
 def _fmt(value: float | None) -> str:
@@ -61,6 +67,23 @@ def table_rows(report: EvalReport) -> list[dict[str, str]]:
         "ci95_pct": _fmt_ci(report.average_ci95_pct()),
     })
     return rows
+
+
+def category_rows(report: EvalReport) -> list[dict[str, str]]:
+    """One row per object category, sorted: category, successes, ours %, 95 % CI."""
+    return [{"category": category, "successes": f"{r['successes']}/{r['episodes']}", "ours_pct": _fmt(r["success_pct"]),
+             "ci95_pct": _fmt_ci(r["ci95_pct"])} for category, r in report.per_category().items()]
+
+
+def _markdown_rows(columns: tuple[tuple[str, str], ...], rows: list[dict[str, str]]) -> list[str]:
+    """A markdown table of `rows` (CSV column -> cell) under the headers of `columns`; the average row's name in bold."""
+    lines = ["| " + " | ".join(header for _, header in columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = [row[key] for key, _ in columns]
+        if row.get("object") == "average":
+            cells[0] = "**average**"
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def paper_subset_average(report: EvalReport) -> tuple[float, float, int] | None:
@@ -104,7 +127,7 @@ def _placement_line(report: EvalReport) -> list[str]:
 
 
 def markdown_table(report: EvalReport) -> str:
-    """The report as markdown: a header naming command, policy and seeds, then the table."""
+    """The report as markdown: a header naming command, policy and seeds, then the object and category tables."""
     part = report.seed_range()
     seeds = (f"{part} seeds (range {describe(SEED_RANGES[part])}, disjoint from every training seed)" if part
              else "NOT in the range reserved for evaluation: they may repeat training episodes")
@@ -123,13 +146,10 @@ def markdown_table(report: EvalReport) -> str:
         f"- wall time {report.wall_s:.0f} s with {report.workers} worker(s) x {report.envs_per_worker} env(s) in lockstep",
         *fault_lines(report.episodes),
         "",
-        "| " + " | ".join(header for _, header in COLUMNS) + " |",
-        "|" + "---|" * len(COLUMNS),
+        *_markdown_rows(COLUMNS, table_rows(report)),
+        "",
+        *_markdown_rows(CATEGORY_COLUMNS, category_rows(report)),
     ]
-    for row in table_rows(report):
-        name = f"**{row['object']}**" if row["object"] == "average" else row["object"]
-        lines.append(f"| {name} | {row['successes']} | {row['ours_pct']} | {row['paper_pct']} | "
-                     f"{row['mean_max_lift_m']} | {row['ci95_pct']} |")
     sub = paper_subset_average(report)
     if sub is not None:
         lines += ["", f"Average over the {sub[2]} objects with a paper number: ours {sub[0]:.1f} %, paper {sub[1]:.1f} %."]
@@ -139,23 +159,41 @@ def markdown_table(report: EvalReport) -> str:
 
 
 def csv_table(report: EvalReport) -> str:
-    """The table as CSV text (columns of `table_rows`), made from its markdown."""
+    """The tables as CSV text (`table_rows`, then `category_rows`), made from their markdown."""
     return csv_from_markdown(markdown_table(report))
 
 
+def _markdown_tables(md: str) -> list[list[list[str]]]:
+    """The cells of each markdown table in `md` (runs of lines starting with '|'), header first, rule dropped."""
+    tables: list[list[list[str]]] = []
+    previous = False
+    for line in md.splitlines():
+        is_row = line.startswith("|")
+        if is_row and not previous:
+            tables.append([])
+        if is_row and not set(line) <= set("|-: "):
+            tables[-1].append([cell.strip() for cell in line.strip().strip("|").split("|")])
+        previous = is_row
+    return tables
+
+
 def csv_from_markdown(md: str) -> str:
-    """The table of an evaluation's markdown (`markdown_table`) as CSV text: the same cells,
-    headed by the CSV column names, the average row's name without its bold marks."""
-    lines = [line.strip() for line in md.splitlines() if line.startswith("|")]
-    header = [cell.strip() for cell in lines[0].strip("|").split("|")] if lines else []
-    if header != [h for _, h in COLUMNS]:
-        raise ValueError(f"not an evaluation table: header {header}")
+    """The tables of an evaluation's markdown (`markdown_table`) as CSV text: the same cells,
+    headed by the CSV column names (COLUMNS, then "category" if there is a category table),
+    the average row's name without its bold marks, a category row's cells in the columns
+    their headers name."""
+    tables = _markdown_tables(md)
+    header = tables[0][0] if tables else []
+    if header != [h for _, h in COLUMNS] or any(t[0] != [h for _, h in CATEGORY_COLUMNS] for t in tables[1:]):
+        raise ValueError(f"not an evaluation table: headers {[t[0] for t in tables]}")
+    keys = [key for key, _ in COLUMNS] + (["category"] if len(tables) > 1 else [])
     buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow([key for key, _ in COLUMNS])
-    for line in lines[2:]:
-        cells = [cell.strip() for cell in line.strip("|").split("|")]
-        writer.writerow([cells[0].strip("*"), *cells[1:]])
+    writer = csv.DictWriter(buf, keys, restval="", lineterminator="\n")
+    writer.writeheader()
+    for cells in tables[0][1:]:
+        writer.writerow(dict(zip(keys, [cells[0].strip("*"), *cells[1:]])))
+    for table in tables[1:]:
+        writer.writerows(dict(zip([key for key, _ in CATEGORY_COLUMNS], cells)) for cells in table[1:])
     return buf.getvalue()
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 import time
 import warnings
@@ -115,6 +116,11 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:  # before the command started
             print("dexdrake: interrupted", file=sys.stderr)
             code = 130
+    if code == 130 and argv is None:
+        # The process's own command, interrupted and said so: a Ctrl-C landing while the
+        # interpreter shuts down (reaping worker processes) must not turn the exit status 130
+        # into death by SIGINT.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
 
 

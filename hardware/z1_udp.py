@@ -257,7 +257,9 @@ class Z1Config:
     mode: ArmFSMState = ArmFSMState.LOWCMD  # LOWCMD or JOINTCTRL
     kp: Sequence[float] | None = None  # raw LOWCMD gains
     kd: Sequence[float] | None = None
-    max_velocity: float | None = None  # rad/s on targets, every joint
+    # rad/s on targets, every joint: below the joints' limit (pi), so that a lunge and its impact on
+    # the table stay below the overspeed trip (1.5 x the limit); training's scenario uses the same
+    max_velocity: float = 2.0
     max_measured_velocity: float | None = None  # rad/s (x 1.5) a joint may reach; None: the model's
     limit_margin_rad: float = 0.02  # targets stay this far inside the joint limits
     # a motor reported hotter trips. Not in the spec (it names an over-heat flag, no
@@ -323,7 +325,7 @@ def check_z1_config(cfg: Z1Config, limits: Z1Limits | None = None) -> Z1Settings
             raise HardwareError(f"Z1 {name}[{i}] = {arr[i]:g} exceeds the LOWCMD gain "
                                 f"{top[i]:g} of joint{i + 1} in {src}")
     vmax = float(np.min(lim.velocity))
-    velocity = vmax if cfg.max_velocity is None else float(cfg.max_velocity)
+    velocity = float(cfg.max_velocity)
     if not (math.isfinite(velocity) and 0 < velocity <= vmax + 1e-9):
         raise HardwareError(f"Z1 max_velocity {velocity:g} rad/s must be in (0, {vmax:g}], "
                             f"the joints' velocity limit in {src}")

@@ -116,7 +116,7 @@ def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str,
     lines += ["", f"NM_PER_PWM = 1/{1 / NM_PER_PWM:g} N*m per PWM count (dexdrake/hands/allegro_units.py). "
               f"Set-points in both modes: joint limits, Allegro target rate "
               f"{'driver default' if rate is None else f'{rate:g} rad/s'}, Z1 "
-              f"{'model velocity limit' if hand.arm.max_velocity is None else f'{hand.arm.max_velocity:g} rad/s'} "
+              f"{'driver default' if hand.arm.max_velocity is None else f'{hand.arm.max_velocity:g} rad/s'} "
               f"({config}); load average {os.getloadavg()[0]:.1f}; CPU per episode (this process, not the "
               "perception worker): "
               + ", ".join(f"{m}{'' if m == 'sim' else f' {s:g}x'} "

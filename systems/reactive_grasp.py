@@ -8,8 +8,10 @@ any state a learning policy visits (DAgger) and re-tries when a grasp fails:
 - fingers closed on the object near the grasp point (thumb and another fingertip touching,
   or settled well closed), or the object already lifted (above its start and, where the
   hand's rules say so, near a fingertip: one dropped onto its side rests higher without
-  being in the hand, and a lift that steers it back would chase it): lift up from where the hand is,
-  back over the placement range if the object has left it, fingers squeezing;
+  being in the hand, and a lift that steers it back would chase it) with the fingers started
+  closing (or, where the hand's rules say so, the thumb and a finger touching it: a wide object
+  spreads them open): lift up from where the hand is, back over the placement range if the
+  object has left it, fingers squeezing;
 - grasp centre at the grasp point, or just above it with the arm stopped (blocked by the
   object or the table): close the fingers; fingers that have started closing keep closing
   within a wider radius (`keep_xy`: the fingers' closure is the rule's memory, so a policy
@@ -81,6 +83,8 @@ class ReactiveRules:
     preclose_height: float = 0.0  # ... once the grasp centre is within this above the grasp point and
     # `keep_xy` beside it (m): rate-limited fingers then reach the object sooner
     lift_steps: int = 3  # IK steps of the lift set-point
+    lift_touching: bool = False  # a lifted object the thumb and a finger touch keeps the lift however open
+    # the fingers are (a wide object spreads them below `started`; False: the lift needs that closure)
 
 
 def expert_grasps_path(hand: str) -> Path:
@@ -176,7 +180,7 @@ class ReactiveGrasp(ScriptedGrasp):
         if not holding and not lifted and closure < r.closed and (r.follow_closing or not closing):
             self._follow(env)
         fingers = self.q_open
-        if holding or (lifted and closure > r.started):
+        if holding or (lifted and (closure > r.started or r.lift_touching and thumb_and_fingers)):
             self.phase, arm, fingers = "lift", self._lift(q[: self.n_arm], p_obj, lifted), self.q_closed
         elif closing:
             self.phase, arm, fingers = "close", self.q_grasp, self.q_closed

@@ -98,7 +98,7 @@ class HandDriver:
 class ArmDriver:
     """The Unitree Z1 (UDP). Port 0 means a free ephemeral port (emulated only). None means
     the driver's default (hardware/z1_udp.Z1Config: ports 8072 -> 8071, the model's LOWCMD
-    gains, velocity and joint limits); values beyond the model's limits are refused at load."""
+    gains and joint limits, 2 rad/s on targets); values beyond the model's limits are refused at load."""
 
     kind: str = "sim"
     host: str = "127.0.0.1"

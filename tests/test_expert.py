@@ -461,3 +461,25 @@ def test_allegro_z1_fingers_pre_close_near_the_grasp_and_the_grasp_stays_put_whi
         controller(env)
         assert controller.phase == "close"
     assert np.array_equal(expert.grasp_point, grasp) and np.linalg.norm(following.grasp_point - grasp) > 0.005
+
+
+def test_allegro_z1_keeps_lifting_a_touched_object_that_spreads_its_fingers_open():
+    # A wide object in the hand pushes the fingers back below `started`; lifted and touched by the
+    # thumb and a finger, it is still lifted (`lift_touching`), not carried down by the funnel.
+    from dataclasses import replace
+
+    env = GraspEnv(training_scenario("allegro_z1", "box_cube"), horizon=5)
+    env.reset(0)
+    expert = ReactiveGrasp(env)
+    by_closure = ReactiveGrasp(env, rules=replace(expert.rules, lift_touching=False))
+    plant, ctx = env.scene.plant, env.plant_context
+    X = plant.GetFreeBodyPose(ctx, env.scene.object_body)
+    plant.SetFreeBodyPose(ctx, env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0.0, 0.0, 0.05]))
+    q = plant.GetPositions(ctx)
+    q[env.scene.q_index] = expert.q_open  # fingers open, the hand above the grasp point
+    plant.SetPositions(ctx, q)
+    env.fingertip_distances = lambda: np.zeros(len(expert.hand.fingertips))  # every fingertip on the object
+    assert expert.rules.lift_touching and expert.closure(q[env.scene.q_index]) < expert.rules.started
+    expert(env)
+    by_closure(env)
+    assert (expert.phase, by_closure.phase) == ("lift", "descend")

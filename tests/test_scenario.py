@@ -52,6 +52,18 @@ def test_training_steps_the_station_with_the_drivers_target_limits():
     assert np.all(moved <= rate * env.scenario.control_period + 1e-3), moved / env.scenario.control_period
 
 
+def test_the_packaged_allegro_z1_scenarios_limit_targets_as_training_does():
+    """hil and real deploy a policy under the limits it was trained under: the Z1's targets at
+    2 rad/s (below its pi rad/s limit, so that a lunge's impact stays under the overspeed trip),
+    the Allegro's at 3 rad/s."""
+    trained = scenario_record(training_scenario("allegro_z1"))["target_limits"]
+    assert set(trained["max_rate"]) == {2.0, 3.0}
+    for name in packaged_scenarios():
+        scenario = load_scenario(name)
+        if scenario.hand == "allegro_z1":
+            assert scenario_record(scenario)["target_limits"] == trained, name
+
+
 def test_a_checkpoint_records_its_scenario_and_one_without_loads_as_the_shipped_weights(tmp_path):
     policy = DexRepNetPolicy(PolicyConfig.from_blocks({"hand": 4}, 2, hand="adroit", feature_set="Hand2obj"))
     record = scenario_record(training_scenario("adroit"))

@@ -58,6 +58,12 @@ VARIANTS: dict[str, dict[str, Any]] = {  # name -> GraspScript overrides; the fi
     # deeper grasp around the body with the fingers closing 80 %
     "palm_50": {"palm_depth": 0.05, "tall_palm_depth": 0.05},
     "palm_65_80": {"palm_depth": 0.065, "tall_palm_depth": 0.065, "closure": 0.8},
+    # low, lying and pointed objects: the grasp centre at the top (the fingers wrap the upper half, the
+    # palm clear of the table and of a wide base), 5 cm back from the object's centre instead of 3 (the
+    # thumb meets the near side as the fingers reach the far one), or both
+    "palm_0": {"palm_depth": 0.0, "tall_palm_depth": 0.0},
+    "back_50": {"reach": -0.05},
+    "palm_0_back_50": {"palm_depth": 0.0, "tall_palm_depth": 0.0, "reach": -0.05},
     # wide dishes: the same pinch on the rim, 6 cm out along the fingers, 1.5 or 0.8 cm below the top
     "rim_60": {"closed_pose": "oppose", "open_pose": "oppose", "palm_depth": 0.015, "tall_palm_depth": 0.015,
                "reach": 0.06},

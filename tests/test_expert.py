@@ -378,7 +378,7 @@ def test_expert_table_writes_the_markdown_and_csv_it_prints(tmp_path, capsys, co
     assert float(rows[0]["ms_per_call"]) > 0 and rows[0]["successes"] == rows[1]["successes"]
 
 
-def test_expert_choose_writes_the_grasp_table_and_re_chooses_objects_on_its_seeds(tmp_path, capsys):
+def test_expert_choose_writes_the_grasp_table_and_re_chooses_objects_on_other_seeds(tmp_path, capsys):
     from dexdrake.cli import main
     from dexdrake.eval.expert import hand_variants
     from dexdrake.hands.description import load_hand
@@ -394,12 +394,14 @@ def test_expert_choose_writes_the_grasp_table_and_re_chooses_objects_on_its_seed
     entry = table["objects"]["sphere_small"]
     assert entry["variant"] in variants and set(entry["successes"]) == set(variants)
     assert capsys.readouterr().out.rstrip().endswith(f"wrote {out}")
-    assert main([*base, "--objects", "can_soda", "--seed", "7"]) == 2  # another seed block than the table's
-    assert "was chosen on seeds 100..100 (--seed 100 --episodes-per-object 1)" in capsys.readouterr().err
-    assert main([*base, "--objects", "can_soda"]) == 0
+    assert main([*base, "--objects", "can_soda", "--seed", "9"]) == 2  # the seeds `expert table` reports on
+    assert "seeds 9..9 overlap 0..9, the seeds `expert table` reports on" in capsys.readouterr().err
+    assert main([*base, "--objects", "can_soda", "--seed", "107"]) == 0  # another seed block than the table's
     again = json.loads(out.read_text())
     assert list(again["objects"]) == ["sphere_small", "can_soda"] and again["command"] == table["command"]
-    assert again["objects"]["sphere_small"] == entry and again["objects"]["can_soda"]["command"].endswith(str(out))
+    assert again["seeds"] == [100] and again["objects"]["sphere_small"] == entry
+    assert again["objects"]["can_soda"]["seeds"] == [107]
+    assert f"--seed 107 --horizon 3 --out {out}" in again["objects"]["can_soda"]["command"]
 
 
 def test_max_yaw_clips_the_palms_turn_toward_the_short_axis():

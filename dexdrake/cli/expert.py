@@ -48,8 +48,9 @@ def add_parser(subparsers) -> None:
                             description="Try every grasp variant the hand can take (dexdrake.eval.expert.VARIANTS) "
                                         "with the grasp expert on each training object for seeds S..S+N-1 and keep "
                                         "the one with the most successes (ties: the earlier, the hand's default "
-                                        "first); write the hand's grasp table, which the expert reads. Choose on "
-                                        "seeds apart from those `expert table` reports on.")
+                                        "first); write the hand's grasp table, which the expert reads. Seeds that "
+                                        "`expert table` reports on are refused. With --objects, each re-chosen "
+                                        "entry records its command and seeds.")
     _common(choose, "")
     add_episodes_per_object(choose, CHOICE_SEEDS[1], "trials of each variant, seeds S..S+N-1")
     choose.add_argument("--seed", type=argtypes.seed, default=CHOICE_SEEDS[0],
@@ -133,9 +134,10 @@ def cmd_choose(args: argparse.Namespace) -> int:
         if out.is_file():
             old = _read_table(out)
     seeds = list(range(args.seed, args.seed + args.episodes_per_object))
-    if old is not None and old["seeds"] != seeds:
-        raise DexdrakeError(f"{out} was chosen on seeds {_seeds_text(old['seeds'])}; re-choose on those (or every "
-                            "object)")
+    reported = range(TABLE_SEEDS[0], TABLE_SEEDS[0] + TABLE_SEEDS[1])
+    if set(seeds) & set(reported):
+        raise DexdrakeError(f"seeds {seeds[0]}..{seeds[-1]} overlap {reported[0]}..{reported[-1]}, the seeds "
+                            "`expert table` reports on; choose on others (--seed)")
     command = command_line(["expert", "choose"], args, args.recorded_options)
     factory = GraspEnvFactory(args.hand, None, tuple(names), args.horizon)
     with make_sampler(factory, args.backend, args.workers, args.address) as sampler:
@@ -158,10 +160,3 @@ def _read_table(path: Path) -> dict:
         raise DexdrakeError(f"{path} is not a readable expert grasp table ({reason}); re-choose every object "
                             "or give another --out")
     return table
-
-
-def _seeds_text(seeds: list[int]) -> str:
-    """Seeds as flags: '--seed S --episodes-per-object N' for a block, else the list."""
-    if seeds == list(range(seeds[0], seeds[0] + len(seeds))):
-        return f"{seeds[0]}..{seeds[-1]} (--seed {seeds[0]} --episodes-per-object {len(seeds)})"
-    return ",".join(map(str, seeds))

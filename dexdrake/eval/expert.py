@@ -251,8 +251,9 @@ def choose_variants(sampler: Sampler, make_variant: MakeVariant, hand: HandDescr
                     seeds: list[int], horizon: int, command: str, old: dict[str, Any] | None = None) -> dict[str, Any]:
     """The expert's grasp table for `hand`: each of `objects` tried with every variant the
     hand can take on `seeds` (envs of `horizon` steps), the best chosen. With `old` (the
-    existing table, chosen on the same seeds: the caller checks) only `objects` are re-chosen,
-    each noting `command`; the other entries are kept, the variants added since shown as untried."""
+    existing table) only `objects` are re-chosen, each noting `command` and `seeds` (the table's
+    own seeds are its first choice's); the other entries are kept, the variants added since
+    shown as untried."""
     variants = {v: VARIANTS[v] for v in hand_variants(hand)}
     jobs = [(name, tuple(variants), tuple(seeds)) for name in objects]
     results = sampler.map(partial(variant_trials, make_variant), None, jobs, "objects")
@@ -262,25 +263,26 @@ def choose_variants(sampler: Sampler, make_variant: MakeVariant, hand: HandDescr
                      "tries": {v: len(ok) for v, ok in tried.items()}} for name, best, tried in results}
     if old is not None:
         for entry in chosen.values():
-            entry["command"] = command
+            entry["command"], entry["seeds"] = command, seeds
         chosen = {**old["objects"], **chosen}
         for entry in chosen.values():  # kept objects: the variants added since are untried
             for v in variants:
                 entry["successes"].setdefault(v, 0)
                 entry["tries"].setdefault(v, 0)
-    return {"hand": hand.name, "command": old["command"] if old else command, "seeds": seeds, "horizon": horizon,
+    return {"hand": hand.name, "command": old["command"] if old else command,
+            "seeds": old["seeds"] if old else seeds, "horizon": horizon,
             "variants": variants, "objects": chosen}
 
 
 def choice_lines(table: dict[str, Any]) -> list[str]:
     """One line per object (its variant and every variant's successes/tries), then the totals."""
-    objects, seeds = table["objects"], table["seeds"]
+    objects = table["objects"]
     lines = [f"{name:18s} {o['variant']:10s} " + " ".join(f"{v}={o['successes'][v]}/{o['tries'][v]}"
                                                           for v in o["successes"])
              for name, o in objects.items()]
     chosen = sum(o["successes"][o["variant"]] for o in objects.values())
     tries = sum(sum(o["tries"].values()) for o in objects.values())
-    total = len(objects) * len(seeds)
+    total = sum(len(o.get("seeds", table["seeds"])) for o in objects.values())
     lines.append(f"chosen per object: {chosen}/{total}; {tries} of {total * len(table['variants'])} trials run "
                  "(the rest could not change a choice)")
     return lines

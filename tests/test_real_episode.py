@@ -92,6 +92,35 @@ def test_the_workspace_box_refuses_set_points_whose_hand_leaves_it():
             assert np.array_equal(port.Eval(guard.GetMyContextFromRoot(context)), q)
 
 
+def test_the_opening_hand_ends_where_a_blocked_finger_stops_and_any_other_move_faults_short_of_its_goal():
+    """A retreat's opening hand whose finger the object blocks ends once the joints stand still
+    (the arm then lifts it clear); a move without `settle_s` still faults short of its goal."""
+    from types import SimpleNamespace
+
+    from dexdrake.errors import StationFault
+    from dexdrake.systems.real_episode import move_to
+
+    class Station:  # joints follow their set-points at once, the last one stops at 0.3 rad
+        scenario = SimpleNamespace(control_period=0.005,
+                                   real=SimpleNamespace(move_speed=20.0, move_tolerance=0.05, move_timeout_s=0.5))
+
+        def __init__(self):
+            self.q = np.zeros(3)
+
+        def send(self, q):
+            self.q = np.minimum(q, [np.inf, np.inf, 0.3])
+
+        def positions(self):
+            return self.q.copy()
+
+    station = Station()
+    assert move_to(station, np.full(3, 1.0), "open", settle_s=0.1) < 0.4
+    assert np.allclose(station.q, [1.0, 1.0, 0.3])
+    assert move_to(station, np.array([0.5, 0.5, 0.0]), "open", settle_s=0.1) < 0.2  # at the goal: no settling
+    with pytest.raises(StationFault, match=r"^arm: still 0\.700 rad from the goal 0 s after its last set-point"):
+        move_to(Station(), np.full(3, 1.0), "arm")
+
+
 def test_a_first_pose_older_than_the_age_limit_waits_for_a_fresh_one():
     """A global registration slower than max_pose_age_s (a Kinect's ~3 s against 2 s) is not
     a stale pose: the station waits for the tracking after it; once a fresh pose came, an

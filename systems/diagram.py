@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, System
 
@@ -107,6 +108,9 @@ def build_diagram(station: Station, controller=None, feature_set: str | None = "
         if scenegraph and station.scene is None:
             raise DexdrakeError(f"feature path 'scenegraph' needs the simulated object's SceneGraph; a "
                                 f"{station.mode} station knows the object by its perceived pose: use 'fast'")
+        if scenegraph and station.perceived is not None:
+            raise DexdrakeError("feature path 'scenegraph' sees the true object; the scenario's perception "
+                                "model (noise, frames, latency) needs 'fast'")
         scene = station.scene or build_grasp_scene(simulated(station.scenario))  # hil/real: kinematics only
         dexrep = builder.AddNamedSystem("dexrep", DexRepSystem(
             scene.hand, scene.plant, scene.hand_instance, object_geometry(station.scenario.object), feature_set,
@@ -161,13 +165,19 @@ class StationEpisode:
         self.context = self.simulator.get_mutable_context()
         self._world_paused = False
 
-    def _object_position(self) -> np.ndarray | None:
+    def _true_pose(self) -> RigidTransform | None:
+        """The object's true pose: the sim plant's or the world's (hil, an emulated real world);
+        None on a real robot."""
         station = self.built.station
         if station.scene is not None:
-            return station.scene.object_pose(station.scene.plant.GetMyContextFromRoot(self.context)).translation()
+            return station.scene.object_pose(station.scene.plant.GetMyContextFromRoot(self.context))
         if station.world is not None:
-            return station.world.object_pose().translation()
+            return station.world.object_pose()
         return None
+
+    def _object_position(self) -> np.ndarray | None:
+        X_WO = self._true_pose()
+        return None if X_WO is None else X_WO.translation()
 
     def reset(self, seed: int) -> None:
         from dexdrake.task import SuccessTracker
@@ -175,6 +185,8 @@ class StationEpisode:
         station, period = self.built.station, self.built.station.scenario.control_period
         if station.scene is not None:
             station.scene.reset(station.scene.plant.GetMyMutableContextFromRoot(self.context), seed)
+        if station.perceived is not None:
+            station.perceived.reset(seed)
         elif station.mode == "real":  # the devices (and an emulated world) run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
         def held_start() -> None:  # a fault here ends the episode as a fault, before its first step
@@ -221,7 +233,7 @@ class StationEpisode:
         self.logger.log_station_step(
             self.context.get_time(), port("hand_state").Eval(self.context), port("command").Eval(self.context),
             port("object_pose").Eval(self.context), {**built.timer.stats(), **built.command_counts},
-            station.world.object_pose() if station.world is not None else None)
+            self._true_pose())
 
     def close(self) -> None:
         if self._world_paused:

@@ -16,14 +16,13 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
 from dexdrake.dexrep.geometry import ObjectGeometry, object_geometry
 from dexdrake.episode import EpisodeResult, run_episode
 from dexdrake.errors import DexdrakeError, StationFault
 from dexdrake.hands.action_map import ActionMap
-from dexdrake.perceived_pose import PerceivedPose
 from dexdrake.task import SuccessTracker, TaskSpec, reward_terms
 from dexdrake.command_guard import CommandGuard
 from dexdrake.systems.diagram import BuiltDiagram, build_diagram
@@ -53,8 +52,6 @@ class GraspEnv:
         self.scenario, self.feature_set, self.horizon, self.task = scenario, feature_set, horizon, task
         self.objects = objects or [scenario.object]
         self._scenes: dict[str, tuple[BuiltDiagram, Simulator, ObjectGeometry]] = {}
-        self._perceived = (None if scenario.perception.is_exact
-                           else PerceivedPose(scenario.perception, scenario.control_period))
         self._use(self.objects[0])
         self.actions = ActionMap(self.scene.hand, arm_action)
         self.command_guard = CommandGuard(*self.scene.hand.joint_limits())  # counts bad commands of the current episode
@@ -68,6 +65,7 @@ class GraspEnv:
             self._scenes[name] = (built, Simulator(built.diagram), object_geometry(name))
         self.built, self.simulator, self.geometry = self._scenes[name]
         self.diagram, self.scene = self.built.diagram, self.built.station.scene
+        self._perceived = self.built.station.perceived  # None: the features see the true pose
         self._features = None if self.built.dexrep is None else self.built.dexrep.extractor
         self.context = self.simulator.get_mutable_context()
         self.plant_context = self.scene.plant.GetMyMutableContextFromRoot(self.context)
@@ -187,8 +185,7 @@ class GraspEnv:
         X_WO = self.object_pose()
         if self._perceived is None:
             return X_WO
-        p, R = self._perceived(self.context.get_time(), X_WO.translation(), X_WO.rotation().matrix())
-        return RigidTransform(RotationMatrix(R), p)
+        return self._perceived.seen(self.context.get_time(), X_WO)
 
     def object_position(self) -> np.ndarray:
         return self.object_pose().translation().copy()

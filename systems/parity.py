@@ -9,7 +9,9 @@ Both sides see the same set-point path: in HIL the drivers clamp and rate-limit 
 set-points (Allegro `max_target_rate`, Z1 `max_velocity` of the scenario); the simulated
 station models the same limits (systems/target_limits.py). HIL uses rendered perception
 (camera `rendered`: a pose one camera period after its frame, on the simulated clock) or the
-world's pose (`sim`); simulation uses the true pose.
+world's pose (`sim`); simulation, the scenario's perception model (the one its policy was
+trained under: pose noise, frame period, latency; dexdrake/perceived_pose.py), so that sim is
+the policy's protocol evaluation and HIL the camera pipeline in its place.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ class PoseError:
 def run_parity_episode(config: str, obj: str, seed: int, steps: int, mode: str, scale: float, camera: str) -> dict:
     """One episode of `config`'s controller on `obj` at `seed` for `steps` control steps, in
     simulation (`mode` "sim") or HIL at PWM scale `scale` with camera `camera`: its row of the
-    table (success, max lift, fault, wall and CPU time; in HIL the pose error and perception cost)."""
+    table (success, max lift, fault, wall and CPU time, the pose error the controller saw; with
+    rendered perception its cost)."""
     from dexdrake.systems.controllers import make_controller
     from dexdrake.systems.diagram import run_station_episode
     from dexdrake.systems.scenario import load_scenario, simulated
@@ -57,37 +60,39 @@ def run_parity_episode(config: str, obj: str, seed: int, steps: int, mode: str, 
         scenario.drivers.camera.kind = camera
     controller, _ = make_controller(scenario)
     t0, cpu0 = time.perf_counter(), time.process_time()
-    pose_error = PoseError() if mode == "hil" else None
+    pose_error = PoseError()
     with make_station(scenario) as station:
         result = run_station_episode(station, controller, steps, logger=pose_error)
         log = station.perception.log if station.perception is not None else None
     row = {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": result.success,
            "lift": result.max_lift, "fault": result.fault, "wall_s": time.perf_counter() - t0,
-           "cpu_s": time.process_time() - cpu0}
+           "cpu_s": time.process_time() - cpu0, "pose_error": pose_error.errors}
     if log is not None:
-        row.update(pose_error=pose_error.errors, track_cpu=log.cpu_s.get("track", []),
+        row.update(track_cpu=log.cpu_s.get("track", []),
                    global_cpu=log.cpu_s.get("global", []), losses=log.tracking_losses)
     return row
 
 
 def perception_table(rows: list[dict], modes: list[tuple[str, float]]) -> str:
-    """Perception in the loop, per HIL scale (episodes with a perception log): its cost and
-    the pose error the controller saw, over every control step."""
+    """Perception in the loop, per HIL scale (episodes with a perception log): its cost."""
     lines = ["| PWM -> N*m scale | frames tracked | CPU per tracked frame: median / p95 (ms) | "
-             "global registrations (CPU, median s) | tracking lost | pose error the policy saw "
-             "(position, every control step): median / p95 / max (mm) |", "|---|---|---|---|---|---|"]
+             "global registrations (CPU, median s) | tracking lost |", "|---|---|---|---|---|"]
     for mode, scale in modes:
-        sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale and "pose_error" in r]
+        sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale and "track_cpu" in r]
         if not sel:
             continue
         track = 1e3 * np.array([c for r in sel for c in r["track_cpu"]] or [np.nan])
         glob = [c for r in sel for c in r["global_cpu"]]
-        err = 1e3 * np.array([e for r in sel for e in r["pose_error"]] or [np.nan])
         lines.append(f"| {scale:g} x | {sum(len(r['track_cpu']) for r in sel)} | {np.median(track):.1f} / "
                      f"{np.percentile(track, 95):.1f} | {len(glob)} ({np.median(glob or [np.nan]):.2f}) | "
-                     f"{sum(r['losses'] for r in sel)} | {np.median(err):.1f} / {np.percentile(err, 95):.1f} / "
-                     f"{err.max():.1f} |")
+                     f"{sum(r['losses'] for r in sel)} |")
     return "\n".join(lines) if len(lines) > 2 else ""
+
+
+def pose_error_text(rows: list[dict]) -> str:
+    """median / p95 / max (mm) of the pose error the controller saw in `rows`, every control step."""
+    err = 1e3 * np.array([e for r in rows for e in r["pose_error"]] or [np.nan])
+    return f"{np.median(err):.1f} / {np.percentile(err, 95):.1f} / {err.max():.1f}"
 
 
 def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
@@ -98,8 +103,9 @@ def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str,
     hand = load_scenario(config).drivers
     lines = [f"Command: `{command}`", "",
              "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults | "
+             "pose error the controller saw (position, every control step): median / p95 / max (mm) | "
              "sim, same episodes: success / lift (m) | successes (object/seed) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|"]
     sim = {(r["object"], r["seed"]): r for r in rows if r["mode"] == "sim"}
     for mode, scale in modes:
         sel = [r for r in rows if r["mode"] == mode and r["scale"] == scale]
@@ -110,6 +116,7 @@ def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str,
         lines.append(f"| {mode} | {'-' if mode == 'sim' else f'{scale:g} x'} | {len(sel)} | "
                      f"{np.mean([r['success'] for r in sel]):.0%} | "
                      f"{np.nanmean([r['lift'] for r in sel]):.3f} | {sum(bool(r['fault']) for r in sel)} | "
+                     f"{pose_error_text(sel)} | "
                      f"{np.mean([r['success'] for r in same]):.0%} / {np.nanmean([r['lift'] for r in same]):.3f} | "
                      f"{wins} |")
     rate = hand.hand.max_target_rate

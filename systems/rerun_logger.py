@@ -212,7 +212,7 @@ class RerunLogger:
                          policy_stats: dict, true_pose: RigidTransform | None = None) -> None:
         """One control step of the station at time `t`: measured `hand_state` [q; v], the
         `command`, the perceived `object_pose` [x, y, z, qw, qx, qy, qz], the controller's
-        `policy_stats` (rates, bad commands held or clipped) and, in hil, the world's
+        `policy_stats` (rates, bad commands held or clipped) and, in sim and hil, the
         `true_pose` of the object.
         The task is scored on the true pose when there is one, else on the perceived one;
         the scene and DexRep show what the controller sees."""

@@ -7,8 +7,9 @@ Every mode exposes the same ports (PORTS; policy joint order of the hand descrip
 and the sim station also "query_object" (see sim below).
 sim:  the Drake grasp scene (systems/scene.py); its set-points are clamped and
       rate-limited, and its joints' speeds checked, as the drivers would (an overspeed is
-      a StationFault; systems/target_limits.py), so that training, sim and hil agree.
-      Also output "query_object" (SceneGraph's QueryObject, for DexRepSystem's SceneGraph
+      a StationFault; systems/target_limits.py), and its "object_pose" is the pose the
+      scenario's perception model delivers (noise, frames, latency: PerceivedPoseSystem),
+      so that training, sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for DexRepSystem's SceneGraph
       feature path).
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
@@ -76,6 +77,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, Multiplexer
 from dexdrake.errors import DexdrakeError, StationFault
 from dexdrake.hands.description import HandDescription, load_hand
 from dexdrake.command_guard import CommandGuard
+from dexdrake.perceived_pose import PerceivedPose, PerceptionModel
 from dexdrake.systems.scenario import CameraDriver, Scenario, driver_configs, own_process, process_config
 
 PORTS = {"inputs": ("command",), "outputs": ("hand_state", "object_pose")}
@@ -456,6 +458,30 @@ class WorldPoseSystem(LeafSystem):
         state.get_mutable_discrete_state().set_value(0, pose_vector(self.world.object_pose()))
 
 
+class PerceivedPoseSystem(LeafSystem):
+    """The sim station's object pose as the scenario's perception model delivers it
+    (dexdrake/perceived_pose.py: noise, frames, latency): input "true_pose", output
+    "object_pose" (both [x, y, z, qw, qx, qy, qz]). `reset(seed)` starts an episode's draws;
+    within an episode the output is evaluated at non-decreasing times, as the episode loops do."""
+
+    def __init__(self, model: PerceptionModel, control_period: float):
+        super().__init__()
+        self.perceived = PerceivedPose(model, control_period)
+        self._true = self.DeclareVectorInputPort("true_pose", 7)
+        self.DeclareVectorOutputPort("object_pose", 7, self._calc)
+
+    def reset(self, seed: int) -> None:
+        self.perceived.reset(seed)
+
+    def seen(self, t: float, X_WO: RigidTransform) -> RigidTransform:
+        """The pose seen at time `t` (s) of the true pose `X_WO`."""
+        p, R = self.perceived(t, X_WO.translation(), X_WO.rotation().matrix())
+        return RigidTransform(RotationMatrix(R), p)
+
+    def _calc(self, context: Context, out) -> None:
+        out.SetFromVector(pose_vector(self.seen(context.get_time(), pose_from_vector(self._true.Eval(context)))))
+
+
 # ----------------------------------------------------------------------------- controller
 Controller = Callable[[float, np.ndarray, np.ndarray], np.ndarray]
 
@@ -505,6 +531,7 @@ class Station:
     world: object = None  # hil: the HilWorld; real with emulated_world drivers: its WorldView
     devices: dict = field(default_factory=dict)
     perception: PerceptionSystem | None = None
+    perceived: PerceivedPoseSystem | None = None  # sim: the scenario's perception model on "object_pose"
     workspace: object = None  # real: the WorkspaceBox every set-point is checked against
     _stop: contextlib.ExitStack | None = None
 
@@ -597,7 +624,8 @@ def make_station(scenario: Scenario, start: bool = True, world=None) -> Station:
 def sim_station(scenario: Scenario) -> Station:
     """The sim station of `scenario` around its grasp scene: the set-points pass the
     drivers' joint limits and target rates, and their overspeed trip raises StationFault
-    (systems/target_limits.py), as in hil and real."""
+    (systems/target_limits.py), as in hil and real; "object_pose" is the pose the scenario's
+    perception model delivers (PerceivedPoseSystem; the true pose when it is exact)."""
     from dexdrake.systems.scene import build_grasp_scene
     from dexdrake.systems.target_limits import OverspeedMonitor, TargetLimiter, overspeed_limits, target_limits
 
@@ -614,9 +642,15 @@ def sim_station(scenario: Scenario) -> Station:
         monitor = builder.AddNamedSystem("driver_overspeed", OverspeedMonitor(
             *overspeed, scenario.time_step, list(scene.hand.policy_joints)))
         builder.Connect(sub.GetOutputPort("hand_state"), monitor.GetInputPort("hand_state"))
-    for name in (*PORTS["outputs"], "query_object"):
-        builder.ExportOutput(sub.GetOutputPort(name), name)
-    return Station(scenario, builder.Build(), scene.hand, scene=scene)
+    perceived = None
+    if not scenario.perception.is_exact:
+        perceived = builder.AddNamedSystem("perceived_pose", PerceivedPoseSystem(
+            scenario.perception, scenario.control_period))
+        builder.Connect(sub.GetOutputPort("object_pose"), perceived.GetInputPort("true_pose"))
+    builder.ExportOutput(sub.GetOutputPort("hand_state"), "hand_state")
+    builder.ExportOutput((perceived or sub).GetOutputPort("object_pose"), "object_pose")
+    builder.ExportOutput(sub.GetOutputPort("query_object"), "query_object")
+    return Station(scenario, builder.Build(), scene.hand, scene=scene, perceived=perceived)
 
 
 def _bus_maps(hand: HandDescription) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,8 @@ def test_parity_runs_sim_then_each_scale_and_rewrites_the_table_after_every_epis
             raise DexdrakeError("stopped")
         ran.append((mode, scale, obj, seed))
         return {"object": obj, "seed": seed, "mode": mode, "scale": scale, "success": obj == "can_soda",
-                "lift": 0.1 if obj == "can_soda" else 0.0, "fault": "", "wall_s": 1.0, "cpu_s": 1.0}
+                "lift": 0.1 if obj == "can_soda" else 0.0, "fault": "", "wall_s": 1.0, "cpu_s": 1.0,
+                "pose_error": [0.002, 0.004] if mode == "sim" else [0.001, 0.003, 0.020]}
 
     monkeypatch.setattr("dexdrake.systems.parity.run_parity_episode", episode)
     argv = ["parity", "--objects", "can_soda", "sphere_small", "--seeds", "3", "--horizon", "5", "--scales", "1",
@@ -33,9 +34,9 @@ def test_parity_runs_sim_then_each_scale_and_rewrites_the_table_after_every_epis
     table = out.read_text()  # the six finished episodes, each HIL row beside simulation on its own episodes
     assert table.startswith("Command: `dexdrake parity --config hil --objects can_soda sphere_small --seeds 3 "
                             "--horizon 5 --scales 1.0 0.5 2.0 --camera sim --out")
-    assert "| sim | - | 2 | 50% | 0.050 | 0 | 50% / 0.050 | can_soda/3 |" in table
+    assert "| sim | - | 2 | 50% | 0.050 | 0 | 3.0 / 4.0 / 4.0 | 50% / 0.050 | can_soda/3 |" in table
     assert "| hil | 1 x | 2 | 50% |" in table
-    assert "| hil | 0.5 x | 1 | 100% | 0.100 | 0 | 100% / 0.100 | can_soda/3 |" in table
+    assert "| hil | 0.5 x | 1 | 100% | 0.100 | 0 | 3.0 / 18.3 / 20.0 | 100% / 0.100 | can_soda/3 |" in table
     assert "stopped" in capsys.readouterr().err
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dexdrake.errors import DexdrakeError
 from dexdrake.perceived_pose import PerceivedPose, PerceptionModel
 
 PAPER = PerceptionModel(pose_noise_position_m=0.02, pose_noise_rotation_rad=0.1, period_s=0.04, latency_s=0.04)
@@ -100,6 +101,35 @@ def test_training_env_features_see_the_perceived_pose_and_the_reward_the_true_on
     assert np.linalg.norm(X_seen.translation() - env.object_position()) > 1e-4
     _, again, _, _ = _episode(PAPER, seed=2)
     np.testing.assert_array_equal(again, noisy_obs)  # reproducible per seed
+
+
+def test_the_sim_station_delivers_the_perceived_pose_of_the_training_env():
+    from dexdrake.systems.diagram import build_diagram, run_station_episode
+    from dexdrake.systems.env_factory import training_scenario
+    from dexdrake.systems.scenario import load_scenario, simulated
+    from dexdrake.systems.station import pose_from_vector, sim_station
+
+    env = _episode(PAPER, seed=2)[0]  # the training env's "object_pose" port is what its features saw
+    X_port = pose_from_vector(env.diagram.GetOutputPort("object_pose").Eval(env.context))
+    X_seen = env.seen_object_pose()
+    np.testing.assert_allclose(X_port.translation(), X_seen.translation(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(X_port.rotation().matrix(), X_seen.rotation().matrix(), rtol=0, atol=1e-9)
+    assert sim_station(training_scenario("allegro_z1")).perceived is None  # exact: the plant's pose itself
+
+    class Seen:  # a station-episode logger: the pose the controller saw beside the true one
+        def __init__(self):
+            self.errors: list[float] = []
+
+        def log_station_step(self, t, hand_state, command, object_pose, stats, true_pose):
+            self.errors.append(float(np.linalg.norm(object_pose[:3] - true_pose.translation())))
+
+    scenario = simulated(load_scenario("hil"))  # the deployed scenario's sim twin: its perception model
+    assert not scenario.perception.is_exact
+    hold = lambda t, hand_state, object_pose: hand_state[: len(hand_state) // 2]  # noqa: E731
+    run_station_episode(sim_station(scenario), hold, 6, logger=(seen := Seen()))
+    assert len(seen.errors) == 6 and 0 < np.median(seen.errors) < 5 * 3**0.5 * scenario.perception.pose_noise_position_m
+    with pytest.raises(DexdrakeError, match="perception model .* needs 'fast'"):
+        build_diagram(sim_station(scenario), None, "DexRep", "scenegraph")
 
 
 def test_checkpoints_record_the_perception_model_and_a_mismatch_is_warned():

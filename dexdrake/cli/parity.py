@@ -23,8 +23,8 @@ def add_parser(subparsers) -> None:
     parity = subparsers.add_parser(
         "parity", help="sim-to-HIL parity: the same episodes in simulation and hardware-in-the-loop",
         description="The scenario's controller on the same objects and seeds in simulation and hardware-in-the-loop "
-                    "at each PWM -> N*m scale: success, lift, faults and, with rendered perception, its cost and the "
-                    "pose error the controller saw.")
+                    "at each PWM -> N*m scale: success, lift, faults, the pose error the controller saw (sim: the "
+                    "scenario's perception model) and, with rendered perception, its cost.")
     parity.add_argument("--config", default="hil", help="scenario (mode hil): a packaged name (hil) or a YAML path")
     parity.add_argument("--objects", nargs="+", default=["box_cube", "sphere_small", "can_soda"], help="object names")
     parity.add_argument("--seeds", nargs="+", type=argtypes.seed, default=[0], help="episode seeds, each on every object")
@@ -61,8 +61,8 @@ def cmd_parity(args: argparse.Namespace) -> int:
         print(f"  {mode} x{scale:g} {obj:14s} seed {seed}: success {row['success']} lift "
               f"{row['lift']:.3f} m {row['fault'] or ''} ({row['wall_s']:.0f} s wall, "
               f"{row['cpu_s']:.0f} s CPU)"
-              + (f"; pose error max {1e3 * max(row['pose_error'], default=np.nan):.0f} mm, tracking lost "
-                 f"{row['losses']}" if "pose_error" in row else ""), flush=True)
+              + f"; pose error max {1e3 * max(row['pose_error'], default=np.nan):.0f} mm"
+              + (f", tracking lost {row['losses']}" if "losses" in row else ""), flush=True)
         if args.out:
             write_atomic(args.out, (parity_table(rows, modes, command, args.config) + "\n").encode())
     print(parity_table(rows, modes, command, args.config))

@@ -194,7 +194,8 @@ class ReactiveGrasp(ScriptedGrasp):
             if s < 1.0 and above < r.preclose_height and aside < r.keep_xy:
                 fingers = self.q_open + r.preclose * self._span
         out = np.array(fingers, dtype=float)
-        lead = r.lift_lead if self.phase == "lift" else r.max_lead
+        lift_lead = r.lift_lead if self.script.lift_lead is None else self.script.lift_lead
+        lead = lift_lead if self.phase == "lift" else r.max_lead
         out[: self.n_arm] = self._lead(q[: self.n_arm], arm[: self.n_arm], lead)
         return out
 

@@ -39,6 +39,8 @@ class GraspScript:
     side: float = 0.0  # grasp centre shift across the fingers, to their left seen from above (m;
     # centres a pinch whose fingertips lie to one side of the palm's grasp centre)
     lift: float = 0.17  # lift height of the grasp centre (m)
+    lift_lead: float | None = None  # the expert's arm set-point lead while lifting (normalised action
+    # units; None: the hand's `ReactiveRules.lift_lead`): a slower lift shakes a pinched object less
     closure: float = 1.0  # fraction of each finger joint's closing range
     closed_pose: str = ""  # a named hand-description grasp pose for some joints ("": closing rule only)
     open_pose: str = ""  # a named grasp pose the open hand already takes (e.g. the thumb pre-shaped to oppose)

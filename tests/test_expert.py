@@ -355,6 +355,8 @@ def test_allegro_pinch_poses_point_the_fingertips_down_and_close_them_toward_the
     for ring in ("joint_9.0", "joint_10.0", "joint_11.0"):  # the ring finger stays stretched out of the way
         assert q_open[j[ring]] == q_closed[j[ring]] == 0.0
     assert q_closed[j["joint_14.0"]] > q_open[j["joint_14.0"]]  # the thumb pushes toward the fingertips
+    firm = closed_pose(hand, 1.0, "pinch_firm")  # the index and middle PIP and the thumb further closed
+    assert all(firm[j[k]] > q_closed[j[k]] for k in ("joint_2.0", "joint_6.0", "joint_14.0"))
 
 
 @pytest.mark.parametrize("controller", ["expert", "scripted"])
@@ -465,15 +467,16 @@ def test_allegro_z1_fingers_pre_close_near_the_grasp_and_the_grasp_stays_put_whi
     assert np.array_equal(expert.grasp_point, grasp) and np.linalg.norm(following.grasp_point - grasp) > 0.005
 
 
-def test_allegro_z1_keeps_lifting_a_touched_object_that_spreads_its_fingers_open():
-    # A wide object in the hand pushes the fingers back below `started`; lifted and touched by the
-    # thumb and a finger, it is still lifted (`lift_touching`), not carried down by the funnel.
+def _allegro_lifting_a_touched_box(script: dict | None = None, rules: dict | None = None
+                                   ) -> tuple[GraspEnv, ReactiveGrasp, ReactiveGrasp]:
+    """The Allegro-on-Z1's env with box_cube raised 5 cm into the open hand, every fingertip on
+    it, and two experts planned at rest: the hand's, and one with `script` and `rules` overrides."""
     from dataclasses import replace
 
     env = GraspEnv(training_scenario("allegro_z1", "box_cube"), horizon=5)
     env.reset(0)
     expert = ReactiveGrasp(env)
-    by_closure = ReactiveGrasp(env, rules=replace(expert.rules, lift_touching=False))
+    other = ReactiveGrasp(env, replace(expert.script, **(script or {})), replace(expert.rules, **(rules or {})))
     plant, ctx = env.scene.plant, env.plant_context
     X = plant.GetFreeBodyPose(ctx, env.scene.object_body)
     plant.SetFreeBodyPose(ctx, env.scene.object_body, RigidTransform(X.rotation(), X.translation() + [0.0, 0.0, 0.05]))
@@ -481,7 +484,26 @@ def test_allegro_z1_keeps_lifting_a_touched_object_that_spreads_its_fingers_open
     q[env.scene.q_index] = expert.q_open  # fingers open, the hand above the grasp point
     plant.SetPositions(ctx, q)
     env.fingertip_distances = lambda: np.zeros(len(expert.hand.fingertips))  # every fingertip on the object
-    assert expert.rules.lift_touching and expert.closure(q[env.scene.q_index]) < expert.rules.started
+    return env, expert, other
+
+
+def test_allegro_z1_keeps_lifting_a_touched_object_that_spreads_its_fingers_open():
+    # A wide object in the hand pushes the fingers back below `started`; lifted and touched by the
+    # thumb and a finger, it is still lifted (`lift_touching`), not carried down by the funnel.
+    env, expert, by_closure = _allegro_lifting_a_touched_box(rules={"lift_touching": False})
+    assert expert.rules.lift_touching and expert.closure(env.hand_state()[: env.action_dim]) < expert.rules.started
     expert(env)
     by_closure(env)
     assert (expert.phase, by_closure.phase) == ("lift", "descend")
+
+
+def test_a_grasp_variant_may_lift_slower_than_the_hands_rule():
+    env, expert, slow = _allegro_lifting_a_touched_box(script={"lift_lead": 0.02})
+    q_arm = env.hand_state()[: expert.n_arm]
+    leads = []  # the arm set-point's largest lead on a joint (normalised)
+    for controller in (expert, slow):
+        out = controller(env)
+        assert controller.phase == "lift"
+        step = env.normalise(out)[: expert.n_arm] - env.normalise(np.r_[q_arm, out[expert.n_arm:]])[: expert.n_arm]
+        leads.append(np.abs(step).max())
+    assert leads[1] == pytest.approx(0.02, rel=1e-6) and 0.02 < leads[0] <= expert.rules.lift_lead + 1e-9

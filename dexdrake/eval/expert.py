@@ -38,6 +38,9 @@ MakeController = Callable[[Any], Callable[[Any], Any]]
 """env -> the controller of its current episode, called with the env every control step and
 returning joint set-points. Picklable (sampler workers call it)."""
 
+_PINCH: dict[str, Any] = {"closed_pose": "pinch", "open_pose": "pinch_open", "min_height": 0.07, "palm_depth": -0.04,
+                          "tall_palm_depth": -0.04, "reach": -0.033, "side": -0.035, "hover": 0.12,
+                          "closed_hold": 1.1}  # the 'pinch' variant (see VARIANTS)
 VARIANTS: dict[str, dict[str, Any]] = {  # name -> GraspScript overrides; the first is the hand's default
     "power": {},
     "power_80": {"closure": 0.8},
@@ -73,11 +76,13 @@ VARIANTS: dict[str, dict[str, Any]] = {  # name -> GraspScript overrides; the fi
     # thumb at table level (the grasp centre 7 cm above the table, or 4 cm above a taller top, 3.5 cm toward
     # the little-finger side to centre the tips), holding only once the thumb and a finger touch; across the
     # footprint's centre, or on the rim 2 cm inside its far edge (plates, bowls, rings)
-    "pinch": {"closed_pose": "pinch", "open_pose": "pinch_open", "min_height": 0.07, "palm_depth": -0.04,
-              "tall_palm_depth": -0.04, "reach": -0.033, "side": -0.035, "hover": 0.12, "closed_hold": 1.1},
-    "pinch_rim": {"closed_pose": "pinch", "open_pose": "pinch_open", "min_height": 0.07, "palm_depth": -0.04,
-                  "tall_palm_depth": -0.04, "reach": -0.02, "reach_edge": 1.0, "side": -0.035, "hover": 0.12,
-                  "closed_hold": 1.1},
+    "pinch": _PINCH,
+    "pinch_rim": {**_PINCH, "reach": -0.02, "reach_edge": 1.0},
+    # the pinch lifted slowly (its arm lead 0.02: a fast lift shakes a pinched knife out), or closed
+    # firmer (hands with a 'pinch_firm' pose: the pinch's fingers and thumb further past contact) 5 mm lower
+    "pinch_slow": {**_PINCH, "lift_lead": 0.02},
+    "pinch_firm": {**_PINCH, "closed_pose": "pinch_firm", "min_height": 0.065, "palm_depth": -0.035,
+                   "tall_palm_depth": -0.035, "lift_lead": 0.06},
 }
 
 

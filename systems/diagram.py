@@ -185,10 +185,10 @@ class StationEpisode:
         station, period = self.built.station, self.built.station.scenario.control_period
         if station.scene is not None:
             station.scene.reset(station.scene.plant.GetMyMutableContextFromRoot(self.context), seed)
-        if station.perceived is not None:
-            station.perceived.reset(seed)
         elif station.mode == "real":  # the devices (and an emulated world) run on the wall clock
             self.simulator.set_target_realtime_rate(1.0)
+        if station.perceived is not None:
+            station.perceived.reset(seed)
         def held_start() -> None:  # a fault here ends the episode as a fault, before its first step
             if station.mode == "hil":  # the world starts the episode paused, from its initial
                 station.world.begin(period)  # state (lockstep; the drivers run on its clock)

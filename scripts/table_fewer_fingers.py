@@ -38,15 +38,17 @@ def budget(recipe: dict[str, Any], objects: int) -> str:
     dagger = recipe["dagger"]["config"]
     text = (f"DAgger {dagger['iterations']} iterations x {dagger['episodes_per_object']} episodes x {objects} objects "
             f"({dagger['horizon']} steps), {dagger['epochs']} epochs/iteration")
-    stages = [f"{s['config']['iterations']} iterations x {s['per_object']}/object" for s in recipe["dapg"]]
+    stages = [f"{s['config']['iterations']} iterations x {s['episodes_per_object']} episode(s)/object"
+              for s in recipe["dapg"]]
     return text + (f"; DAPG {', '.join(stages)}" if stages else "; no DAPG")
 
 
 def run_row(run: Path) -> dict[str, Any]:
-    """One run's row: fingers, hand, feature set, unseen successes/episodes, interval, budget, command, wall time."""
+    """One run's row: fingers, hand, feature set, unseen successes/episodes, interval, budget, the expert's
+    success, command, wall time."""
     record = _json(run / "recipe.json")["recipe"]
     report = _json(run / "test" / "eval_unseen.json")
-    done = {name: _json(run / name / "done.json") for name in ("dagger", "test")}
+    done = {name: _json(run / name / "done.json") for name in ("expert", "dagger", "test")}
     hand = record["dagger"]["config"]["hand"]
     wins = sum(int(o["successes"]) for o in report["per_object"].values())
     episodes = sum(int(o["episodes"]) for o in report["per_object"].values())
@@ -56,7 +58,8 @@ def run_row(run: Path) -> dict[str, Any]:
             "successes": wins, "episodes": episodes, "objects": len(report["objects"]),
             "per_object": report["episodes_per_object"], "pct": 100.0 * wins / episodes,
             "ci95": (100.0 * low, 100.0 * high), "budget": budget(record, int(done["dagger"]["objects"])),
-            "command": done["test"]["command"], "wall_h": wall / 3600.0}
+            "command": done["test"]["command"], "wall_h": wall / 3600.0,
+            "expert": f"{done['expert']['success_pct']:.1f} % of {done['expert']['episodes']} episodes"}
 
 
 def markdown(rows: list[dict[str, Any]]) -> str:
@@ -77,7 +80,8 @@ def markdown(rows: list[dict[str, Any]]) -> str:
     lines += ["", "## Runs", ""]
     for r in rows:
         lines += [f"- **{r['fingers']} fingers** ({r['objects']} unseen objects x {r['per_object']} episodes): "
-                  f"{r['budget']}; {r['wall_h']:.2f} h wall in all. Made by `{r['command']}`."]
+                  f"{r['budget']}; the expert grasps {r['expert']} on the DAgger objects; {r['wall_h']:.2f} h wall in "
+                  f"all. Made by `{r['command']}`."]
     return "\n".join(lines) + "\n"
 
 

@@ -22,7 +22,8 @@ from dexdrake.paths import models_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 WEIGHTS = models_dir() / "weights"
-POLICIES = {"adroit_dexrep_policy": "eval", "allegro_z1_dexrep_policy": "eval_allegro_z1"}
+POLICIES = {"adroit_dexrep_policy": "eval", "allegro_z1_dexrep_policy": "eval_allegro_z1",
+            **{f"adroit_{n}f_dexrep_policy": f"eval_adroit_{n}f" for n in (4, 3, 2)}}
 
 
 def _cells(line: str) -> list[str]:

@@ -9,10 +9,12 @@ import pytest
 
 def _run(root, hand: str, wins: list[int], episodes: int = 10):
     """A finished recipe run folder with only what the table reads."""
-    (root / "dagger").mkdir(parents=True)
-    (root / "test").mkdir()
+    for stage in ("expert", "dagger", "test"):
+        (root / stage).mkdir(parents=True)
     recipe = {"dagger": {"config": {"hand": hand, "iterations": 4, "episodes_per_object": 2, "horizon": 100,
-                                    "epochs": 3}}, "dapg": []}
+                                    "epochs": 3}},
+              "dapg": [{"objects": "train", "episodes_per_object": 1, "config": {"iterations": 10}}]}
+    (root / "expert" / "done.json").write_text(json.dumps({"success_pct": 21.53, "episodes": 209, "wall_s": 0.0}))
     (root / "recipe.json").write_text(json.dumps({"recipe": recipe}))
     (root / "dagger" / "done.json").write_text(json.dumps({"objects": 53, "wall_s": 1800.0}))
     (root / "test" / "done.json").write_text(json.dumps({"command": f"dexdrake train recipe {hand}", "wall_s": 1800.0}))
@@ -33,7 +35,8 @@ def test_rows_pool_episodes_with_wilson_interval_beside_the_paper(load_script, t
     assert rows[0] == "| 2 | adroit_2f (DexRep+Vel) | 7/20 | 35.0 | 18.1-56.7 | 9.0 | 38.3 | 68.8 |"
     assert rows[1] == "| 4 | adroit_4f (DexRep+Vel) | 0/20 | 0.0 | 0.0-16.1 | 0.0 | 18.6 | 83.9 |"
     text = out.read_text()
-    assert "DAgger 4 iterations x 2 episodes x 53 objects (100 steps), 3 epochs/iteration; no DAPG; 1.00 h" in text
+    assert ("DAgger 4 iterations x 2 episodes x 53 objects (100 steps), 3 epochs/iteration; DAPG 10 iterations x 1 "
+            "episode(s)/object; the expert grasps 21.5 % of 209 episodes on the DAgger objects; 1.00 h") in text
     assert "`dexdrake train recipe adroit_2f`" in text
 
 

@@ -9,8 +9,8 @@ sim:  the Drake grasp scene (systems/scene.py); its set-points are clamped and
       rate-limited, and its joints' speeds checked, as the drivers would (an overspeed is
       a StationFault; systems/target_limits.py), and its "object_pose" is the pose the
       scenario's perception model delivers (noise, frames, latency: PerceivedPoseSystem),
-      so that training, sim and hil agree. Also output "query_object" (SceneGraph's QueryObject, for DexRepSystem's SceneGraph
-      feature path).
+      so that training, sim and hil agree. Also output "query_object" (SceneGraph's
+      QueryObject, for DexRepSystem's SceneGraph feature path).
 hil:  DriverSystem around the Allegro CAN driver (on a python-can `virtual` bus, talking to
       the firmware emulator) and around the Z1 UDP client (talking to the controller emulator
       on loopback, free ports), both emulators' joints driven by `HilWorld` (a Drake plant;

@@ -9,7 +9,8 @@ registration of the known CAD mesh to the partial cloud (specs/kinect.md recipe)
 `estimate` is global (RANSAC on FPFH features, then ICP: about 0.6 s); `track` refines the
 last pose on the next frame (point-to-plane ICP of the segmented points near it: a few ms)
 and reports lost tracking (too few points near the last pose, or too few of them on the
-model: occluded, moved too far) as a failure, for the caller to fall back to `estimate`.
+model: occluded, moved too far; or a pose the depth image contradicts) as a failure, for the
+caller to fall back to `estimate`.
 
 Registration runs scene -> model (source = segmented scene cloud, target = model cloud), so
 `fitness` is the fraction of observed points that lie on the posed model: about 1 for a
@@ -165,8 +166,11 @@ class TrackingConfig:
     centre are used (the rest of the scene, e.g. the arm, is not the object); ICP at each of
     `icp_distances` (coarse to fine: the coarse one bounds the motion between frames). The
     track holds while at least `min_points` of them lie within `fitness_distance` of the
-    posed model and they are at least `min_fitness` of the cropped points (fingers in front
-    of the object lower it, the object lost lowers it to 0)."""
+    posed model, they are at least `min_fitness` of the cropped points (fingers in front
+    of the object lower it, the object lost lowers it to 0), and the depth image contradicts
+    no more of the posed model than a global registration may (`RegistrationConfig.
+    max_contradicted`: after a fast turn, such as a topple, ICP can settle on a wrong pose
+    that fits most of the visible points)."""
 
     voxel: float = 0.005
     crop_margin: float = 0.04
@@ -312,7 +316,7 @@ class PoseEstimate:
     num_points: int = 0                    # scene points after voxel downsampling
     elapsed_s: float = 0.0
     run_fitness: tuple[float, ...] = field(default_factory=tuple)  # per ICP-refined try
-    contradicted: float = 0.0              # `contradicted_fraction` of the pose (global only)
+    contradicted: float = 0.0              # `contradicted_fraction` of the pose
 
 
 def _cube_axes() -> np.ndarray:
@@ -495,17 +499,16 @@ class ObjectPoseEstimator:
         mask = segment_object(frame, self.segmentation)
         return mask, backproject(frame.depth, frame.intrinsics, mask)
 
-    def track(self, frame: RgbdFrame, prior: RigidTransform, points_C: np.ndarray | None = None
-              ) -> PoseEstimate:
+    def track(self, frame: RgbdFrame, prior: RigidTransform,
+              observed: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
         """The object pose in `frame` refined from `prior` (the last pose, in the world;
         `frame` must carry X_WC) by point-to-plane ICP (`tracking`); lost tracking gives
-        success=False with the reason. `points_C`: the frame's `object_points`, if known."""
+        success=False with the reason. `observed`: the frame's `object_points`, if known."""
         t0, cfg = time.perf_counter(), self.tracking
         try:
             if frame.X_WC is None:
                 raise FrameError("tracking needs the camera pose (frame.X_WC)")
-            if points_C is None:
-                points_C = self.object_points(frame)[1]
+            mask, points_C = self.object_points(frame) if observed is None else observed
             T_CO = (frame.X_WC.inverse() @ prior).GetAsMatrix4()
             centre = T_CO[:3, :3] @ self._centre + T_CO[:3, 3]
             near = points_C[np.linalg.norm(points_C - centre, axis=1) < self._radius + cfg.crop_margin]
@@ -521,16 +524,22 @@ class ObjectPoseEstimator:
                     scene, target, d, T_OC, _reg.TransformationEstimationPointToPlane(),
                     _reg.ICPConvergenceCriteria(max_iteration=cfg.icp_max_iterations)).transformation
             ev = _reg.evaluate_registration(scene, target, cfg.fitness_distance, T_OC)
+            T_CO = np.linalg.inv(T_OC)
+            contradicted = self.depth_check(frame, mask)(T_CO)
         except Exception as e:  # noqa: BLE001 - the contract: failures are results
             return PoseEstimate(False, f"perception error: {type(e).__name__}: {e}",
                                 elapsed_s=time.perf_counter() - t0)
         fitness, inliers = float(ev.fitness), len(ev.correspondence_set)
-        X_CO = RigidTransform(np.linalg.inv(T_OC))
-        ok = fitness >= cfg.min_fitness and inliers >= cfg.min_points
-        reason = "" if ok else (f"tracking lost: fitness {fitness:.2f} (min {cfg.min_fitness:.2f}), "
-                                f"{inliers} points on the model (min {cfg.min_points})")
-        return PoseEstimate(ok, reason, X_CO, frame.X_WC @ X_CO, fitness, float(ev.inlier_rmse),
-                            num_points=n, elapsed_s=time.perf_counter() - t0)
+        limit, reason = self.registration.max_contradicted, ""
+        if fitness < cfg.min_fitness or inliers < cfg.min_points:
+            reason = (f"tracking lost: fitness {fitness:.2f} (min {cfg.min_fitness:.2f}), "
+                      f"{inliers} points on the model (min {cfg.min_points})")
+        elif contradicted > limit:
+            reason = (f"tracking lost: the depth image contradicts the tracked pose on "
+                      f"{contradicted:.0%} of its visible surface (max {limit:.0%})")
+        X_CO = RigidTransform(T_CO)
+        return PoseEstimate(not reason, reason, X_CO, frame.X_WC @ X_CO, fitness, float(ev.inlier_rmse),
+                            num_points=n, elapsed_s=time.perf_counter() - t0, contradicted=contradicted)
 
     def depth_check(self, frame: RgbdFrame, mask: np.ndarray | None = None
                     ) -> Callable[[np.ndarray], float]:

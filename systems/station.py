@@ -197,7 +197,7 @@ def _worker_estimate(color: np.ndarray, depth: np.ndarray, intrinsics: tuple,
     mask, cloud = est.object_points(frame)
     result, method, lost = None, "track", ""
     if track and prior_W is not None:
-        result = est.track(frame, prior_W, cloud)
+        result = est.track(frame, prior_W, (mask, cloud))
         lost = result.reason
     if result is None or not result.success:
         result, method = est.estimate(frame, prior_W), "global"

@@ -280,7 +280,7 @@ def test_expert_takes_the_variant_chosen_for_its_object(can_env, tmp_path, monke
 
 @pytest.mark.parametrize("hand_name", ["adroit", "allegro_z1"])
 def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_variant(hand_name):
-    from dexdrake.eval.expert import hand_variants
+    from dexdrake.eval.expert import HANDICAPS, hand_variants
     from dexdrake.hands.description import load_hand
     from dexdrake.objects.library import list_objects
     from dexdrake.systems import reactive_grasp
@@ -292,9 +292,11 @@ def test_shipped_expert_grasp_table_covers_every_training_object_with_its_best_v
     assert {o.name for o in list_objects("train")} == set(table["objects"])
     hand = load_hand(hand_name)
     assert list(table["variants"]) == hand_variants(hand)
+    score = {v: -HANDICAPS.get(v, 0) for v in table["variants"]}
     for name, entry in table["objects"].items():
         counts = entry["successes"]
-        assert set(counts) == set(table["variants"]) and counts[entry["variant"]] == max(counts.values())
+        assert set(counts) == set(table["variants"])
+        assert counts[entry["variant"]] + score[entry["variant"]] == max(counts[v] + score[v] for v in counts)
         reactive_grasp.expert_script(hand, name)  # a valid GraspScript (unknown fields would raise)
 
 
@@ -313,6 +315,15 @@ def test_variant_choice_stops_trying_a_variant_that_cannot_win_and_chooses_as_tr
         assert len(calls) == sum(map(len, tried.values()))
     best, tried = best_variant(variants, seeds, lambda v, s: True)  # the default wins on every seed
     assert best == "a" and [len(tried[v]) for v in variants] == [4, 0, 0, 0]
+    for _ in range(200):  # with handicaps: the highest successes less handicap, still as if all were tried
+        table = {(v, s): bool(rng.random() < p) for v, p in zip(variants, rng.random(4)) for s in seeds}
+        handicaps = {v: int(h) for v, h in zip(variants, rng.integers(0, 3, 4))}
+        best, tried = best_variant(variants, seeds, lambda v, s: table[v, s], handicaps)
+        score = {v: sum(table[v, s] for s in seeds) - handicaps[v] for v in variants}
+        assert best == max(variants, key=lambda v: (score[v], -variants.index(v)))
+    table = {("a", s): s < 12 for s in seeds} | {("b", s): s < 13 for s in seeds}  # b wins by one: not enough
+    assert best_variant(["a", "b"], seeds, lambda v, s: table[v, s], {"b": 1})[0] == "a"
+    assert best_variant(["a", "b"], seeds, lambda v, s: table[v, s], {})[0] == "b"
 
 
 def test_reach_from_the_far_edge_and_across_the_fingers_shift_the_grasp_centre(can_env):

@@ -86,10 +86,7 @@ VARIANTS: dict[str, dict[str, Any]] = {  # name -> GraspScript overrides; the fi
                    "tall_palm_depth": -0.035, "lift_lead": 0.06},
 }
 # Successes a variant gives up in the choice: a fingertip pinch must win by more than these
-# over every whole-hand grasp, for a policy cloned from the expert imitates it poorly: an
-# Allegro-on-Z1 policy trained from a table with 12 pinches made 7 % (5/72) on those objects and
-# 67 % (84/126) on the 21 given the hand's default grasp, on validation seeds, where the expert
-# makes 53 % and 82 % (seeds 0-9).
+# over every whole-hand grasp, for a policy cloned from the expert imitates pinches far worse.
 HANDICAPS: dict[str, int] = {"pinch": 2, "pinch_rim": 2, "pinch_slow": 2, "pinch_firm": 2}
 
 
@@ -231,7 +228,7 @@ def best_variant(variants: list[str], seeds: list[int], succeeds: Callable[[str,
     (ties: the earlier one), and each variant's outcomes on the seeds it tried: a variant
     stops once even success on all its remaining seeds could not beat the best score so
     far, so it could not have been chosen."""
-    best, best_score, tried = variants[0], -len(seeds) - max(handicaps.values(), default=0) - 1, {}
+    best, best_score, tried = variants[0], float("-inf"), {}
     for variant in variants:
         outcomes: list[bool] = []
         handicap = handicaps.get(variant, 0)

@@ -19,6 +19,10 @@ Modelling choices (not in the specs; documented here and in each file's header c
   0.1 rad of command past contact); SAP integrates the PD implicitly, so it is stable at
   plant dt 2 ms. tests/test_allegro_z1_models.py closes the hand on a 0.5 kg box and lifts
   it 0.1 m (it drops the box with friction 0.1).
+- Allegro drive: each finger actuator's effort limit is the driver's PWM limit
+  (allegro_units.PWM_LIMITS, 1.35-3.4 N*m) in N*m, the most the drivers ever command; its
+  reflected inertia and viscous damping are those of the HIL world's firmware emulator
+  (ROTOR_INERTIA, ROTOR_DAMPING), so that the simulated hand is the HIL hand.
 - Z1: link geometry is an approximation (cylinders sized to the joint offsets), masses are
   plausible values (arm about 4.4 kg). PD gains are the vendor's default LOWCMD gains in
   N*m/rad per specs/z1.md: kp = k*25.6, kd = 2000*0.0128 = 25.6.
@@ -44,7 +48,8 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
 
-from dexdrake.hands.allegro_units import KD_VENDOR, KP_VENDOR, NM_PER_PWM
+from dexdrake.hands.allegro_units import KD_VENDOR, KP_VENDOR, NM_PER_PWM, PWM_LIMITS
+from dexdrake.hardware.allegro_emulator import EmulatorConfig
 from dexdrake.hardware.z1_model import KD_SCALE, KP_SCALE
 
 Vec = tuple[float, float, float]
@@ -70,8 +75,12 @@ THUMB_JOINTS = [
 ]
 FINGER_TIP_OFFSET = 0.0267  # link_3.0 -> link_3.0_tip (and 7, 11)
 THUMB_TIP_OFFSET = 0.0423  # link_15.0 -> link_15.0_tip
-HAND_EFFORT = 15.0
 HAND_VELOCITY = 7.0
+# The fingers' drive as the HIL world's Allegro emulator models it (hardware/allegro_emulator.py:
+# ddq = accel_per_pwm * pwm - damping * dq): the reflected inertia (kg*m^2, gear ratio 1) that
+# NM_PER_PWM N*m per count accelerates at accel_per_pwm, and the viscous damping (N*m*s/rad).
+ROTOR_INERTIA = NM_PER_PWM / EmulatorConfig.accel_per_pwm
+ROTOR_DAMPING = ROTOR_INERTIA * EmulatorConfig.damping
 TIP_RADIUS = 0.012
 FINGER_BOX_XY = (0.0196, 0.0275)
 FINGER_LENGTHS = (0.0164, 0.054, 0.0384, 0.0267)  # box L of links 0..3 (and 4..7, 8..11)
@@ -221,7 +230,7 @@ def _box_link(robot: ET.Element, name: str, mass: float, size: Vec, centre: Vec,
 
 def _joint(robot: ET.Element, name: str, kind: str, parent: str, child: str, xyz: Vec,
            rpy: Vec = (0.0, 0.0, 0.0), axis: Vec | None = None,
-           limits: tuple[float, float, float, float] | None = None) -> None:
+           limits: tuple[float, float, float, float] | None = None, damping: float = 0.0) -> None:
     j = ET.SubElement(robot, "joint", name=name, type=kind)
     ET.SubElement(j, "parent", link=parent)
     ET.SubElement(j, "child", link=child)
@@ -232,14 +241,18 @@ def _joint(robot: ET.Element, name: str, kind: str, parent: str, child: str, xyz
         lo, hi, effort, velocity = limits
         ET.SubElement(j, "limit", lower=_f(lo), upper=_f(hi), effort=_f(effort),
                       velocity=_f(velocity))
+    if damping:
+        ET.SubElement(j, "dynamics", damping=_f(damping))
 
 
-def _transmission(robot: ET.Element, joint: str, p: float, d: float) -> None:
+def _transmission(robot: ET.Element, joint: str, p: float, d: float, rotor_inertia: float = 0.0) -> None:
     t = ET.SubElement(robot, "transmission", name=f"{joint}_trans")
     ET.SubElement(t, "type").text = "transmission_interface/SimpleTransmission"
     ET.SubElement(t, "joint", name=joint)
     act = ET.SubElement(t, "actuator", name=f"{joint}_act")
     ET.SubElement(act, "drake:controller_gains", p=_f(p), d=_f(d))
+    if rotor_inertia:
+        ET.SubElement(act, "drake:rotor_inertia", value=_f(rotor_inertia))
 
 
 def _filter_group(robot: ET.Element, name: str, members: Sequence[str]) -> None:
@@ -265,7 +278,7 @@ def add_allegro(robot: ET.Element) -> None:
             size, centre = (*FINGER_BOX_XY, length), (0.0, 0.0, length / 2)
         _box_link(robot, child, mass, size, centre, "dark")
         _joint(robot, name, "revolute", parent, child, xyz, rpy, axis,
-               (lo, hi, HAND_EFFORT, HAND_VELOCITY))
+               (lo, hi, PWM_LIMITS[idx] * NM_PER_PWM, HAND_VELOCITY), damping=ROTOR_DAMPING)
         if k in (3, 7, 11, 15):
             tip = f"{child}_tip"
             link = ET.SubElement(robot, "link", name=tip)
@@ -276,7 +289,7 @@ def add_allegro(robot: ET.Element) -> None:
             offset = THUMB_TIP_OFFSET if k == 15 else FINGER_TIP_OFFSET
             _joint(robot, f"{name}_tip", "fixed", child, tip, (0.0, 0.0, offset))
     for (name, *_), (p, d) in zip(joints, allegro_gains()):
-        _transmission(robot, name, p, d)
+        _transmission(robot, name, p, d, ROTOR_INERTIA)
     # Adjacent links: Drake already filters parent-child pairs; these groups also filter
     # the palm against each finger's first two links (thumb: three), whose boxes overlap
     # the palm box near the knuckles.

@@ -95,13 +95,27 @@ def pose_error_text(rows: list[dict]) -> str:
     return f"{np.median(err):.1f} / {np.percentile(err, 95):.1f} / {err.max():.1f}"
 
 
+def controller_text(config: str) -> str:
+    """Which controller `config` runs: its policy checkpoint with the file's sha256, or the
+    scripted grasp."""
+    from dexdrake.objects.meshfile import file_hash
+    from dexdrake.paths import resolve_model_path
+    from dexdrake.systems.scenario import load_scenario
+
+    policy = load_scenario(config).policy
+    if policy is None:
+        return f"Controller: the scripted grasp ({config} has no policy)."
+    path = resolve_model_path(policy.checkpoint)
+    return f"Controller: policy `{policy.checkpoint}` (sha256 {file_hash(path)[:12]}, {policy.feature_set})."
+
+
 def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str, config: str) -> str:
     """The parity table (markdown) of the episodes in `rows`."""
     from dexdrake.hands.allegro_units import NM_PER_PWM
     from dexdrake.systems.scenario import load_scenario
 
     hand = load_scenario(config).drivers
-    lines = [f"Command: `{command}`", "",
+    lines = [f"Command: `{command}`", "", controller_text(config), "",
              "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults | "
              "pose error the controller saw (position, every control step): median / p95 / max (mm) | "
              "sim, same episodes: success / lift (m) | successes (object/seed) |",

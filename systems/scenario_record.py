@@ -8,6 +8,7 @@ import math
 from typing import Any
 
 from dexdrake.hands.description import load_hand
+from dexdrake.objects.meshfile import file_hash
 from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.systems.scenario import Scenario, ScenarioError
 from dexdrake.systems.target_limits import overspeed_limits, target_limits
@@ -19,7 +20,8 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
     the drivers' target limits in policy order (systems/target_limits.py TargetLimits: lower,
     upper, max_rate (inf: none), velocity_feedforward, paced) and overspeed trip (speed,
     window; None without drivers), the perception model the features see the object pose through
-    (dexdrake/perceived_pose.py) and the camera's depth noise (rendered cameras only)."""
+    (dexdrake/perceived_pose.py), the camera's depth noise (rendered cameras only) and the sha256
+    of the hand's model file (its geometry, masses and drive)."""
     hand = load_hand(s.hand)
     limits = target_limits(s, hand)
     overspeed = overspeed_limits(s, hand)
@@ -29,7 +31,8 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
             "overspeed": None if overspeed is None else {"speed": overspeed[0].tolist(),
                                                          "window": overspeed[1].tolist()},
             "perception": dataclasses.asdict(s.perception),
-            "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise}
+            "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise,
+            "hand_model": file_hash(hand.model_path)}
 
 
 def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
@@ -39,8 +42,9 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     control period raises ScenarioError (one line) unless `allow_mismatch`; returns the
     warning lines to print: those overridden mismatches, and a difference in the target
     limits, the overspeed trip (a record without one was trained without it), the contact
-    approximation (a record without one: "sap") or the perception model (which the policy
-    may tolerate; a record without one was trained on the exact pose)."""
+    approximation (a record without one: "sap"), the perception model (which the policy
+    may tolerate; a record without one was trained on the exact pose) or the hand's model file
+    (where recorded)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
             for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]
@@ -67,4 +71,7 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     if trained.get("perception", dataclasses.asdict(PerceptionModel())) != run["perception"]:
         warnings.append(f"warning: {checkpoint} was trained under another perception model (pose noise, "
                         f"frame period, latency) than this scenario's: {trained.get('perception')}")
+    if trained.get("hand_model", run["hand_model"]) != run["hand_model"]:
+        warnings.append(f"warning: {checkpoint} was trained on another model of the {s.hand} hand (sha256 "
+                        f"{trained['hand_model'][:12]}; its model file now: {run['hand_model'][:12]})")
     return warnings

@@ -161,13 +161,24 @@ def test_models_are_regenerated_identically(tmp_path, load_script):
 
 @pytest.mark.parametrize("rel", ["allegro/allegro_right.urdf", "allegro/allegro_z1.urdf",
                                  "allegro/allegro_arm.urdf"])
-def test_hand_joint_limits_match_spec(rel):
+def test_hand_joint_limits_match_spec_and_the_drive_the_drivers_give(rel):
+    """Joint limits as the spec; each finger actuator's effort is its driver PWM limit in N*m
+    and its reflected inertia and damping are the HIL emulator's (a hand no stronger or
+    lighter in simulation than in HIL)."""
+    from dexdrake.hardware.allegro_emulator import EmulatorConfig
+
     plant, _ = load(rel)
+    context = plant.CreateDefaultContext()
+    inertia = au.NM_PER_PWM / EmulatorConfig.accel_per_pwm
     for name, (*_, lo, hi) in HAND.items():
         joint = plant.GetJointByName(name)
         assert joint.position_lower_limits()[0] == lo and joint.position_upper_limits()[0] == hi
         np.testing.assert_array_equal(joint.velocity_upper_limits(), [7.0])
-        assert plant.GetJointActuatorByName(f"{name}_act").effort_limit() == 15.0
+        actuator = plant.GetJointActuatorByName(f"{name}_act")
+        bus = int(name.split("_")[1].split(".")[0])
+        assert actuator.effort_limit() == pytest.approx(au.PWM_LIMITS[bus] * au.NM_PER_PWM)
+        assert actuator.calc_reflected_inertia(context) == pytest.approx(inertia)
+        assert joint.default_damping() == pytest.approx(inertia * EmulatorConfig.damping)
 
 
 @pytest.mark.parametrize("rel", ["z1/z1.urdf", "allegro/allegro_z1.urdf"])

@@ -4,10 +4,13 @@ the command's order and table, not HIL itself)."""
 
 from __future__ import annotations
 
+import hashlib
+
 import pytest
 
 from dexdrake.cli import main
 from dexdrake.errors import DexdrakeError
+from dexdrake.paths import models_dir
 
 
 def test_parity_runs_sim_then_each_scale_and_rewrites_the_table_after_every_episode(tmp_path, monkeypatch, capsys):
@@ -34,6 +37,8 @@ def test_parity_runs_sim_then_each_scale_and_rewrites_the_table_after_every_epis
     table = out.read_text()  # the six finished episodes, each HIL row beside simulation on its own episodes
     assert table.startswith("Command: `dexdrake parity --config hil --objects can_soda sphere_small --seeds 3 "
                             "--horizon 5 --scales 1.0 0.5 2.0 --camera sim --out")
+    shipped = hashlib.sha256((models_dir() / "weights" / "allegro_z1_dexrep_policy.pt").read_bytes()).hexdigest()
+    assert f"Controller: policy `models/weights/allegro_z1_dexrep_policy.pt` (sha256 {shipped[:12]}, DexRep+Vel)." in table
     assert "| sim | - | 2 | 50% | 0.050 | 0 | 3.0 / 4.0 / 4.0 | 50% / 0.050 | can_soda/3 |" in table
     assert "| hil | 1 x | 2 | 50% |" in table
     assert "| hil | 0.5 x | 1 | 100% | 0.100 | 0 | 3.0 / 18.3 / 20.0 | 100% / 0.100 | can_soda/3 |" in table

@@ -90,6 +90,13 @@ def test_a_policy_trained_under_another_step_or_period_is_refused_unless_allowed
     assert "without the drivers' target limits" in check_policy_scenario(UNRECORDED_SCENARIO, hil, "p.pt")[0]
 
 
+def test_a_policy_trained_on_another_model_of_the_hand_is_warned():
+    hil = load_scenario("hil")
+    trained = {**scenario_record(hil), "hand_model": "0" * 64}
+    (warning,) = check_policy_scenario(trained, hil, "p.pt")
+    assert "p.pt was trained on another model of the allegro_z1 hand (sha256 000000000000;" in warning
+
+
 def test_a_policy_records_the_drivers_overspeed_trip_and_is_warned_without_it():
     hil = load_scenario("hil")
     trained = scenario_record(hil)

@@ -47,7 +47,8 @@ def add_parser(subparsers) -> None:
     choose = sub.add_parser("choose", help="choose the expert's grasp variant per training object by simulated trials",
                             description="Try every grasp variant the hand can take (dexdrake.eval.expert.VARIANTS) "
                                         "with the grasp expert on each training object for seeds S..S+N-1 and keep "
-                                        "the one with the most successes (ties: the earlier, the hand's default "
+                                        "the one with the most successes less its handicap (dexdrake.eval.expert.HANDICAPS: "
+                                        "fingertip pinches give up 2; ties: the earlier, the hand's default "
                                         "first); write the hand's grasp table, which the expert reads. Seeds that "
                                         "`expert table` reports on are refused. With --objects, each re-chosen "
                                         "entry records its command and seeds.")

@@ -518,3 +518,16 @@ def test_a_grasp_variant_may_lift_slower_than_the_hands_rule():
         step = env.normalise(out)[: expert.n_arm] - env.normalise(np.r_[q_arm, out[expert.n_arm:]])[: expert.n_arm]
         leads.append(np.abs(step).max())
     assert leads[1] == pytest.approx(0.02, rel=1e-6) and 0.02 < leads[0] <= expert.rules.lift_lead + 1e-9
+
+
+def test_expert_table_counts_the_episodes_a_fault_ended():
+    from dexdrake.episode import EpisodeResult
+    from dexdrake.eval.expert import ControllerEpisode, ControllerTable
+
+    trip = "driver fault at step 11 (seed 7): overspeed: joint_15.0 at 11.56 rad/s (the driver trips above 10.50 rad/s)"
+    table = ControllerTable(["box_cube"], 0, 2, 100, {"box_cube": "box"})
+    table.episodes["box_cube"] = [ControllerEpisode(EpisodeResult("box_cube", 0, True, 0.2, 100, 1.0), 0.1, 100),
+                                  ControllerEpisode(EpisodeResult("box_cube", 1, False, 0.0, 11, 0.0, fault=trip), 0.1, 11)]
+    text = table.markdown("Expert", [])
+    assert "- 1 of 2 episodes ended on a fault, each a failure: 1 driver fault (overspeed)" in text
+    assert "| box_cube | box | 1/2 | 50 % |" in text

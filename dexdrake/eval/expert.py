@@ -31,6 +31,7 @@ from typing import Any
 from dexdrake.episode import EpisodeResult
 from dexdrake.errors import DexdrakeError
 from dexdrake.eval.evaluate import pool_by_category
+from dexdrake.eval.tables import fault_lines
 from dexdrake.hands.description import HandDescription
 from dexdrake.learn.samplers import Sampler
 from dexdrake.objects.meshfile import write_atomic
@@ -165,7 +166,8 @@ class ControllerTable:
         return _pct(sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows))
 
     def markdown(self, heading: str, notes: Sequence[str]) -> str:
-        """`heading`, the paragraphs `notes`, the object table, the category table and the overall line."""
+        """`heading`, the paragraphs `notes`, the episodes a fault ended, the object table, the
+        category table and the overall line."""
         objects, categories = self.object_rows(), self.category_rows()
         wins, runs = sum(r["successes"] for r in objects), sum(r["episodes"] for r in objects)
         worst = min(r["success_pct"] for r in categories)
@@ -173,6 +175,8 @@ class ControllerTable:
         lines = [f"# {heading}", ""]
         for note in notes:
             lines += [note, ""]
+        faults = fault_lines([e.result for episodes in self.episodes.values() for e in episodes])
+        lines += [*faults, ""] if faults else []
         lines += ["| object | category | success | rate | mean max lift (m) | ms |", "|---|---|---|---|---|---|"]
         lines += [f"| {r['object']} | {r['category']} | {r['successes']}/{r['episodes']} | {r['success_pct']:.0f} % "
                   f"| {r['mean_max_lift_m']:.3f} | {r['ms_per_call']:.2f} |" for r in objects]

@@ -26,14 +26,15 @@ class PoseError:
     """An episode logger (the interface of systems/rerun_logger.RerunLogger that the episode
     loop calls) that keeps, per control step, the distance (m) between the object position
     the controller saw and the world's at the instant it was sampled (the world's pose
-    logged at the end of the previous step)."""
+    logged at the end of the previous step), while the object is on the table (its centre
+    above the table top, z = 0): one that fell off it, out of view, is not a pose error."""
 
     def __init__(self) -> None:
         self.errors: list[float] = []
         self._world: np.ndarray | None = None
 
     def log_station_step(self, t, hand_state, command, object_pose, stats, world_pose) -> None:
-        if self._world is not None:
+        if self._world is not None and self._world[2] > 0.0:
             self.errors.append(float(np.linalg.norm(object_pose[:3] - self._world)))
         self._world = world_pose.translation()
 
@@ -90,7 +91,7 @@ def perception_table(rows: list[dict], modes: list[tuple[str, float]]) -> str:
 
 
 def pose_error_text(rows: list[dict]) -> str:
-    """median / p95 / max (mm) of the pose error the controller saw in `rows`, every control step."""
+    """median / p95 / max (mm) of the pose error the controller saw in `rows` (`PoseError`)."""
     err = 1e3 * np.array([e for r in rows for e in r["pose_error"]] or [np.nan])
     return f"{np.median(err):.1f} / {np.percentile(err, 95):.1f} / {err.max():.1f}"
 
@@ -117,7 +118,7 @@ def parity_table(rows: list[dict], modes: list[tuple[str, float]], command: str,
     hand = load_scenario(config).drivers
     lines = [f"Command: `{command}`", "", controller_text(config), "",
              "| mode | PWM -> N*m scale | episodes | success | mean max lift (m) | faults | "
-             "pose error the controller saw (position, every control step): median / p95 / max (mm) | "
+             "pose error the controller saw (position, every control step with the object on the table): median / p95 / max (mm) | "
              "sim, same episodes: success / lift (m) | successes (object/seed) |",
              "|---|---|---|---|---|---|---|---|---|"]
     sim = {(r["object"], r["seed"]): r for r in rows if r["mode"] == "sim"}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 
+import numpy as np
 import pytest
 
 from dexdrake.cli import main
@@ -50,3 +51,16 @@ def test_parity_refuses_a_bad_number_before_any_episode(argv, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
     assert exit_.value.code == 2 and "error: argument --" in capsys.readouterr().err
+
+
+def test_pose_error_counts_the_steps_the_object_is_on_the_table():
+    """The distance between the pose the controller saw and the world's at the sample, while the
+    object's centre is above the table top; an object that fell off the table is not counted."""
+    from pydrake.math import RigidTransform
+
+    from dexdrake.systems.parity import PoseError
+
+    log, seen = PoseError(), np.array([0.0, 0.0, 0.04, 1.0, 0.0, 0.0, 0.0])
+    for z in (0.04, 0.05, -0.3, -0.9):  # the world's object: on the table, lifted, falling past its edge
+        log.log_station_step(0.0, None, None, seen, None, RigidTransform([0.0, 0.0, z]))
+    assert log.errors == pytest.approx([0.0, 0.01])

@@ -161,6 +161,32 @@ def test_tiny_recipe_runs_end_to_end_ships_resumes_and_refuses_an_early_change(t
     assert "no started stage reads it: ship.tables" in capsys.readouterr().out
 
 
+def test_more_dagger_iterations_go_on_from_the_last_one_until_a_later_stage_has_started(tmp_path, capsys):
+    out = tmp_path / "run"
+    argv = ["--out", str(out), "--backend", "sequential", "--workers", "1"]
+    assert main(["train", "recipe", str(TINY), *argv, "--until", "dagger"]) == 0
+    first = (out / "dagger" / "data_00.npz").stat().st_mtime_ns
+    longer = tmp_path / "longer.yaml"
+    longer.write_text(TINY.read_text().replace("    iterations: 1\n    episodes_per_object: 1\n    horizon: 4\n    epochs",
+                                               "    iterations: 2\n    episodes_per_object: 1\n    horizon: 4\n    epochs"))
+    capsys.readouterr()
+    assert main(["train", "recipe", str(longer), *argv, "--until", "dapg1"]) == 0
+    assert "DAgger goes on from 1 to 2 iterations" in capsys.readouterr().out
+    assert (out / "dagger" / "data_00.npz").stat().st_mtime_ns == first and (out / "dagger" / "policy_01.pt").is_file()
+    done = json.loads((out / "dagger" / "done.json").read_text())
+    assert done["config"]["iterations"] == 2 and [d["config"]["iterations"] for d in done["earlier"]] == [1]
+    more = tmp_path / "more.yaml"  # DAPG has started from the 2-iteration policy: refused, the reason named
+    more.write_text(longer.read_text().replace("    iterations: 2\n", "    iterations: 3\n"))
+    assert main(["train", "recipe", str(more), *argv]) == 2
+    err = capsys.readouterr().err
+    assert "dagger.config.iterations 2 (now 3) is read by started stage dagger (more DAgger iterations go on only " \
+           "while no later stage has started: dapg1 has)" in err and err.count("\n") == 1
+    fewer = tmp_path / "fewer.yaml"
+    fewer.write_text(TINY.read_text())
+    assert main(["train", "recipe", str(fewer), *argv]) == 2
+    assert "dagger.config.iterations 2 (now 1) is read by started stage dagger; restore" in capsys.readouterr().err
+
+
 def _shipped(weights: Path, manifest: dict) -> Path:
     """A tiny Adroit policy in `weights` with `manifest` beside it (its sha256 and hand filled in)."""
     from dexdrake.dexrep.feature_sets import observation_blocks

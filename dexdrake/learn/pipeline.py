@@ -5,7 +5,9 @@ stage's outputs and, once it finished, done.json (its summary and the command th
 A re-run skips finished stages and resumes a stopped one (DAgger and DAPG per iteration, the
 choice of iterate per candidate). A changed recipe is refused, with the fields named, when a
 changed field is read by a stage that has started; otherwise the new recipe is recorded and
-the run goes on with it.
+the run goes on with it. One such change goes on too: more DAgger iterations, while no stage
+after DAgger has started; DAgger then continues from its last iteration (its earlier ones kept,
+their record in done.json's "earlier").
 
 Stages: augment (optional) -> expert (the expert alone per DAgger object, on validation
 seeds: expert_table.md/.csv) -> dagger (dagger_log.csv/.png) -> dapg1..n (each from the
@@ -43,6 +45,8 @@ from dexdrake.objects.meshfile import write_atomic
 
 RECIPE_FILE = "recipe.json"
 DONE_FILE = "done.json"
+EARLIER_FILE = "done_earlier.json"  # a re-opened stage's earlier done.json records (a list)
+EXTENDABLE = "dagger.config.iterations"  # a started run may grow it (open_run)
 
 
 @dataclass(frozen=True)
@@ -87,14 +91,32 @@ def open_run(recipe: Recipe, source: Path, out: Path) -> None:
         started = [s for s in stage_plan(recorded) if (out / s.name).is_dir()]
         refused = [(f, a, b, [s.name for s in started if reads(s, f)]) for f, a, b in changes]
         refused = [r for r in refused if r[3]]
+        later = [s.name for s in started if s.name not in ("augment", "expert", "dagger")]
+        extend = [r for r in refused if r[0] == EXTENDABLE and r[2] > r[1]]
+        if extend and len(refused) == 1 and not later:
+            _reopen(out / "dagger")
+            print(f"DAgger goes on from {extend[0][1]} to {extend[0][2]} iterations", flush=True)
+            refused = []
         if refused:
+            hint = (f" (more DAgger iterations go on only while no later stage has started: {', '.join(later)} has)"
+                    if extend else "")
             raise DexdrakeError(f"{out} was made with another recipe: " + "; ".join(
                 f"{f} {json.dumps(a)} (now {json.dumps(b)}) is read by started stage {', '.join(s)}"
-                for f, a, b, s in refused) + "; restore those fields or use another --out")
+                for f, a, b, s in refused) + hint + "; restore those fields or use another --out")
         if not changes:
             return
         print(f"recipe changed where no started stage reads it: {', '.join(f for f, _, _ in changes)}", flush=True)
     _write_json(record, {"source": str(source), "sha256": recipe_sha256(recipe), "recipe": now})
+
+
+def _reopen(folder: Path) -> None:
+    """Mark a finished stage unfinished, its done.json kept in EARLIER_FILE."""
+    done = folder / DONE_FILE
+    if done.is_file():
+        earlier = folder / EARLIER_FILE
+        records = json.loads(earlier.read_text()) if earlier.is_file() else []
+        _write_json(earlier, [*records, json.loads(done.read_text())])
+        done.unlink()
 
 
 def run_recipe(recipe: Recipe, source: Path, out: Path, runtime: Runtime, until: str | None = None) -> Path:
@@ -120,6 +142,9 @@ def run_recipe(recipe: Recipe, source: Path, out: Path, runtime: Runtime, until:
         folder.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
         summary = STAGES[_kind(stage)](recipe, stage, out, runtime)
+        earlier = folder / EARLIER_FILE
+        if earlier.is_file():
+            summary["earlier"] = json.loads(earlier.read_text())
         _write_json(folder / DONE_FILE, {"stage": stage.name, "command": runtime.command,
                                          "wall_s": round(time.perf_counter() - start, 1), **summary})
     return out / "choose" / "chosen.pt"
@@ -170,9 +195,9 @@ def run_dagger(recipe: Recipe, stage: StagePlan, out: Path, rt: Runtime) -> dict
     config = replace(recipe.dagger.config, workers=rt.workers, backend=rt.backend)
     probes = resolve_objects("validation")[1] if config.probe_per_object else []
     folder = out / stage.name
-    final = train_dagger(objects, folder, rt.make_env, rt.make_expert, config,
+    final = train_dagger(objects, folder, rt.make_env, rt.make_expert, config,  # open_run lets a started run
                          {"command": rt.command, "recipe_stage": stage.name, "scenario": rt.scenario}, rt.address,
-                         probes)
+                         probes, resume_changed=True)  # differ only in more iterations
     plot_curves(folder / "dagger_log.csv", folder / "dagger_log.png", "iteration", ["success_rate", "val_loss"],
                 title="DAgger")
     return {"policy": final.name, "objects": len(objects), "config": asdict(config)}

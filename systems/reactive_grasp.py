@@ -19,7 +19,9 @@ any state a learning policy visits (DAgger) and re-tries when a grasp fails:
 - fingers closed but not on the object (missed or dropped, beyond that radius): open them;
 - otherwise reach through a funnel: above the grasp point the target is the grasp point,
   and the farther off horizontally, the closer the target is to the approach way-point
-  above it (continuous in the state, so a cloned policy can follow it); hands whose finger
+  above it (continuous in the state, so a cloned policy can follow it), reached in joint space or,
+  where the hand's rules say so (`approach_step`), along a straight line of the grasp centre
+  (IK steps from the measured arm; a revolute arm's joint-space path bows); hands whose finger
   set-points are rate-limited start closing them in the last centimetres of the descent
   (`preclose`).
 
@@ -42,6 +44,7 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.hands.description import HandDescription
@@ -85,6 +88,10 @@ class ReactiveRules:
     lift_steps: int = 3  # IK steps of the lift set-point
     lift_touching: bool = False  # a lifted object the thumb and a finger touch keeps the lift however open
     # the fingers are (a wide object spreads them below `started`; False: the lift needs that closure)
+    approach_step: float = 0.0  # reach the funnel's target along a straight line of the grasp centre, this far
+    # ahead of it (m; IK steps from the measured arm), the palm turning at most `approach_turn` (rad) ahead
+    # (0: straight in joint space, which bows on a revolute arm)
+    approach_turn: float = 0.1
 
 
 def expert_grasps_path(hand: str) -> Path:
@@ -144,6 +151,7 @@ class ReactiveGrasp(ScriptedGrasp):
         self.q_above = self.ik.solve(plan.above, self.q_open[: self.n_arm], plan.R)
         self.q_grasp = self.ik.solve(plan.grasp, self.q_above, plan.R)
         self.grasp_point = self.ik.palm_pose(self.q_grasp)[0]
+        self.above_point = self.ik.palm_pose(self.q_above)[0]
 
     def _follow(self, env) -> None:
         """Re-plan when the grasp for the object's pose now has moved or turned beyond the
@@ -190,7 +198,10 @@ class ReactiveGrasp(ScriptedGrasp):
             tolerance = r.above_xy + r.descend_cone * max(above, 0.0)
             s = min(max((aside - tolerance) / r.funnel, 0.0), 1.0)
             self.phase = "approach" if s >= 1.0 else "descend"
-            arm = self.q_grasp + s * (self.q_above - self.q_grasp)
+            if r.approach_step > 0:
+                arm = self._toward(q[: self.n_arm], self.grasp_point + s * (self.above_point - self.grasp_point))
+            else:
+                arm = self.q_grasp + s * (self.q_above - self.q_grasp)
             if s < 1.0 and above < r.preclose_height and aside < r.keep_xy:
                 fingers = self.q_open + r.preclose * self._span
         out = np.array(fingers, dtype=float)
@@ -203,6 +214,17 @@ class ReactiveGrasp(ScriptedGrasp):
         """Arm set-points toward `lift_target`: a few IK steps from q_arm, a function of the state."""
         target, R = self.lift_target(q_arm, p_obj, lifted)
         return self.ik.step(target, R, q_arm, self.rules.lift_steps)
+
+    def _toward(self, q_arm: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """Arm set-points that move the grasp centre straight toward `point`, at most `approach_step`
+        ahead, and turn the palm toward the plan's rotation, at most `approach_turn` ahead."""
+        p, R = self.ik.palm_pose(q_arm)
+        d = point - p
+        p_next = p + d * min(1.0, self.rules.approach_step / max(float(np.linalg.norm(d)), 1e-12))
+        turn = RotationMatrix(self.R_grasp @ R.T).ToAngleAxis()
+        angle = min(turn.angle(), self.rules.approach_turn)
+        R_next = RotationMatrix(AngleAxis(angle, turn.axis())).matrix() @ R
+        return self.ik.step(p_next, R_next, q_arm, self.rules.lift_steps)
 
     def lift_target(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> tuple[np.ndarray, np.ndarray]:
         """Where the lift takes the grasp centre, and the palm's rotation: up to the lift height,

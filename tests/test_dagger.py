@@ -271,9 +271,9 @@ def test_hand_descriptions_override_the_grasp_geometry_and_expert_rules():
     allegro, adroit = load_hand("allegro_z1"), load_hand("adroit")
     assert script_for(adroit) == GraspScript() and script_for(allegro) == GraspScript(palm_depth=0.02, max_yaw=1.15)
     assert with_overrides(ReactiveRules, allegro.grasp_expert, allegro, "grasp_expert") == ReactiveRules(
-        descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.1, stopped_speed=0.05, touch=0.02,
+        descend_cone=0.5, at_grasp=0.025, max_lead=0.15, lift_lead=0.05, stopped_speed=0.05, touch=0.02,
         in_hand=0.03, follow_closing=False, preclose=0.85, preclose_height=0.07, lift_touching=True,
-        settled_speed=2.5)  # the Z1 mount's over the hand's
+        settled_speed=2.5, approach_step=0.05)  # the Z1 mount's over the hand's
     with pytest.raises(DexdrakeError, match=r"grasp_script has unknown fields \['palm_dept'\]"):
         script_for(replace(allegro, grasp_script={"palm_dept": 0.02}))
 

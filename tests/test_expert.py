@@ -55,6 +55,29 @@ def test_lift_label_is_a_few_jacobian_steps_that_match_the_full_ik(can_env):
     np.testing.assert_allclose(expert.ik.palm_pose(expert._lift(q_arm, outside, False))[0], target, atol=1e-3)
 
 
+def test_allegro_z1_expert_reaches_along_a_straight_line_of_the_grasp_centre():
+    """On the Z1 the funnel's target is reached by steps of the grasp centre along the straight line
+    to it, `approach_step` long, the palm turning at most `approach_turn` toward the plan's rotation
+    (a joint-space path bows sideways)."""
+    env = GraspEnv(training_scenario("allegro_z1", "box_bar"), horizon=100)
+    env.reset(3)
+    expert = ReactiveGrasp(env)
+    r = expert.rules
+    assert r.approach_step > 0
+    q_arm = env.hand_state()[: expert.n_arm]
+    p, R = expert.ik.palm_pose(q_arm)
+    full_turn = RotationMatrix(expert.R_grasp @ R.T).ToAngleAxis().angle()
+    assert full_turn > r.approach_turn  # box_bar's palm turns across its short axis
+    for point in (expert.above_point, expert.grasp_point, p + [0.0, 0.0, -0.02]):
+        label = expert._toward(q_arm, point)
+        p_next, R_next = expert.ik.palm_pose(label)
+        d = point - p
+        np.testing.assert_allclose(p_next, p + d * min(1.0, r.approach_step / np.linalg.norm(d)), atol=2e-3)
+        assert RotationMatrix(R_next @ R.T).ToAngleAxis().angle() == pytest.approx(r.approach_turn, abs=0.01)
+        assert RotationMatrix(expert.R_grasp @ R_next.T).ToAngleAxis().angle() == pytest.approx(
+            full_turn - r.approach_turn, abs=0.01)  # toward the plan's rotation
+
+
 def test_nearest_start_is_never_farther_from_the_start_than_the_object():
     rng = np.random.default_rng(0)
     for _ in range(200):

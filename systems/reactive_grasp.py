@@ -44,11 +44,11 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
-from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.math import RigidTransform, RotationMatrix
 
 from dexdrake.hands.description import HandDescription
 from dexdrake.paths import models_dir
+from dexdrake.perceived_pose import rotation_from_vector
 from dexdrake.systems.scene import ObjectPlacement
 from dexdrake.systems.scripted_grasp import (GraspPlan, GraspScript, ScriptedGrasp, plan_grasp, script_for,
                                               with_overrides)
@@ -91,7 +91,7 @@ class ReactiveRules:
     approach_step: float = 0.0  # reach the funnel's target along a straight line of the grasp centre, this far
     # ahead of it (m; IK steps from the measured arm), the palm turning at most `approach_turn` (rad) ahead
     # (0: straight in joint space, which bows on a revolute arm)
-    approach_turn: float = 0.1
+    approach_turn: float = 0.1  # (rad)
 
 
 def expert_grasps_path(hand: str) -> Path:
@@ -222,8 +222,7 @@ class ReactiveGrasp(ScriptedGrasp):
         d = point - p
         p_next = p + d * min(1.0, self.rules.approach_step / max(float(np.linalg.norm(d)), 1e-12))
         turn = RotationMatrix(self.R_grasp @ R.T).ToAngleAxis()
-        angle = min(turn.angle(), self.rules.approach_turn)
-        R_next = RotationMatrix(AngleAxis(angle, turn.axis())).matrix() @ R
+        R_next = rotation_from_vector(min(turn.angle(), self.rules.approach_turn) * turn.axis()) @ R
         return self.ik.step(p_next, R_next, q_arm, self.rules.lift_steps)
 
     def lift_target(self, q_arm: np.ndarray, p_obj: np.ndarray, lifted: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,7 @@ import math
 from typing import Any
 
 from dexdrake.hands.description import load_hand
+from dexdrake.objects.mass import ObjectMass
 from dexdrake.objects.meshfile import file_hash
 from dexdrake.perceived_pose import PerceptionModel
 from dexdrake.systems.scenario import Scenario, ScenarioError
@@ -20,8 +21,9 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
     the drivers' target limits in policy order (systems/target_limits.py TargetLimits: lower,
     upper, max_rate (inf: none), velocity_feedforward, paced) and overspeed trip (speed,
     window; None without drivers), the perception model the features see the object pose through
-    (dexdrake/perceived_pose.py), the camera's depth noise (rendered cameras only) and the sha256
-    of the hand's model file (its geometry, masses and drive)."""
+    (dexdrake/perceived_pose.py), the camera's depth noise (rendered cameras only), the sha256
+    of the hand's model file (its geometry, masses and drive) and what the objects weigh in the
+    hand's scenes (its description's `object_mass`, dexdrake/objects/mass.py)."""
     hand = load_hand(s.hand)
     limits = target_limits(s, hand)
     overspeed = overspeed_limits(s, hand)
@@ -32,7 +34,8 @@ def scenario_record(s: Scenario) -> dict[str, Any]:
                                                          "window": overspeed[1].tolist()},
             "perception": dataclasses.asdict(s.perception),
             "depth_noise": s.drivers.camera.kind == "rendered" and s.drivers.camera.depth_noise,
-            "hand_model": file_hash(hand.model_path)}
+            "hand_model": file_hash(hand.model_path),
+            "object_mass": dataclasses.asdict(hand.object_mass)}
 
 
 def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
@@ -43,8 +46,8 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     warning lines to print: those overridden mismatches, and a difference in the target
     limits, the overspeed trip (a record without one was trained without it), the contact
     approximation (a record without one: "sap"), the perception model (which the policy
-    may tolerate; a record without one was trained on the exact pose) or the hand's model file
-    (where recorded)."""
+    may tolerate; a record without one was trained on the exact pose), the hand's model file
+    (where recorded) or the objects' masses (a record without them: the paper's 0.5 kg)."""
     run = scenario_record(s)
     hard = [f"{key} {trained[key] * 1e3:g} ms (this scenario: {run[key] * 1e3:g} ms)"
             for key in ("time_step", "control_period") if not math.isclose(trained[key], run[key], rel_tol=1e-9)]
@@ -74,4 +77,8 @@ def check_policy_scenario(trained: dict[str, Any], s: Scenario, checkpoint: str,
     if trained.get("hand_model", run["hand_model"]) != run["hand_model"]:
         warnings.append(f"warning: {checkpoint} was trained on another model of the {s.hand} hand (sha256 "
                         f"{trained['hand_model'][:12]}; its model file now: {run['hand_model'][:12]})")
+    masses = trained.get("object_mass", dataclasses.asdict(ObjectMass()))
+    if masses != run["object_mass"]:
+        warnings.append(f"warning: {checkpoint} was trained with other object masses ({masses}) than this "
+                        f"hand's scenes give them ({run['object_mass']})")
     return warnings

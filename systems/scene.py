@@ -242,7 +242,7 @@ def build_grasp_scene(scenario: Scenario, drive: JointDrive | None = None, desir
     if drive is not None:
         _set_drive(plant, hand_instance, hand, drive)
     _add_table(plant, TABLE_FRICTION)
-    object_instance = add_object(plant, info)
+    object_instance = add_object(plant, info, masses=hand.object_mass)
     plant.Finalize()
 
     # The object's watertight mesh serves distance queries only: keep it out of contact.

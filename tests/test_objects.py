@@ -70,7 +70,26 @@ def test_counts_and_splits_match_recipes():
     assert sorted(i.name for i in every) == shapes.recipe_names()
     for split, infos in splits.items():
         assert {i.name for i in infos} == set(shapes.recipe_names(split))
-    assert all(i.mass == 0.5 and i.friction == 1.0 for i in every)
+    assert all(i.mass() == 0.5 and i.friction == 1.0 for i in every)
+
+
+def test_an_object_weighs_its_volume_at_the_density_within_the_bounds_or_the_papers_half_kilo():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.objects.mass import PAPER_MASS, ObjectMass
+
+    model = load_hand("allegro_z1").object_mass
+    assert model == ObjectMass(density=500.0, min_kg=0.05, max_kg=0.5)
+    assert load_hand("adroit").object_mass == ObjectMass()
+    for name in ("bottle_water", "knife_small", "teapot", "sphere_medium"):
+        info = get_object(name)
+        volume = load_obj(info.mesh_path).volume
+        assert info.mass(model) == pytest.approx(min(max(500.0 * volume, 0.05), 0.5))
+        assert info.mass() == PAPER_MASS
+    assert get_object("knife_small").mass(model) == 0.05 and get_object("teapot").mass(model) == 0.5
+    assert 0.05 < get_object("bottle_water").mass(model) < 0.5
+    for bad in ({"density": 0.0}, {"min_kg": 0.6}, {"min_kg": -1.0}):
+        with pytest.raises(DexdrakeError, match="object_mass"):
+            ObjectMass(**bad)
 
 
 def test_unseen_and_validation_objects_share_no_builder_or_category_with_training_or_each_other():

@@ -126,6 +126,25 @@ def test_the_plant_uses_the_scenarios_contact_approximation_and_a_policy_records
     assert check_policy_scenario(unrecorded, hil, "p.pt") == []  # a record without one: sap
 
 
+def test_the_plant_weighs_the_object_as_the_hands_description_says_and_a_policy_records_it():
+    from dexdrake.hands.description import load_hand
+    from dexdrake.objects.library import get_object
+    from dexdrake.systems.scene import build_grasp_scene
+
+    for hand, name in (("allegro_z1", "knife_small"), ("allegro_z1", "bottle_water"), ("adroit", "bottle_water")):
+        scene = build_grasp_scene(training_scenario(hand, name))
+        body = scene.plant.GetBodyByName(name, scene.object_instance)
+        expected = get_object(name).mass(load_hand(hand).object_mass)
+        assert body.default_mass() == pytest.approx(expected), (hand, name)
+    assert scenario_record(training_scenario("adroit"))["object_mass"]["density"] is None  # the paper's 0.5 kg
+    hil = load_scenario("hil")
+    trained = scenario_record(hil)
+    assert trained["object_mass"]["density"] == 500.0
+    unrecorded = {k: v for k, v in trained.items() if k != "object_mass"}  # trained before masses: the paper's
+    (warning,) = check_policy_scenario(unrecorded, hil, "p.pt")
+    assert "p.pt was trained with other object masses" in warning and "'density': None" in warning
+
+
 def test_sim_runs_a_scenarios_station_from_any_folder(tmp_path, monkeypatch, capsys):
     from rrd_content import logged_rows
 

@@ -32,6 +32,9 @@ Schema (YAML):
                                      # and step_rotation: the move and turn from the measured palm
                                      # per action of 1 when commanded by palm steps
                                      # (dexdrake/hands/action_map.py)
+    object_mass: {density: kg/m^3, min_kg: kg, max_kg: kg}
+                                     # optional: what the objects of this hand's scenes weigh
+                                     # (dexdrake/objects/mass.py); absent: the paper's 0.5 kg
     include: FILE                    # optional: a part shared by several descriptions (beside
                                      # this file, not itself a hand); this file's keys are laid
                                      # over it, mappings (pregrasp, ...) merged key by key
@@ -47,6 +50,7 @@ import numpy as np
 import yaml
 
 from dexdrake.errors import DexdrakeError, UnknownNameError
+from dexdrake.objects.mass import ObjectMass
 from dexdrake.paths import models_dir
 
 
@@ -101,6 +105,7 @@ class HandDescription:
     grasp_script: dict[str, float] = field(default_factory=dict)
     grasp_expert: dict[str, float] = field(default_factory=dict)
     palm_pose_action: PalmPoseAction | None = None
+    object_mass: ObjectMass = ObjectMass()
 
     @property
     def model_path(self) -> Path:
@@ -153,6 +158,13 @@ def _palm_pose_action(d: dict) -> PalmPoseAction | None:
     return PalmPoseAction(lower, upper, float(box["rotation"]), step, step_rotation)
 
 
+def _object_mass(d: dict) -> ObjectMass:
+    entry = d.get("object_mass") or {}
+    if not isinstance(entry, dict) or set(entry) - {"density", "min_kg", "max_kg"}:
+        raise DexdrakeError(f"hand {d['name']!r}: object_mass takes density, min_kg and max_kg, got {entry!r}")
+    return ObjectMass(**{k: None if v is None else float(v) for k, v in entry.items()})
+
+
 def _from_dict(d: dict) -> HandDescription:
     arm = tuple(d.get("arm_joints") or ())
     policy = tuple(d["policy_joints"])
@@ -180,6 +192,7 @@ def _from_dict(d: dict) -> HandDescription:
         grasp_script=dict(d.get("grasp_script") or {}),
         grasp_expert=dict(d.get("grasp_expert") or {}),
         palm_pose_action=_palm_pose_action(d),
+        object_mass=_object_mass(d),
     )
 
 

@@ -3,7 +3,8 @@ dexdrake.objects.shapes) plus user-imported meshes and the augmented training ob
 
 Every object has a watertight, outward-wound mesh in its OBJECT FRAME (origin = centre of
 mass, z up, identity = a stable resting pose), convex pieces for contact and a Drake SDF.
-Mass 0.5 kg and friction 1 follow the DexRepNet experiment settings.
+Friction 1 follows the DexRepNet experiment settings; the mass is the scene's (objects/mass.py:
+the paper's 0.5 kg, or the hand description's `object_mass` model).
 
 Contact vs distance: the SDF's collision elements are the convex pieces, small support
 spheres in their corners (objects/support.py: a resting face gets several contact points),
@@ -26,6 +27,7 @@ import numpy as np
 from dexdrake.errors import DexdrakeError, DexdrakeWarning, UnknownNameError
 from dexdrake.objects import importer, store
 from dexdrake.objects.convex import cached_pieces, piece_files, pieces_key
+from dexdrake.objects.mass import ObjectMass
 from dexdrake.objects.meshfile import file_hash, inertia_about_com, load_obj
 from dexdrake.objects.sdf import DISTANCE_GEOMETRY_NAME, object_sdf
 from dexdrake.objects.support import SPHERE_RADIUS, support_centres
@@ -55,7 +57,6 @@ class ObjectInfo:
     mesh_path: Path
     extents: tuple[float, float, float]  # AABB size in the object frame (m)
     rest_height: float  # z of the origin when resting on the plane z = 0
-    mass: float = 0.5
     friction: float = 1.0
     content_hash: str = ""  # sha256 of mesh.obj: key for per-object caches
     derived_from: str = ""  # the training object an augmented object is grasped as (a copy: the one it scales)
@@ -74,13 +75,24 @@ class ObjectInfo:
         """Widths (m) of the horizontal footprint, resting pose, across 90 directions in [0, pi)."""
         return _footprint_widths(self.mesh_path, self.content_hash)
 
-    def sdf_text(self, model_name: str | None = None) -> str:
-        """The SDF text, with the model (and link) named `model_name` (default: the object name)."""
-        inertia = inertia_about_com(load_obj(self.mesh_path), self.mass)
+    def mass(self, model: ObjectMass = ObjectMass()) -> float:
+        """The object's mass (kg) under `model` (default: the paper's 0.5 kg)."""
+        return model.of(_volume(self.mesh_path, self.content_hash))
+
+    def sdf_text(self, model_name: str | None = None, masses: ObjectMass = ObjectMass()) -> str:
+        """The SDF text, with the model (and link) named `model_name` (default: the object name)
+        and the mass `masses` gives it."""
+        mass = self.mass(masses)
+        inertia = inertia_about_com(load_obj(self.mesh_path), mass)
         pieces = self.convex_pieces()
         supports = np.concatenate([support_centres(p) for p in pieces])
-        return object_sdf(model_name or self.name, self.mesh_path, pieces, self.mass, inertia, self.friction,
+        return object_sdf(model_name or self.name, self.mesh_path, pieces, mass, inertia, self.friction,
                           supports, SPHERE_RADIUS)
+
+
+@cache
+def _volume(mesh_path: Path, content_hash: str) -> float:
+    return float(load_obj(mesh_path).volume)
 
 
 @cache
@@ -231,8 +243,9 @@ def remove_user_object(name: str) -> None:
         shutil.rmtree(folder)
 
 
-def add_object(plant, info: ObjectInfo, name: str | None = None):
-    """Parse the object's SDF into `plant` as a free body; returns its ModelInstanceIndex.
+def add_object(plant, info: ObjectInfo, name: str | None = None, masses: ObjectMass = ObjectMass()):
+    """Parse the object's SDF into `plant` as a free body weighing what `masses` says; returns
+    its ModelInstanceIndex.
 
     `name` overrides the model (and body) name, to add the same object twice. Remember to
     call `exclude_distance_geometry_from_contact(scene_graph)` once the scene is complete.
@@ -242,7 +255,7 @@ def add_object(plant, info: ObjectInfo, name: str | None = None):
     model_name = name or info.name
     if plant.HasModelInstanceNamed(model_name):
         raise DexdrakeError(f"the plant already has a model named {model_name!r}; pass another name")
-    (instance,) = Parser(plant).AddModelsFromString(info.sdf_text(model_name), "sdf")
+    (instance,) = Parser(plant).AddModelsFromString(info.sdf_text(model_name, masses), "sdf")
     return instance
 
 

@@ -104,7 +104,8 @@ def cmd_table(args: argparse.Namespace) -> int:
              f"consecutive steps. Wall time {table.wall_s / 60:.1f} min with {workers} workers; ms = CPU time "
              "per controller call.",
              f"Scenario: training's (`training_scenario`: {1e3 * scenario.time_step:g} ms plant step, "
-             f"{1e3 * scenario.control_period:g} ms control period, the drivers' target limits); the expert's grasp "
+             f"{1e3 * scenario.control_period:g} ms control period, the drivers' target limits, object masses "
+             f"{load_hand(args.hand).object_mass.describe()}); the expert's grasp "
              f"variants: models/weights/{expert_grasps_path(args.hand).name} (none: the hand's default)."]
     print(table.markdown(heading, notes))
     if args.out:

@@ -28,6 +28,12 @@ class ObjectMass:
         if not 0 < self.min_kg <= self.max_kg:
             raise DexdrakeError(f"object_mass: needs 0 < min_kg <= max_kg, got {self.min_kg} and {self.max_kg}")
 
+    def describe(self) -> str:
+        """In words, for tables: "the paper's 0.5 kg" or the density and bounds."""
+        if self.density is None:
+            return f"the paper's {PAPER_MASS:g} kg"
+        return f"mesh volume x {self.density:g} kg/m^3, {self.min_kg:g} to {self.max_kg:g} kg"
+
     def of(self, volume: float) -> float:
         """The mass (kg) of an object whose mesh encloses `volume` (m^3)."""
         if self.density is None:

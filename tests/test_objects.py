@@ -90,6 +90,11 @@ def test_an_object_weighs_its_volume_at_the_density_within_the_bounds_or_the_pap
     for bad in ({"density": 0.0}, {"min_kg": 0.6}, {"min_kg": -1.0}):
         with pytest.raises(DexdrakeError, match="object_mass"):
             ObjectMass(**bad)
+    from dexdrake.hands.description import _object_mass
+
+    for bad in ({"density": "heavy"}, {"weight": 1.0}, [500]):
+        with pytest.raises(DexdrakeError, match="hand 'h': object_mass takes the numbers"):
+            _object_mass({"name": "h", "object_mass": bad})
 
 
 def test_unseen_and_validation_objects_share_no_builder_or_category_with_training_or_each_other():

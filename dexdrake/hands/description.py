@@ -160,8 +160,11 @@ def _palm_pose_action(d: dict) -> PalmPoseAction | None:
 
 def _object_mass(d: dict) -> ObjectMass:
     entry = d.get("object_mass") or {}
-    if not isinstance(entry, dict) or set(entry) - {"density", "min_kg", "max_kg"}:
-        raise DexdrakeError(f"hand {d['name']!r}: object_mass takes density, min_kg and max_kg, got {entry!r}")
+    numbers = isinstance(entry, dict) and all(isinstance(v, (int, float)) or (k == "density" and v is None)
+                                              for k, v in entry.items())
+    if not numbers or set(entry) - {"density", "min_kg", "max_kg"}:
+        raise DexdrakeError(f"hand {d['name']!r}: object_mass takes the numbers density, min_kg and max_kg, "
+                            f"got {entry!r}")
     return ObjectMass(**{k: None if v is None else float(v) for k, v in entry.items()})
 
 
